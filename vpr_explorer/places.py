@@ -1,0 +1,139 @@
+"""Group-and-step: frames become places (DESIGN.md §1).
+
+Two readings of the paper are offered side by side:
+
+* ``stride`` (default; the authors' code and the paper's numbers): place k covers frames
+  ``[k*step, k*step + group)``, so ``step - group`` frames are skipped between places.
+  GardensPoint (200 frames), group 3, step 10 -> 20 places.
+* ``skip`` (the paper's text, "take 3, skip the next 10"): place k covers frames
+  ``[k*(group+step), k*(group+step) + group)``. GardensPoint, 3/10 -> 16 places.
+
+A trailing place with fewer than ``group`` frames is dropped, so every place holds the
+same number of frames. Changing group/step only relabels images: descriptors are per
+image and are never recomputed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import StrEnum
+
+import numpy as np
+
+from vpr_explorer.datasets import Dataset
+from vpr_explorer.errors import VPRInputError
+
+
+class Reading(StrEnum):
+    """How ``step`` is read."""
+
+    STRIDE = "stride"
+    SKIP = "skip"
+
+
+READING_LABELS = {
+    Reading.STRIDE: "stride: a place starts every `step` frames (authors' code, paper's numbers)",
+    Reading.SKIP: "skip: take `group` frames, skip the next `step` (paper's text)",
+}
+
+
+@dataclass(frozen=True)
+class PlaceSpec:
+    """``group`` consecutive frames make a place; ``step`` spaces places (see ``Reading``)."""
+
+    group: int
+    step: int
+    reading: Reading = Reading.STRIDE
+
+    def __post_init__(self) -> None:
+        for name in ("group", "step"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise VPRInputError(f"{name}={value!r}: must be a whole number of frames, 1 or more")
+        object.__setattr__(self, "reading", Reading(self.reading))
+        if self.reading is Reading.SKIP and self.step < 1:
+            raise VPRInputError(f"step={self.step}: must be 1 or more")
+        if self.reading is Reading.STRIDE and self.step < self.group:
+            raise VPRInputError(
+                f"step={self.step} < group={self.group}: in the stride reading places would overlap; "
+                f"set step >= {self.group}, or use the skip reading"
+            )
+
+    @property
+    def period(self) -> int:
+        """Frames from the start of one place to the start of the next."""
+        return self.step if self.reading is Reading.STRIDE else self.group + self.step
+
+    def describe(self) -> str:
+        return f"group {self.group}, step {self.step} ({self.reading.value} reading)"
+
+
+def frame_places(n_frames: int, spec: PlaceSpec) -> np.ndarray:
+    """``(n_frames,)`` place id of each frame, ``-1`` for frames between places."""
+    frames = np.arange(n_frames)
+    k, offset = np.divmod(frames, spec.period)
+    complete = k * spec.period + spec.group <= n_frames
+    return np.where((offset < spec.group) & complete, k, -1).astype(np.int64)
+
+
+@dataclass(frozen=True, eq=False)
+class Places:
+    """The place of every frame and image of a dataset.
+
+    Attributes:
+        frame_place: ``(n_frames,)`` place id, ``-1`` where a frame is skipped.
+        image_place: ``(n_images,)`` place id of each image (its frame's), ``-1`` if skipped.
+        n_places: number of places (ids ``0..n_places-1``).
+        spec: the group/step that made them; ``None`` for prepared places.
+    """
+
+    frame_place: np.ndarray
+    image_place: np.ndarray
+    n_places: int
+    spec: PlaceSpec | None
+
+    def __post_init__(self) -> None:
+        self.frame_place.setflags(write=False)
+        self.image_place.setflags(write=False)
+
+    @property
+    def images_per_place(self) -> np.ndarray:
+        """``(n_places,)`` image count of each place."""
+        return np.bincount(self.image_place[self.image_place >= 0], minlength=self.n_places)
+
+    def frames_of(self, place: int) -> np.ndarray:
+        return np.flatnonzero(self.frame_place == place)
+
+    def images_of(self, place: int) -> np.ndarray:
+        return np.flatnonzero(self.image_place == place)
+
+    def describe(self) -> str:
+        how = self.spec.describe() if self.spec else "places fixed by file names"
+        counts = np.unique(self.images_per_place)
+        per = str(counts[0]) if len(counts) == 1 else f"{counts.min()}-{counts.max()}"
+        return f"{self.n_places} places × {per} images ({how})"
+
+
+def make_places(dataset: Dataset, spec: PlaceSpec | None) -> Places:
+    """Label every image of ``dataset`` with its place.
+
+    ``spec`` is ignored (may be ``None``) for prepared datasets, whose names fix the places.
+    Raises ``VPRInputError`` when fewer than two places result: negative statistics need
+    at least one other place.
+    """
+    if dataset.prepared_places is not None:
+        frame_place = np.asarray(dataset.prepared_places, dtype=np.int64).copy()
+        spec = None
+    else:
+        if spec is None:
+            raise VPRInputError("group/step missing: give a PlaceSpec(group, step) for a traversal-folder dataset")
+        frame_place = frame_places(dataset.n_frames, spec)
+    n_places = int(frame_place.max()) + 1 if (frame_place >= 0).any() else 0
+    if n_places < 2:
+        what = spec.describe() if spec else "the file names"
+        raise VPRInputError(
+            f"{what} leaves {n_places} place(s) in {dataset.n_frames} frames of {dataset.name!r}: "
+            "negative statistics need at least 2 places; lower group or step"
+        )
+    image_place = np.tile(frame_place, dataset.n_traversals)
+    return Places(frame_place=frame_place, image_place=image_place, n_places=n_places, spec=spec)
