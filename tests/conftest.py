@@ -1,0 +1,77 @@
+"""Shared fixtures: the real datasets (through VPR_EXPLORER_DATA) and an isolated cache.
+
+Real-data tests skip with a clear reason when ``VPR_EXPLORER_DATA`` is unset; ``.ci/run``
+sets it, and passes ``--require-data`` so that such a skip fails CI instead.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+from vpr_explorer.settings import CACHE_ENV, DATA_ENV
+
+
+def pytest_addoption(parser):
+    parser.addoption("--require-data", action="store_true",
+                     help="fail (do not skip) tests that need VPR_EXPLORER_DATA")
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "realdata: needs VPR_EXPLORER_DATA")
+
+
+@pytest.fixture(scope="session", autouse=True)
+def isolated_cache(tmp_path_factory) -> Path:
+    """One descriptor cache for the whole session, never the user's ~/.cache.
+
+    Set in the environment so that streamlit servers the tests start share it.
+    """
+    root = tmp_path_factory.mktemp("vpr_cache")
+    old = os.environ.get(CACHE_ENV)
+    os.environ[CACHE_ENV] = str(root)
+    yield root
+    if old is None:
+        os.environ.pop(CACHE_ENV, None)
+    else:
+        os.environ[CACHE_ENV] = old
+
+
+@pytest.fixture(scope="session")
+def data_root(request) -> Path:
+    """The real-datasets folder; skips (or fails under --require-data) when it is not set."""
+    value = os.environ.get(DATA_ENV)
+    if not value:
+        msg = f"{DATA_ENV} is not set: point it at the shared datasets folder (e.g. ../shared/datasets) to run real-data tests"
+        if request.config.getoption("--require-data"):
+            pytest.fail(msg)
+        pytest.skip(msg)
+    root = Path(value).expanduser()
+    if not (root / "GardensPointWalking").is_dir():
+        pytest.fail(f"{DATA_ENV}={root} holds no GardensPointWalking/ folder")
+    return root
+
+
+@pytest.fixture(scope="session")
+def gardens_point(data_root):
+    from vpr_explorer.datasets import load_dataset
+
+    return load_dataset(data_root / "GardensPointWalking")
+
+
+@pytest.fixture(scope="session")
+def gp_pixels(gardens_point):
+    """``(600, 2048)`` pixel descriptors of GardensPoint (cached for the session)."""
+    from vpr_explorer.pipeline import dataset_descriptors
+
+    return dataset_descriptors(gardens_point, "pixels")
+
+
+@pytest.fixture(scope="session")
+def gp_effnet(gardens_point):
+    """``(600, 1280)`` efficientnet-lite0 descriptors of GardensPoint (cached for the session)."""
+    from vpr_explorer.pipeline import dataset_descriptors
+
+    return dataset_descriptors(gardens_point, "efficientnet-lite0")

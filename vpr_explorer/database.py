@@ -1,0 +1,174 @@
+"""A database with its per-place thresholds, and the decisions for queries against it.
+
+What the app's inspector and the rerun recorder share: choose database traversals, fit
+the negative statistics and thresholds on their images only, then decide any query frame
+(of another traversal) under every method. Pure functions over arrays.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from vpr_explorer.datasets import Dataset
+from vpr_explorer.errors import VPRInputError
+from vpr_explorer.evaluation import query_truth
+from vpr_explorer.places import Places
+from vpr_explorer.retrieval import Outcome, QueryDecision, decide, place_scores, score_queries, similarity
+from vpr_explorer.stats import NegativeStats, mixture_moments, negative_stats, positive_means
+from vpr_explorer.thresholds import (
+    ThresholdMethod,
+    adaptive_k,
+    auto_global_threshold,
+    place_thresholds,
+    training_pair_scores,
+)
+
+
+@dataclass(frozen=True, eq=False)
+class DatabaseModel:
+    """Database images with their places, negative statistics and thresholds.
+
+    Attributes:
+        images: ``(n_db,)`` image indices (into the dataset) of the database.
+        places: ``(n_db,)`` place of each database image.
+        traversals: database traversal indices.
+        stats: negative statistics of the database images.
+        theta: ``{"simple": (P,), "weighted": (P,)}`` the paper's θ_p (k = 0).
+        spread: ``(P,)`` s_p, standard deviation of each place's mixture.
+        negative_mean: ``(P,)`` mean of each place's mixture.
+        positive_mean: ``(P,)`` mean same-place score (NaN for a single-image place).
+        auto: the automatic global threshold.
+    """
+
+    images: np.ndarray
+    places: np.ndarray
+    traversals: tuple[int, ...]
+    n_places: int
+    stats: NegativeStats
+    theta: dict[str, np.ndarray]
+    spread: np.ndarray
+    negative_mean: np.ndarray
+    positive_mean: np.ndarray
+    auto: float
+
+    def thresholds(self, k: float = 0.0, user_theta: float | None = None) -> dict[str, np.ndarray | float]:
+        """Threshold mapping for ``retrieval``: θ_p(k) = θ_p + k·s_p, the automatic and user global θ."""
+        th: dict[str, np.ndarray | float] = {name: t + k * self.spread for name, t in self.theta.items()}
+        th["auto"] = self.auto
+        if user_theta is not None:
+            th["user"] = float(user_theta)
+        return th
+
+    @property
+    def k_adaptive(self) -> np.ndarray:
+        """Per-place k = clip((μ⁺ − μ⁻)/(2σ⁻), 1, 2)."""
+        return adaptive_k(self.positive_mean, self.negative_mean, self.spread)
+
+
+def fit_database(
+    descriptors: np.ndarray, dataset: Dataset, places: Places, traversals: Sequence[str | int]
+) -> DatabaseModel:
+    """Fit thresholds on the images of ``traversals`` that belong to a place."""
+    trav = tuple(dataset.traversal_index(t) for t in traversals)
+    if not trav:
+        raise VPRInputError("database: choose at least one database traversal")
+    images = np.flatnonzero(np.isin(dataset.image_traversal, trav) & (places.image_place >= 0))
+    labels = places.image_place[images]
+    d = np.asarray(descriptors)[images]
+    stats = negative_stats(d, labels, places.n_places)
+    neg_mean, spread = mixture_moments(stats)
+    return DatabaseModel(
+        images=images, places=labels, traversals=trav, n_places=places.n_places, stats=stats,
+        theta={m.value: place_thresholds(stats, m) for m in ThresholdMethod},
+        spread=spread, negative_mean=neg_mean, positive_mean=positive_means(d, labels, places.n_places),
+        auto=auto_global_threshold(training_pair_scores(d)),
+    )
+
+
+def query_places(dataset: Dataset, places: Places, query_images: np.ndarray, tolerance: int = 0) -> np.ndarray:
+    """``(n_queries, n_places)`` bool: the right places of each query image (frames within ``tolerance``)."""
+    return query_truth(dataset.image_frame[np.asarray(query_images)], places.frame_place, tolerance)
+
+
+def explain_query(
+    model: DatabaseModel,
+    descriptors: np.ndarray,
+    dataset: Dataset,
+    places: Places,
+    query_image: int,
+    *,
+    k: float = 0.0,
+    user_theta: float | None = None,
+    tolerance: int = 0,
+) -> QueryDecision:
+    """The decision record of one query image against the database, under every method."""
+    if dataset.image_traversal[query_image] in model.traversals:
+        raise VPRInputError(
+            f"query traversal {dataset.traversals[dataset.image_traversal[query_image]]!r} is in the database; "
+            "pick a query from another traversal or change the database"
+        )
+    sims = similarity(np.asarray(descriptors)[[query_image]], np.asarray(descriptors)[model.images])[0]
+    truth = query_places(dataset, places, np.array([query_image]), tolerance)[0]
+    return decide(sims, model.places, model.n_places, model.thresholds(k, user_theta), np.flatnonzero(truth))
+
+
+@dataclass(frozen=True, eq=False)
+class TraversalDecisions:
+    """Every frame of a query traversal decided against a database.
+
+    Attributes:
+        query_images: ``(n_frames,)`` image index of each query frame.
+        truth: ``(n_frames, n_places)`` right places of each frame (none between places).
+        raw: ``(n_frames, n_places)`` raw_p.
+        best: ``(n_frames, n_places)`` database image (index into ``model.images``) attaining raw_p.
+        outcomes: method key -> ``Outcome`` over the frames.
+        thresholds: the threshold mapping used.
+    """
+
+    query_images: np.ndarray
+    truth: np.ndarray
+    raw: np.ndarray
+    best: np.ndarray
+    outcomes: dict[str, Outcome]
+    thresholds: dict[str, np.ndarray | float]
+
+
+def decide_traversal(
+    model: DatabaseModel,
+    descriptors: np.ndarray,
+    dataset: Dataset,
+    places: Places,
+    query_traversal: str | int,
+    *,
+    k: float = 0.0,
+    user_theta: float | None = None,
+    tolerance: int = 0,
+    block: int = 4096,
+) -> TraversalDecisions:
+    """Decide every frame of ``query_traversal``; similarities computed in blocks of frames."""
+    q = dataset.traversal_index(query_traversal)
+    if q in model.traversals:
+        raise VPRInputError(f"queries={dataset.traversals[q]!r} is also a database traversal; pick another")
+    qi = np.flatnonzero(dataset.image_traversal == q)
+    truth = query_places(dataset, places, qi, tolerance)
+    th = model.thresholds(k, user_theta)
+    d = np.asarray(descriptors)
+    db = d[model.images]
+    parts_raw, parts_best, parts_out = [], [], []
+    for lo in range(0, len(qi), block):
+        sims = similarity(d[qi[lo:lo + block]], db)
+        raw, best = place_scores(sims, model.places, model.n_places)
+        parts_raw.append(raw)
+        parts_best.append(best)
+        parts_out.append(score_queries(sims, model.places, model.n_places, th, truth[lo:lo + block]))
+    outcomes = {
+        key: Outcome(
+            method=parts_out[0][key].method,
+            **{f: np.concatenate([getattr(p[key], f) for p in parts_out]) for f in ("rank", "answer_place", "answer_image", "n_kept")},
+        )
+        for key in parts_out[0]
+    }
+    return TraversalDecisions(qi, truth, np.concatenate(parts_raw), np.concatenate(parts_best), outcomes, th)

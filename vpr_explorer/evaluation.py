@@ -1,0 +1,562 @@
+"""Evaluation protocols (DESIGN.md §4): paper (closed set), traversal, open set.
+
+* **paper**: R seeded random splits; in each, one image per place is the query and the rest
+  train; thresholds come from that split's training images only (a query never influences
+  its own threshold); Recall@K as mean ± std over splits. ``cross_condition`` scores each
+  query only against database images of other traversals, and every method reports the
+  share of its accepted top-1 matches that come from the query's own traversal.
+* **traversal**: database traversal(s) against a query traversal; thresholds from the
+  database only; one deterministic run.
+* **open set**: as the paper protocol, but a share of places is held out of the database
+  entirely; one image of each such place is a query that must be rejected. Reports the
+  unknown-place rejection rate beside known-place Recall@1 and the precision of accepted
+  matches, over the threshold family θ_p(k) = θ_p + k·s_p and a sweep of global θ.
+
+All functions are pure: descriptors and labels in, a frozen ``Evaluation`` out.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from enum import StrEnum
+
+import numpy as np
+
+from vpr_explorer.errors import VPRInputError
+from vpr_explorer.retrieval import (
+    METHODS_BY_KEY,
+    Method,
+    Outcome,
+    Rule,
+    pessimistic_rank,
+    place_scores,
+    ranking_scores,
+    score_queries,
+    similarity,
+    top_answer,
+)
+from vpr_explorer.stats import mixture_moments, negative_stats, positive_means, validate_descriptors
+from vpr_explorer.thresholds import (
+    ThresholdMethod,
+    adaptive_k,
+    auto_global_threshold,
+    mixture_spread,
+    place_thresholds,
+    threshold_family,
+    training_pair_scores,
+)
+
+KS = (1, 3, 5, 10)
+K_GRID = (-1.0, -0.5, 0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
+Progress = Callable[[int, int, str], None]
+
+
+class Protocol(StrEnum):
+    PAPER = "paper"
+    TRAVERSAL = "traversal"
+    OPEN_SET = "open-set"
+
+
+PROTOCOL_LABELS = {
+    Protocol.PAPER: "paper: R random splits, one query image per place (closed set)",
+    Protocol.TRAVERSAL: "traversal: a database traversal against a query traversal",
+    Protocol.OPEN_SET: "open set: a share of places held out; their queries must be rejected",
+}
+
+Stat = tuple[float, float]  # (mean, std) over runs
+
+
+def _mean_std(values: Sequence[float]) -> Stat:
+    a = np.asarray(values, dtype=np.float64)
+    a = a[np.isfinite(a)]
+    if a.size == 0:
+        return (float("nan"), float("nan"))
+    return (float(a.mean()), float(a.std()))
+
+
+@dataclass(frozen=True)
+class MethodRow:
+    """One method's numbers, each ``(mean, std)`` over runs; rates in [0, 1]."""
+
+    key: str
+    label: str
+    source: str
+    recall: dict[int, Stat]
+    accepted: Stat
+    precision: Stat
+    own_traversal: Stat | None = None
+    unknown_rejection: Stat | None = None
+
+
+@dataclass(frozen=True)
+class TradeoffRow:
+    """One point of the open-set trade-off curve.
+
+    ``series`` is ``"θ_p(k) simple"``, ``"θ_p(k) weighted"``, ``"adaptive k weighted"`` …, or
+    ``"global θ"``; ``param`` is k or the global θ.
+    """
+
+    series: str
+    rule: str
+    param: float
+    known_recall1: Stat
+    unknown_rejection: Stat
+    precision: Stat
+    accepted: Stat
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """The result of one protocol run."""
+
+    protocol: Protocol
+    settings: dict
+    ks: tuple[int, ...]
+    rows: tuple[MethodRow, ...]
+    tradeoff: tuple[TradeoffRow, ...] = ()
+    notes: tuple[str, ...] = ()
+    seconds: float = 0.0
+    runs_detail: dict = field(default_factory=dict)
+
+    def row(self, key: str) -> MethodRow:
+        return next(r for r in self.rows if r.key == key)
+
+    def to_dict(self) -> dict:
+        """JSON-ready numbers (rates in [0, 1])."""
+        def stat(s):
+            return None if s is None else {"mean": s[0], "std": s[1]}
+
+        return {
+            "protocol": self.protocol.value,
+            "settings": self.settings,
+            "ks": list(self.ks),
+            "seconds": self.seconds,
+            "methods": [
+                {
+                    "key": r.key, "label": r.label, "source": r.source,
+                    "recall": {str(k): stat(v) for k, v in r.recall.items()},
+                    "accepted": stat(r.accepted), "precision": stat(r.precision),
+                    "own_traversal_top1": stat(r.own_traversal), "unknown_rejection": stat(r.unknown_rejection),
+                }
+                for r in self.rows
+            ],
+            "tradeoff": [
+                {**{k: v for k, v in asdict(t).items() if not isinstance(v, tuple)},
+                 **{k: stat(v) for k, v in asdict(t).items() if isinstance(v, tuple)}}
+                for t in self.tradeoff
+            ],
+            "notes": list(self.notes),
+            **({"runs_detail": self.runs_detail} if self.runs_detail else {}),
+        }
+
+
+# --------------------------------------------------------------------------- split core
+
+
+@dataclass(frozen=True, eq=False)
+class SplitScores:
+    """Everything one split produced, for the summaries and the trade-off curve."""
+
+    outcomes: dict[str, Outcome]
+    raw: np.ndarray  # (nq, P)
+    best: np.ndarray  # (nq, P)
+    correct: np.ndarray  # (nq, P)
+    known: np.ndarray  # (nq,)
+    query_traversal: np.ndarray  # (nq,)
+    train_traversal: np.ndarray  # (n_train,)
+    thresholds: dict[str, np.ndarray | float]
+    spread: np.ndarray  # (P,) s_p
+    k_adaptive: np.ndarray  # (P,)
+
+
+def oracle_global_threshold(top_raw: np.ndarray, right_if_accepted: np.ndarray, known: np.ndarray) -> float:
+    """The single θ that makes the most queries right, knowing the answers (an oracle).
+
+    A query is right when it is known, accepted and its top place is right, or unknown and
+    rejected; it is accepted when its top raw score is >= θ. The smallest best θ is returned.
+    """
+    order = np.argsort(top_raw, kind="stable")
+    v = top_raw[order]
+    good_acc = (known & right_if_accepted)[order].astype(np.int64)
+    good_rej = (~known)[order].astype(np.int64)
+    n = len(v)
+    rej_before = np.r_[0, np.cumsum(good_rej)]  # rejected = indices < j
+    acc_from = np.r_[np.cumsum(good_acc[::-1])[::-1], 0]  # accepted = indices >= j
+    starts = np.r_[np.flatnonzero(np.r_[True, v[1:] != v[:-1]]), n]
+    score = rej_before[starts] + acc_from[starts]
+    j = starts[int(np.argmax(score))]
+    return float(v[j]) if j < n else float(np.nextafter(v[-1], np.inf))
+
+
+def _thresholds(d_train, lab_train, n_places, *, user_theta, seed):
+    stats = negative_stats(d_train, lab_train, n_places)
+    th: dict[str, np.ndarray | float] = {
+        ThresholdMethod.SIMPLE.value: place_thresholds(stats, ThresholdMethod.SIMPLE),
+        ThresholdMethod.WEIGHTED.value: place_thresholds(stats, ThresholdMethod.WEIGHTED),
+        "auto": auto_global_threshold(training_pair_scores(d_train, seed=seed)),
+    }
+    if user_theta is not None:
+        th["user"] = float(user_theta)
+    neg_mean, spread = mixture_moments(stats)
+    k_ad = adaptive_k(positive_means(d_train, lab_train, n_places), neg_mean, spread)
+    return th, mixture_spread(stats), k_ad
+
+
+def run_split(
+    d_train: np.ndarray,
+    lab_train: np.ndarray,
+    trav_train: np.ndarray,
+    sims: np.ndarray,
+    correct: np.ndarray,
+    trav_query: np.ndarray,
+    n_places: int,
+    *,
+    cross_condition: bool = False,
+    user_theta: float | None = None,
+    seed: int = 0,
+) -> SplitScores:
+    """Thresholds from the training images, then every method on the queries.
+
+    Args:
+        d_train: ``(n_train, D)`` training descriptors; lab_train, trav_train their places and traversals.
+        sims: ``(n_queries, n_train)`` query-to-training similarities.
+        correct: ``(n_queries, n_places)`` bool, each query's right places; a row with none is a
+            query of an unknown place.
+        trav_query: ``(n_queries,)`` each query's traversal.
+        cross_condition: score each query only against training images of other traversals.
+    """
+    th, spread, k_ad = _thresholds(d_train, lab_train, n_places, user_theta=user_theta, seed=seed)
+    sims = np.array(sims, dtype=np.float64)
+    if cross_condition:
+        sims[trav_query[:, None] == trav_train[None, :]] = -np.inf
+    known = correct.any(axis=1)
+    outcomes = score_queries(sims, lab_train, n_places, th, correct)
+    raw, best = place_scores(sims, lab_train, n_places)
+    base = outcomes["place-baseline"]
+    th["oracle"] = oracle_global_threshold(raw.max(axis=1), base.rank == 1, known)
+    outcomes.update(score_queries(sims, lab_train, n_places, th, correct, (METHODS_BY_KEY["global-oracle"],)))
+    return SplitScores(outcomes, raw, best, correct, known, trav_query, trav_train, th, spread, k_ad)
+
+
+def _place_outcome(raw, best, theta, rule: Rule, correct) -> Outcome:
+    """A place-level method with an arbitrary θ, from precomputed raw scores."""
+    scores = ranking_scores(raw, theta, rule)
+    place = top_answer(scores)
+    img = np.where(place >= 0, best[np.arange(len(raw)), np.maximum(place, 0)], -1)
+    method = Method("custom", "custom", "place", rule, "custom", "")
+    return Outcome(method, pessimistic_rank(scores, correct), place, img, np.isfinite(scores).sum(axis=1))
+
+
+# --------------------------------------------------------------------------- summaries
+
+
+def _rates(o: Outcome, known: np.ndarray) -> dict[str, float]:
+    acc = o.accepted
+    right = o.right & known
+    return {
+        "known_recall1": float(right[known].mean()) if known.any() else np.nan,
+        "unknown_rejection": float((~acc[~known]).mean()) if (~known).any() else np.nan,
+        "precision": float(right.sum() / acc.sum()) if acc.any() else np.nan,
+        "accepted": float(acc.mean()),
+    }
+
+
+def _summarise(splits: list[SplitScores], ks: tuple[int, ...], *, own_traversal: bool) -> tuple[MethodRow, ...]:
+    rows = []
+    for key in splits[0].outcomes:
+        m = METHODS_BY_KEY[key]
+        per = {k: [] for k in ks}
+        acc, prec, own, rej = [], [], [], []
+        for s in splits:
+            o = s.outcomes[key]
+            r = _rates(o, s.known)
+            for k in ks:
+                per[k].append(float((o.rank[s.known] <= k).mean()) if s.known.any() else np.nan)
+            acc.append(r["accepted"])
+            prec.append(r["precision"])
+            rej.append(r["unknown_rejection"])
+            ok = o.accepted & (o.answer_image >= 0)
+            own.append(float((s.train_traversal[o.answer_image[ok]] == s.query_traversal[ok]).mean()) if ok.any() else np.nan)
+        has_unknown = any((~s.known).any() for s in splits)
+        rows.append(MethodRow(
+            key=key, label=m.label, source=m.source,
+            recall={k: _mean_std(v) for k, v in per.items()},
+            accepted=_mean_std(acc), precision=_mean_std(prec),
+            own_traversal=_mean_std(own) if own_traversal else None,
+            unknown_rejection=_mean_std(rej) if has_unknown else None,
+        ))
+    return tuple(rows)
+
+
+def _tradeoff(splits: list[SplitScores], k_grid: Sequence[float]) -> tuple[TradeoffRow, ...]:
+    rows: list[TradeoffRow] = []
+
+    def add(series, rule, param, outcomes):
+        rates = [_rates(o, s.known) for o, s in zip(outcomes, splits)]
+        rows.append(TradeoffRow(
+            series=series, rule=rule.value, param=float(param),
+            **{name: _mean_std([r[name] for r in rates]) for name in ("known_recall1", "unknown_rejection", "precision", "accepted")},
+        ))
+
+    for base in (ThresholdMethod.SIMPLE, ThresholdMethod.WEIGHTED):
+        for rule in (Rule.MARGIN, Rule.RAW):
+            for k in k_grid:
+                add(f"θ_p(k) {base.value}", rule, k, [
+                    _place_outcome(s.raw, s.best, threshold_family(s.thresholds[base.value], s.spread, k), rule, s.correct)
+                    for s in splits
+                ])
+            add(f"adaptive k {base.value}", rule, np.nan, [
+                _place_outcome(s.raw, s.best, s.thresholds[base.value] + s.k_adaptive * s.spread, rule, s.correct)
+                for s in splits
+            ])
+    top = np.concatenate([s.raw.max(axis=1) for s in splits])
+    grid = np.unique(np.round(np.quantile(top[np.isfinite(top)], np.linspace(0, 1, 21)), 4))
+    for theta in grid:
+        add("global θ", Rule.RAW, theta, [_place_outcome(s.raw, s.best, theta, Rule.RAW, s.correct) for s in splits])
+    for key, series in (("auto", "global θ, automatic"), ("oracle", "global θ, oracle")):
+        add(series, Rule.RAW, np.mean([s.thresholds[key] for s in splits]), [
+            _place_outcome(s.raw, s.best, s.thresholds[key], Rule.RAW, s.correct) for s in splits
+        ])
+    return tuple(rows)
+
+
+# --------------------------------------------------------------------------- protocols
+
+
+def _check_common(descriptors, image_place, image_traversal, runs=1, ks=KS):
+    d = validate_descriptors(descriptors)
+    image_place = np.asarray(image_place)
+    image_traversal = np.asarray(image_traversal)
+    if image_place.shape != (len(d),) or image_traversal.shape != (len(d),):
+        raise VPRInputError(
+            f"descriptors have {len(d)} rows but {image_place.shape} place labels and {image_traversal.shape} traversal labels"
+        )
+    if isinstance(runs, bool) or not isinstance(runs, (int, np.integer)) or runs < 1:
+        raise VPRInputError(f"runs={runs!r}: must be a whole number, 1 or more")
+    ks = tuple(int(k) for k in ks)
+    if not ks or min(ks) < 1:
+        raise VPRInputError(f"ks={ks}: Recall@K needs K >= 1")
+    return d, image_place, image_traversal, ks
+
+
+def _members(image_place: np.ndarray, n_places: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Images sorted by place with each place's start and size."""
+    labelled = np.flatnonzero(image_place >= 0)
+    order = labelled[np.argsort(image_place[labelled], kind="stable")]
+    sizes = np.bincount(image_place[labelled], minlength=n_places)
+    starts = np.r_[0, np.cumsum(sizes)[:-1]]
+    return order, starts, sizes
+
+
+def _require_two_per_place(sizes: np.ndarray, places: np.ndarray) -> None:
+    few = places[sizes[places] < 2]
+    if len(few):
+        raise VPRInputError(
+            f"place(s) {', '.join(map(str, few[:5]))}{' …' if len(few) > 5 else ''} have a single image: the paper "
+            "protocol holds one image out as the query and needs another to train; raise group or add traversals"
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class Split:
+    """One random split: query images (one per place), training images, unknown places."""
+
+    queries: np.ndarray  # (n_queries,) image indices
+    train: np.ndarray  # (n_train,) image indices
+    unknown: np.ndarray  # (n_places,) bool, places held out of the database
+
+
+def draw_splits(
+    image_place: np.ndarray, n_places: int, *, runs: int, seed: int, unknown_share: float | None = None
+) -> list[Split]:
+    """Seeded splits: each place gives one random query image; the rest train.
+
+    With ``unknown_share``, that share of places (at least 1, leaving at least 2 known) is
+    held out: their query stays, their other images leave the training set.
+    """
+    order, starts, sizes = _members(image_place, n_places)
+    places = np.flatnonzero(sizes > 0)
+    _require_two_per_place(sizes, places)
+    if len(places) < 2:
+        raise VPRInputError("the paper protocol needs at least 2 places")
+    n_unknown = 0
+    if unknown_share is not None:
+        if not 0 < unknown_share < 1:
+            raise VPRInputError(f"unknown share {unknown_share!r}: must be between 0 and 1 (e.g. 0.3)")
+        if len(places) < 3:
+            raise VPRInputError(f"{len(places)} places: the open set needs at least 3 (2 known, 1 unknown)")
+        n_unknown = int(np.clip(round(unknown_share * len(places)), 1, len(places) - 2))
+    labelled = image_place >= 0
+    splits = []
+    for ss in np.random.SeedSequence(seed).spawn(runs):
+        rng = np.random.default_rng(ss)
+        pick = order[starts[places] + (rng.random(len(places)) * sizes[places]).astype(np.int64)]
+        unknown = np.zeros(n_places, dtype=bool)
+        if n_unknown:
+            unknown[rng.choice(places, n_unknown, replace=False)] = True
+        train_mask = labelled & ~unknown[np.maximum(image_place, 0)]
+        train_mask[pick] = False
+        splits.append(Split(queries=pick, train=np.flatnonzero(train_mask), unknown=unknown))
+    return splits
+
+
+def _pooled_splits(d, image_place, image_traversal, n_places, *, runs, seed, unknown_share, cross_condition,
+                   user_theta, progress) -> list[SplitScores]:
+    if cross_condition and len(np.unique(image_traversal[image_place >= 0])) < 2:
+        raise VPRInputError("cross_condition needs at least 2 traversals")
+    splits = draw_splits(image_place, n_places, runs=runs, seed=seed, unknown_share=unknown_share)
+    full = similarity(d, d) if len(d) <= 8000 else None
+    out = []
+    for r, sp in enumerate(splits):
+        pick, train = sp.queries, sp.train
+        sims = full[np.ix_(pick, train)] if full is not None else similarity(d[pick], d[train])
+        correct = np.zeros((len(pick), n_places), dtype=bool)
+        known = ~sp.unknown[image_place[pick]]
+        correct[np.flatnonzero(known), image_place[pick][known]] = True
+        out.append(run_split(
+            d[train], image_place[train], image_traversal[train], sims, correct, image_traversal[pick], n_places,
+            cross_condition=cross_condition, user_theta=user_theta, seed=seed + r,
+        ))
+        if progress:
+            progress(r + 1, runs, f"split {r + 1}/{runs}")
+    return out
+
+
+def paper_protocol(
+    descriptors: np.ndarray,
+    image_place: np.ndarray,
+    image_traversal: np.ndarray,
+    n_places: int,
+    *,
+    runs: int = 50,
+    seed: int = 0,
+    cross_condition: bool = False,
+    user_theta: float | None = None,
+    ks: tuple[int, ...] = KS,
+    progress: Progress | None = None,
+    settings: dict | None = None,
+) -> Evaluation:
+    """The paper's closed-set protocol over ``runs`` seeded splits.
+
+    Args:
+        descriptors: ``(n_images, D)`` L2-normalised.
+        image_place: ``(n_images,)`` place of each image, ``-1`` for skipped frames.
+        image_traversal: ``(n_images,)`` traversal of each image.
+    """
+    t0 = time.perf_counter()
+    d, image_place, image_traversal, ks = _check_common(descriptors, image_place, image_traversal, runs, ks)
+    splits = _pooled_splits(d, image_place, image_traversal, n_places, runs=runs, seed=seed, unknown_share=None,
+                            cross_condition=cross_condition, user_theta=user_theta, progress=progress)
+    notes = []
+    if not cross_condition:
+        notes.append("queries are matched against all traversals, their own included: see the own-traversal "
+                     "share, and the cross-condition variant")
+    return Evaluation(
+        protocol=Protocol.PAPER,
+        settings={**(settings or {}), "runs": runs, "seed": seed, "cross_condition": cross_condition,
+                  "queries_per_run": len(splits[0].known)},
+        ks=ks, rows=_summarise(splits, ks, own_traversal=True), notes=tuple(notes),
+        seconds=time.perf_counter() - t0,
+    )
+
+
+def open_set_protocol(
+    descriptors: np.ndarray,
+    image_place: np.ndarray,
+    image_traversal: np.ndarray,
+    n_places: int,
+    *,
+    runs: int = 50,
+    seed: int = 0,
+    unknown_share: float = 0.3,
+    cross_condition: bool = False,
+    user_theta: float | None = None,
+    k_grid: Sequence[float] = K_GRID,
+    ks: tuple[int, ...] = KS,
+    progress: Progress | None = None,
+    settings: dict | None = None,
+) -> Evaluation:
+    """Open set: ``unknown_share`` of the places are held out of the database in each split."""
+    t0 = time.perf_counter()
+    d, image_place, image_traversal, ks = _check_common(descriptors, image_place, image_traversal, runs, ks)
+    k_grid = tuple(float(k) for k in k_grid)
+    if not k_grid or not all(np.isfinite(k_grid)):
+        raise VPRInputError(f"k grid {k_grid}: give finite values of k, e.g. -1 0 0.5 1 2")
+    splits = _pooled_splits(d, image_place, image_traversal, n_places, runs=runs, seed=seed,
+                            unknown_share=unknown_share, cross_condition=cross_condition,
+                            user_theta=user_theta, progress=progress)
+    n_unknown = int((~splits[0].known).sum())
+    return Evaluation(
+        protocol=Protocol.OPEN_SET,
+        settings={**(settings or {}), "runs": runs, "seed": seed, "unknown_share": unknown_share,
+                  "unknown_places_per_run": n_unknown, "known_places_per_run": int(splits[0].known.sum()),
+                  "cross_condition": cross_condition, "k_grid": list(k_grid)},
+        ks=ks, rows=_summarise(splits, ks, own_traversal=True), tradeoff=_tradeoff(splits, k_grid),
+        notes=("the oracle global θ is chosen knowing which queries are unknown: an upper bound, not a method",),
+        seconds=time.perf_counter() - t0,
+    )
+
+
+def query_truth(query_frames: np.ndarray, frame_place: np.ndarray, tolerance: int) -> np.ndarray:
+    """``(n_queries, n_places)`` bool: the places holding a frame within ``tolerance`` of each query frame."""
+    n_places = int(frame_place.max()) + 1
+    truth = np.zeros((len(query_frames), n_places), dtype=bool)
+    for off in range(-tolerance, tolerance + 1):
+        f = query_frames + off
+        ok = (f >= 0) & (f < len(frame_place))
+        p = np.where(ok, frame_place[np.clip(f, 0, len(frame_place) - 1)], -1)
+        has = p >= 0
+        truth[np.flatnonzero(has), p[has]] = True
+    return truth
+
+
+def traversal_protocol(
+    descriptors: np.ndarray,
+    image_place: np.ndarray,
+    image_traversal: np.ndarray,
+    image_frame: np.ndarray,
+    frame_place: np.ndarray,
+    *,
+    database: Sequence[int],
+    query: int,
+    tolerance: int = 0,
+    user_theta: float | None = None,
+    ks: tuple[int, ...] = KS,
+    traversal_names: Sequence[str] | None = None,
+    settings: dict | None = None,
+) -> Evaluation:
+    """Database traversal(s) against a query traversal; thresholds from the database only.
+
+    A query frame's right places are those holding a frame within ``tolerance`` frames of
+    it; query frames with none (between places) are left out and counted in the settings.
+    """
+    t0 = time.perf_counter()
+    d, image_place, image_traversal, ks = _check_common(descriptors, image_place, image_traversal, 1, ks)
+    database = [int(t) for t in database]
+    if not database:
+        raise VPRInputError("database: name at least one database traversal")
+    if query in database:
+        name = traversal_names[query] if traversal_names else query
+        raise VPRInputError(f"queries={name!r} is also a database traversal; pick another query traversal")
+    if isinstance(tolerance, bool) or not isinstance(tolerance, (int, np.integer)) or tolerance < 0:
+        raise VPRInputError(f"tolerance={tolerance!r}: must be a whole number of frames, 0 or more")
+    n_places = int(frame_place.max()) + 1
+    db = np.flatnonzero(np.isin(image_traversal, database) & (image_place >= 0))
+    qs = np.flatnonzero(image_traversal == query)
+    truth = query_truth(image_frame[qs], frame_place, tolerance)
+    keep = truth.any(axis=1)
+    qs, truth = qs[keep], truth[keep]
+    if len(qs) == 0:
+        raise VPRInputError("no query frame falls in a place; lower step or raise tolerance")
+    split = run_split(d[db], image_place[db], image_traversal[db], similarity(d[qs], d[db]), truth,
+                      image_traversal[qs], n_places, user_theta=user_theta)
+    names = list(traversal_names) if traversal_names else None
+    return Evaluation(
+        protocol=Protocol.TRAVERSAL,
+        settings={**(settings or {}), "database": [names[t] for t in database] if names else database,
+                  "queries": names[query] if names else query, "tolerance": tolerance, "queries_scored": int(len(qs)),
+                  "queries_between_places": int((~keep).sum())},
+        ks=ks, rows=_summarise([split], ks, own_traversal=False), seconds=time.perf_counter() - t0,
+    )

@@ -1,0 +1,83 @@
+"""Evaluations as text tables (the paper's Table 1 layout) and CSV rows."""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+
+from vpr_explorer.evaluation import Evaluation, Protocol
+
+
+def _pct(stat, with_std: bool = True) -> str:
+    if stat is None or math.isnan(stat[0]):
+        return "—"
+    mean, std = stat
+    return f"{100 * mean:5.1f} ± {100 * std:4.1f}" if with_std else f"{100 * mean:5.1f}"
+
+
+def _grid(header: list[str], rows: list[list[str]]) -> str:
+    widths = [max(len(h), *(len(r[i]) for r in rows)) for i, h in enumerate(header)]
+    line = lambda cells: "  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(cells, widths)))
+    return "\n".join([line(header), "  ".join("-" * w for w in widths), *map(line, rows)])
+
+
+def method_table(ev: Evaluation) -> str:
+    """One row per method: Recall@K (%), accepted, precision, and the open-set/own-traversal columns."""
+    std = ev.settings.get("runs", 1) > 1
+    header = ["method", *(f"R@{k}" for k in ev.ks), "accepted", "precision"]
+    own = any(r.own_traversal is not None for r in ev.rows)
+    unk = any(r.unknown_rejection is not None for r in ev.rows)
+    if unk:
+        header.append("unknown rejected")
+    if own:
+        header.append("top-1 own trav.")
+    rows = []
+    for r in ev.rows:
+        cells = [r.label, *(_pct(r.recall[k], std) for k in ev.ks), _pct(r.accepted, False), _pct(r.precision, False)]
+        if unk:
+            cells.append(_pct(r.unknown_rejection, False))
+        if own:
+            cells.append(_pct(r.own_traversal, False))
+        rows.append(cells)
+    return _grid(header, rows)
+
+
+def tradeoff_table(ev: Evaluation, rule: str = "margin") -> str:
+    """The open-set trade-off: known-place R@1, unknown rejection and precision per k and global θ."""
+    header = ["threshold", "k or θ", "known R@1", "unknown rejected", "precision", "accepted"]
+    rows = []
+    for t in ev.tradeoff:
+        if t.rule != rule and not t.series.startswith("global"):
+            continue
+        param = "per place" if math.isnan(t.param) else (f"{t.param:+.2f}" if "k" in t.series else f"{t.param:.3f}")
+        rows.append([f"{t.series} ({t.rule})", param, _pct(t.known_recall1), _pct(t.unknown_rejection),
+                     _pct(t.precision), _pct(t.accepted, False)])
+    return _grid(header, rows)
+
+
+def render(ev: Evaluation) -> str:
+    """The full text report of an evaluation."""
+    s = ev.settings
+    what = ", ".join(f"{k}={v}" for k, v in s.items() if k not in ("k_grid",))
+    parts = [f"protocol: {ev.protocol.value}  ({what})", "", method_table(ev)]
+    if ev.protocol is Protocol.OPEN_SET:
+        parts += ["", "trade-off over θ_p(k) = θ_p + k·s_p (k = 0 is the paper) and global θ:", "", tradeoff_table(ev)]
+    parts += ["", *(f"note: {n}" for n in ev.notes), f"({ev.seconds:.1f} s)"]
+    return "\n".join(parts)
+
+
+def method_csv(ev: Evaluation) -> str:
+    """Method rows as CSV (rates in [0, 1])."""
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(["protocol", "method", "label", *(f"R@{k} {x}" for k in ev.ks for x in ("mean", "std")),
+                "accepted", "precision", "unknown_rejection", "own_traversal_top1"])
+    for r in ev.rows:
+        w.writerow([ev.protocol.value, r.key, r.label, *(v for k in ev.ks for v in r.recall[k]), r.accepted[0],
+                    r.precision[0], r.unknown_rejection[0] if r.unknown_rejection else "",
+                    r.own_traversal[0] if r.own_traversal else ""])
+    for t in ev.tradeoff:
+        w.writerow([ev.protocol.value, f"tradeoff:{t.series}:{t.rule}:{t.param}", t.series, t.known_recall1[0],
+                    t.known_recall1[1], "", "", "", "", "", "", t.accepted[0], t.precision[0], t.unknown_rejection[0], ""])
+    return buf.getvalue()

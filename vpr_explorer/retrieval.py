@@ -1,0 +1,351 @@
+"""Retrieval: the image- and place-level baselines and filter-then-rank (DESIGN.md §3).
+
+For a query q and place p, raw_p = max over p's database images i of s(q, i).
+
+| method                 | rule                                                          |
+|------------------------|---------------------------------------------------------------|
+| image-level baseline   | rank database images by s(q, i)                                |
+| place-level baseline   | rank places by raw_p                                           |
+| margin (paper text)    | m_p = raw_p − θ_p; drop m_p < 0; rank the rest by m_p          |
+| raw (authors' code)    | drop raw_p < θ_p; rank the rest by raw_p                       |
+| global threshold       | the raw rule with one θ for every place                        |
+
+Ties are counted against the query: the rank of the true place is 1 + the number of
+other places scoring *at least* as high (GardensPoint has byte-identical frames, so exact
+ties are real). A query for which every place is dropped is **rejected**.
+
+Similarity matrices are ``(n_queries, n_database)`` throughout.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+import numpy as np
+
+from vpr_explorer.errors import VPRInputError
+
+
+class Rule(StrEnum):
+    """How a threshold filters and ranks places."""
+
+    NONE = "none"
+    MARGIN = "margin"
+    RAW = "raw"
+
+
+@dataclass(frozen=True)
+class Method:
+    """One row of the comparison: a ranking level, a rule and which threshold it uses."""
+
+    key: str
+    label: str
+    level: str  # "image" or "place"
+    rule: Rule
+    threshold: str | None  # key into the thresholds mapping
+    source: str
+
+
+METHODS: tuple[Method, ...] = (
+    Method("image-baseline", "image-level baseline", "image", Rule.NONE, None, "authors' code 'Baseline'"),
+    Method("place-baseline", "place-level baseline", "place", Rule.NONE, None, "no threshold, place level"),
+    Method("margin-simple", "margin, simple θ", "place", Rule.MARGIN, "simple", "paper text"),
+    Method("margin-weighted", "margin, weighted θ", "place", Rule.MARGIN, "weighted", "paper text"),
+    Method("raw-simple", "raw, simple θ", "place", Rule.RAW, "simple", "authors' code"),
+    Method("raw-weighted", "raw, weighted θ", "place", Rule.RAW, "weighted", "authors' code"),
+    Method("global-auto", "global θ, automatic", "place", Rule.RAW, "auto", "VPR_Tutorial, Beyond ANN"),
+    Method("global-oracle", "global θ, oracle", "place", Rule.RAW, "oracle", "best single θ on this data"),
+    Method("global-user", "global θ, user value", "place", Rule.RAW, "user", "a value you set"),
+)
+METHODS_BY_KEY = {m.key: m for m in METHODS}
+
+
+def methods_for(thresholds: dict[str, object]) -> tuple[Method, ...]:
+    """The methods whose threshold is available in ``thresholds``."""
+    return tuple(m for m in METHODS if m.threshold is None or m.threshold in thresholds)
+
+
+def similarity(queries: np.ndarray, database: np.ndarray) -> np.ndarray:
+    """``(n_queries, n_database)`` cosine similarity of L2-normalised descriptors."""
+    return np.asarray(queries, dtype=np.float32) @ np.asarray(database, dtype=np.float32).T
+
+
+def place_scores(
+    sims: np.ndarray, db_places: np.ndarray, n_places: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """raw_p and the image that attains it, for every query and place.
+
+    Args:
+        sims: ``(n_queries, n_database)`` similarities; ``-inf`` marks an excluded image.
+        db_places: ``(n_database,)`` place of each database image (``>= 0``).
+        n_places: number of place ids.
+    Returns:
+        raw: ``(n_queries, n_places)`` best score per place, ``-inf`` where a place has no
+            (non-excluded) database image.
+        best: ``(n_queries, n_places)`` database index attaining it (the first on ties), ``-1``
+            where raw is ``-inf``.
+    """
+    sims = np.atleast_2d(sims)
+    db_places = np.asarray(db_places)
+    if sims.shape[1] != len(db_places):
+        raise VPRInputError(f"similarity has {sims.shape[1]} database columns but {len(db_places)} place labels")
+    nq = sims.shape[0]
+    order = np.argsort(db_places, kind="stable")
+    sorted_places = db_places[order]
+    starts = np.flatnonzero(np.r_[True, sorted_places[1:] != sorted_places[:-1]])
+    present = sorted_places[starts]
+    sizes = np.diff(np.r_[starts, len(order)])
+    cols = sims[:, order]
+    seg_max = np.maximum.reduceat(cols, starts, axis=1)
+    hit = cols == np.repeat(seg_max, sizes, axis=1)
+    first = np.minimum.reduceat(np.where(hit, order[None, :], len(order)), starts, axis=1)
+    raw = np.full((nq, n_places), -np.inf, dtype=np.float64)
+    best = np.full((nq, n_places), -1, dtype=np.int64)
+    raw[:, present] = seg_max
+    best[:, present] = first
+    best[~np.isfinite(raw)] = -1
+    return raw, best
+
+
+def ranking_scores(raw: np.ndarray, theta: np.ndarray | float | None, rule: Rule) -> np.ndarray:
+    """Scores that rank places under ``rule``; ``-inf`` where a place is dropped.
+
+    ``theta`` broadcasts against ``raw`` (a scalar, ``(n_places,)`` or ``(n_queries, n_places)``);
+    a NaN θ (a place without training images) drops the place.
+    """
+    if rule is Rule.NONE:
+        return np.array(raw, dtype=np.float64)
+    if theta is None:
+        raise VPRInputError(f"the {rule.value} rule needs a threshold")
+    theta = np.asarray(theta, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        kept = raw >= theta  # NaN θ or -inf raw compare False
+        if rule is Rule.MARGIN:
+            return np.where(kept, raw - theta, -np.inf)
+    return np.where(kept, raw, -np.inf)
+
+
+def pessimistic_rank(scores: np.ndarray, correct: np.ndarray) -> np.ndarray:
+    """``(n_queries,)`` rank of the best correct candidate, ties counted against the query.
+
+    Args:
+        scores: ``(n_queries, n_candidates)``; ``-inf`` marks a dropped candidate.
+        correct: ``(n_queries, n_candidates)`` bool, which candidates are right answers.
+    Returns:
+        1 + the number of wrong candidates scoring at least as high as the best correct one;
+        ``inf`` where no correct candidate is kept (or the query has none).
+    """
+    best = np.where(correct, scores, -np.inf).max(axis=1)
+    above = ((scores >= best[:, None]) & ~correct).sum(axis=1)
+    rank = 1.0 + above
+    rank[~np.isfinite(best)] = np.inf
+    return rank
+
+
+def top_answer(scores: np.ndarray) -> np.ndarray:
+    """``(n_queries,)`` index of the highest score (lowest index on ties), ``-1`` if all dropped."""
+    idx = np.argmax(scores, axis=1)
+    idx[~np.isfinite(scores[np.arange(len(scores)), idx])] = -1
+    return idx
+
+
+@dataclass(frozen=True, eq=False)
+class Outcome:
+    """What one method did for a batch of queries, each array ``(n_queries,)``.
+
+    Attributes:
+        rank: pessimistic rank of the true place (``inf`` if dropped or unknown).
+        answer_place: answered place, ``-1`` if rejected.
+        answer_image: database image behind the answer (for the own-traversal share), ``-1`` if rejected.
+        n_kept: places (images, for the image level) that passed the filter.
+    """
+
+    method: Method
+    rank: np.ndarray
+    answer_place: np.ndarray
+    answer_image: np.ndarray
+    n_kept: np.ndarray
+
+    @property
+    def accepted(self) -> np.ndarray:
+        return self.answer_place >= 0
+
+    @property
+    def right(self) -> np.ndarray:
+        """Accepted with the true place at rank 1 (a tie at the top counts as wrong)."""
+        return self.accepted & (self.rank == 1)
+
+
+def score_queries(
+    sims: np.ndarray,
+    db_places: np.ndarray,
+    n_places: int,
+    thresholds: dict[str, np.ndarray | float],
+    correct: np.ndarray,
+    methods: tuple[Method, ...] | None = None,
+) -> dict[str, Outcome]:
+    """Run every method on a batch of queries.
+
+    Args:
+        sims: ``(n_queries, n_database)`` similarities (``-inf`` excludes an image).
+        db_places: ``(n_database,)`` place of each database image.
+        n_places: number of place ids.
+        thresholds: threshold key (``simple``, ``weighted``, ``auto``, ``oracle``, ``user`` …)
+            -> θ, a scalar or ``(n_places,)`` or ``(n_queries, n_places)``.
+        correct: ``(n_queries, n_places)`` bool, the right places of each query (none for an
+            unknown-place query).
+        methods: which methods; default every method whose threshold is given.
+    """
+    methods = methods_for(thresholds) if methods is None else methods
+    raw, best = place_scores(sims, db_places, n_places)
+    rows = np.arange(len(raw))
+    out: dict[str, Outcome] = {}
+    for m in methods:
+        if m.level == "image":
+            scores = np.asarray(sims, dtype=np.float64)
+            image_correct = correct[:, db_places]
+            rank = pessimistic_rank(scores, image_correct)
+            img = top_answer(scores)
+            place = np.where(img >= 0, db_places[img], -1)
+            kept = np.isfinite(scores).sum(axis=1)
+        else:
+            theta = None if m.threshold is None else thresholds[m.threshold]
+            scores = ranking_scores(raw, theta, m.rule)
+            rank = pessimistic_rank(scores, correct)
+            place = top_answer(scores)
+            img = np.where(place >= 0, best[rows, np.maximum(place, 0)], -1)
+            kept = np.isfinite(scores).sum(axis=1)
+        out[m.key] = Outcome(method=m, rank=rank, answer_place=place, answer_image=img, n_kept=kept)
+    return out
+
+
+def _ordinal(n: float) -> str:
+    n = int(n)
+    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"{n}{suffix}"
+
+
+@dataclass(frozen=True, eq=False)
+class QueryDecision:
+    """Everything behind one query's answer, under every method.
+
+    Attributes:
+        raw: ``(n_places,)`` raw_p.
+        best_image: ``(n_places,)`` database image attaining raw_p.
+        image_scores: ``(n_database,)`` s(q, i).
+        thresholds: threshold key -> ``(n_places,)`` θ (scalars broadcast).
+        true_places: the query's right places (empty for an unknown place).
+        outcomes: method key -> ``Outcome`` of this single query.
+        scores: method key -> ``(n_candidates,)`` ranking score (``-inf`` dropped).
+    """
+
+    raw: np.ndarray
+    best_image: np.ndarray
+    image_scores: np.ndarray
+    db_places: np.ndarray
+    thresholds: dict[str, np.ndarray]
+    true_places: np.ndarray
+    outcomes: dict[str, Outcome]
+    scores: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def n_places(self) -> int:
+        return len(self.raw)
+
+    def margin(self, threshold: str) -> np.ndarray:
+        """``(n_places,)`` raw_p − θ_p for a threshold key."""
+        return self.raw - self.thresholds[threshold]
+
+    def kept(self, key: str) -> np.ndarray:
+        """``(n_candidates,)`` which places (images, for the image level) the method kept."""
+        return np.isfinite(self.scores[key])
+
+    def place_rank(self, key: str) -> np.ndarray:
+        """``(n_places,)`` 1-based rank of every kept place under the method, 0 if dropped."""
+        s = self.scores[key]
+        order = np.argsort(-s, kind="stable")
+        rank = np.zeros(len(s), dtype=np.int64)
+        rank[order] = np.arange(1, len(s) + 1)
+        rank[~np.isfinite(s)] = 0
+        return rank
+
+    def answer(self, key: str) -> int:
+        return int(self.outcomes[key].answer_place[0])
+
+    def is_right(self, key: str) -> bool:
+        """Right answer: the true place accepted at rank 1, or an unknown-place query rejected."""
+        o = self.outcomes[key]
+        if len(self.true_places) == 0:
+            return not bool(o.accepted[0])
+        return bool(o.right[0])
+
+    def describe(self, key: str) -> str:
+        """The decision in words, e.g. "rejected: the best place, 7, scored 0.41, below its threshold 0.46"."""
+        m = self.outcomes[key].method
+        o = self.outcomes[key]
+        ans = int(o.answer_place[0])
+        known = len(self.true_places) > 0
+        true = int(self.true_places[np.argmax(self.raw[self.true_places])]) if known else -1
+        theta = self.thresholds.get(m.threshold) if m.threshold else None
+        best = int(np.argmax(self.raw))
+
+        def th(p: int) -> str:
+            return "" if theta is None else f", threshold {theta[p]:.3f}, margin {self.raw[p] - theta[p]:+.3f}"
+
+        if ans < 0:
+            text = (
+                f"rejected: the best place, {best}, scored {self.raw[best]:.3f}, below its threshold "
+                f"{theta[best]:.3f}; every place scored below its threshold"
+            )
+            return text + (" (right: the query's place is not in the database)" if not known else
+                           f" (wrong: the query is place {true}, raw {self.raw[true]:.3f}{th(true)})")
+        level = f"image {int(o.answer_image[0])} → " if m.level == "image" else ""
+        head = f"accepted as {level}place {ans}"
+        if not known:
+            return f"{head} (wrong: the query's place is not in the database): raw {self.raw[ans]:.3f}{th(ans)}"
+        if self.is_right(key):
+            return f"{head} (right): raw {self.raw[ans]:.3f}{th(ans)}; {int(o.n_kept[0])} kept"
+        rank = o.rank[0]
+        if not np.isfinite(rank):
+            why = (f"the true place {true} scored {self.raw[true]:.3f}, below its threshold {theta[true]:.3f}, "
+                   "so it was dropped") if theta is not None else f"the true place {true} has no database image"
+        elif rank == 1:
+            why = f"the true place {true} ties with it at the top, and ties count against the query"
+        else:
+            why = f"the true place {true} ranked {_ordinal(rank)} (raw {self.raw[true]:.3f}{th(true)})"
+        return f"{head} (wrong): raw {self.raw[ans]:.3f}{th(ans)}; {why}"
+
+
+def decide(
+    query_sims: np.ndarray,
+    db_places: np.ndarray,
+    n_places: int,
+    thresholds: dict[str, np.ndarray | float],
+    true_places: np.ndarray | list[int] = (),
+    methods: tuple[Method, ...] | None = None,
+) -> QueryDecision:
+    """The decision record of one query under every method.
+
+    Args:
+        query_sims: ``(n_database,)`` the query's similarity to every database image.
+        db_places: ``(n_database,)`` place of each database image.
+        thresholds: as for ``score_queries``.
+        true_places: the query's right place ids; empty for a query of an unknown place.
+    """
+    sims = np.asarray(query_sims, dtype=np.float64)[None, :]
+    true = np.asarray(true_places, dtype=np.int64).reshape(-1)
+    correct = np.zeros((1, n_places), dtype=bool)
+    correct[0, true] = True
+    methods = methods_for(thresholds) if methods is None else methods
+    outcomes = score_queries(sims, db_places, n_places, thresholds, correct, methods)
+    raw, best = place_scores(sims, db_places, n_places)
+    full = {k: np.broadcast_to(np.asarray(v, dtype=np.float64), (n_places,)) for k, v in thresholds.items()}
+    scores = {
+        m.key: sims[0] if m.level == "image" else ranking_scores(raw, None if m.threshold is None else full[m.threshold], m.rule)[0]
+        for m in methods
+    }
+    return QueryDecision(
+        raw=raw[0], best_image=best[0], image_scores=sims[0], db_places=np.asarray(db_places),
+        thresholds=full, true_places=true, outcomes=outcomes, scores=scores,
+    )
