@@ -62,6 +62,22 @@ def default_traversals(dataset: Dataset, database: Sequence[str] | None, queries
     return db, q
 
 
+def _protocol(protocol: Protocol | str) -> Protocol:
+    try:
+        return Protocol(protocol)
+    except ValueError:
+        raise VPRInputError(f"protocol {protocol!r}: choose one of {', '.join(p.value for p in Protocol)}") from None
+
+
+def check_options(protocol: Protocol | str, dataset: Dataset, *, runs: int = 50, database=None, queries=None,
+                  **_) -> None:
+    """Cheap checks of a protocol's options, so that bad input fails before descriptor extraction."""
+    if _protocol(protocol) is Protocol.TRAVERSAL:
+        default_traversals(dataset, database, queries)
+    elif isinstance(runs, bool) or not isinstance(runs, int) or runs < 1:
+        raise VPRInputError(f"runs={runs!r}: must be a whole number, 1 or more")
+
+
 def run_protocol(
     protocol: Protocol | str,
     dataset: Dataset,
@@ -81,10 +97,7 @@ def run_protocol(
     settings: dict | None = None,
 ) -> Evaluation:
     """Run one protocol of ``evaluation`` on a dataset's descriptors."""
-    try:
-        protocol = Protocol(protocol)
-    except ValueError:
-        raise VPRInputError(f"protocol {protocol!r}: choose one of {', '.join(p.value for p in Protocol)}") from None
+    protocol = _protocol(protocol)
     if len(descriptors) != dataset.n_images:
         raise VPRInputError(
             f"{len(descriptors)} descriptors for {dataset.n_images} images of {dataset.name!r}: recompute them"
@@ -119,5 +132,6 @@ def evaluate_dataset(
     """Everything from a dataset path (or ``"demo"``) to an ``Evaluation``."""
     dataset = resolve_dataset(source)
     places = make_places(dataset, spec)
+    check_options(protocol, dataset, **options)
     desc = dataset_descriptors(dataset, descriptor, cache_root=cache_root, progress=extract_progress)
     return run_protocol(protocol, dataset, places, desc, settings={"descriptor": descriptor}, **options)
