@@ -1,0 +1,330 @@
+"""Extractors (registry, pixels, EfficientNet-Lite0), extract_descriptors, fingerprint, real-data recall."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from vpr_explorer import settings
+from vpr_explorer.datasets import load_dataset
+from vpr_explorer.descriptors import (
+    EXTRACTOR_NAMES,
+    Extractor,
+    available_extractors,
+    extract_descriptors,
+    fingerprint,
+    get_extractor,
+)
+from vpr_explorer.descriptors.efficientnet import (
+    build_model,
+    load_source_state_dict,
+    pair_state_dicts,
+    to_unit_range,
+)
+from vpr_explorer.descriptors.pixels import PixelsExtractor, patch_normalise
+from vpr_explorer.errors import VPRInputError
+
+
+def write_rgb(path: Path, seed: int, size: tuple[int, int] = (120, 80)) -> Path:
+    rng = np.random.default_rng(seed)
+    Image.fromarray(rng.integers(0, 256, (size[1], size[0], 3), dtype=np.uint8)).save(path)
+    return path
+
+
+@pytest.fixture
+def images(tmp_path: Path) -> list[Path]:
+    return [write_rgb(tmp_path / f"im{i}.png", seed=i) for i in range(5)]
+
+
+# ------------------------------------------------------------------ registry
+
+
+def test_registry_names_and_availability():
+    assert EXTRACTOR_NAMES[:2] == ("pixels", "efficientnet-lite0")
+    available = available_extractors()
+    assert set(available) == set(EXTRACTOR_NAMES)
+    assert available["pixels"] is None and available["efficientnet-lite0"] is None
+    pixels = get_extractor("pixels")
+    assert isinstance(pixels, Extractor) and pixels.cache_key == "pixels-1" and pixels.dim == 2048
+
+
+def test_unknown_extractor_lists_the_choices():
+    with pytest.raises(VPRInputError, match="'netvlad' is unknown: choose one of pixels, efficientnet-lite0"):
+        get_extractor("netvlad")
+    with pytest.raises(VPRInputError, match="has no option size"):
+        get_extractor("pixels", size=3)
+
+
+def test_listing_extractors_does_not_import_torch():
+    code = (
+        "import sys; from vpr_explorer.descriptors import available_extractors; "
+        "available_extractors(); print('torch' in sys.modules)"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert result.stdout.strip() == "False"
+
+
+# ------------------------------------------------------------------ pixels
+
+
+def reference_patch_normalise(image: np.ndarray, patch: int = 8) -> np.ndarray:
+    """One patch at a time, the plain way."""
+    out = np.zeros(image.shape, dtype=np.float64)
+    for r in range(0, image.shape[0], patch):
+        for c in range(0, image.shape[1], patch):
+            block = image[r : r + patch, c : c + patch].astype(np.float64)
+            std = block.std()
+            if std >= 1e-6:
+                out[r : r + patch, c : c + patch] = (block - block.mean()) / std
+    return out
+
+
+def test_patch_normalise_matches_the_reference():
+    rng = np.random.default_rng(3)
+    image = rng.random((32, 64)).astype(np.float32)
+    image[8:16, 24:32] = 0.25  # one flat patch
+    got = patch_normalise(image)
+    np.testing.assert_allclose(got, reference_patch_normalise(image), atol=1e-5)
+    assert np.all(got[8:16, 24:32] == 0)
+    assert got.dtype == np.float32
+
+
+def hand_image() -> tuple[np.ndarray, np.ndarray]:
+    """A 64x32 grey image and its patch-normalised values, worked out by hand.
+
+    Patch (0, 0): columns 10 | 30 -> mean 20, std 10 -> -1 | +1.
+    Patch (1, 2): rows 0 above 255 -> -1 above +1.
+    Patch (3, 7): one pixel 255 among 0s -> mean 255/64, std 255*sqrt(63)/64, so the
+    bright pixel becomes sqrt(63) and the others -1/sqrt(63).
+    All other patches: constant (a different grey each) -> zeros.
+    """
+    grey = np.zeros((32, 64), dtype=np.uint8)
+    want = np.zeros((32, 64))
+    for r in range(4):
+        for c in range(8):
+            grey[8 * r : 8 * r + 8, 8 * c : 8 * c + 8] = 7 * (r * 8 + c)
+    grey[0:8, 0:4], grey[0:8, 4:8] = 10, 30
+    want[0:8, 0:4], want[0:8, 4:8] = -1, 1
+    grey[8:12, 16:24], grey[12:16, 16:24] = 0, 255
+    want[8:12, 16:24], want[12:16, 16:24] = -1, 1
+    grey[24:32, 56:64] = 0
+    grey[27, 60] = 255
+    want[24:32, 56:64] = -1 / np.sqrt(63)
+    want[27, 60] = np.sqrt(63)
+    return grey, want
+
+
+def test_pixels_hand_computed_case(tmp_path):
+    grey, want = hand_image()
+    path = tmp_path / "hand.png"
+    Image.fromarray(grey, mode="L").save(path)  # 64x32 already: the resize is the identity
+    loaded = PixelsExtractor().load(path)
+    assert loaded.shape == (1, 32, 64) and loaded.dtype == np.float32
+    np.testing.assert_allclose(loaded[0], want, atol=1e-5)
+
+    (descriptor,) = extract_descriptors([path], PixelsExtractor())
+    # three non-flat patches, each with sum of squares 64 -> norm sqrt(3 * 64)
+    np.testing.assert_allclose(descriptor, want.ravel() / np.sqrt(3 * 64), atol=1e-6)
+
+
+def test_pixels_shape_norm_and_read_only(images):
+    d = extract_descriptors(images, get_extractor("pixels"))
+    assert d.shape == (5, 2048) and d.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-6)
+    assert not d.flags.writeable
+
+
+def test_pixels_resizes_large_images_to_64_by_32(tmp_path):
+    path = write_rgb(tmp_path / "big.png", seed=9, size=(640, 320))
+    assert PixelsExtractor().load(path).shape == (1, 32, 64)
+
+
+def test_constant_image_gives_a_zero_descriptor_and_is_named(tmp_path, images):
+    black = tmp_path / "tunnel.png"
+    Image.new("RGB", (200, 100), (0, 0, 0)).save(black)
+    assert np.all(PixelsExtractor().load(black) == 0)
+    with pytest.raises(VPRInputError, match=r"tunnel\.png; the image is blank"):
+        extract_descriptors([*images, black], PixelsExtractor())
+
+
+class NaNOnMarkedImages(PixelsExtractor):
+    """Pixels, except that images whose file name starts with ``nan`` come out NaN."""
+
+    name = "nan-pixels"
+
+    def load(self, path: Path) -> np.ndarray:
+        image = super().load(path)
+        return np.full_like(image, np.nan) if path.name.startswith("nan") else image
+
+
+def test_nan_descriptors_are_named_first_few_and_counted(tmp_path, images):
+    marked = [write_rgb(tmp_path / f"nan{i}.png", seed=100 + i) for i in range(5)]
+    named = r"5 image\(s\) get a zero or NaN descriptor .*nan0\.png, .*nan1\.png, .*nan2\.png and 2 more"
+    with pytest.raises(VPRInputError, match=named):
+        extract_descriptors([images[0], *marked], NaNOnMarkedImages(), batch_size=8)
+
+
+def test_result_does_not_depend_on_batching_or_threads(images):
+    reference = extract_descriptors(images, PixelsExtractor(), batch_size=32, workers=1)
+    for batch_size, workers in ((1, 1), (2, 3), (4, 2)):
+        got = extract_descriptors(images, PixelsExtractor(), batch_size=batch_size, workers=workers)
+        np.testing.assert_array_equal(got, reference)
+
+
+def test_rows_follow_the_order_of_paths(images):
+    d = extract_descriptors(images, PixelsExtractor())
+    reversed_d = extract_descriptors(images[::-1], PixelsExtractor())
+    np.testing.assert_array_equal(reversed_d, d[::-1])
+
+
+def test_bad_extraction_arguments(images):
+    with pytest.raises(VPRInputError, match="paths: no images"):
+        extract_descriptors([], PixelsExtractor())
+    with pytest.raises(VPRInputError, match="batch_size=0"):
+        extract_descriptors(images, PixelsExtractor(), batch_size=0)
+    with pytest.raises(VPRInputError, match="workers=0"):
+        extract_descriptors(images, PixelsExtractor(), workers=0)
+
+
+def test_unreadable_image_is_named(tmp_path, images):
+    text = tmp_path / "notes.png"
+    text.write_text("not an image")
+    with pytest.raises(VPRInputError, match=r"notes\.png: cannot read the image .*replace or remove the file"):
+        extract_descriptors([*images, text], PixelsExtractor())
+
+
+# ------------------------------------------------------------------ fingerprint
+
+
+def test_fingerprint_sees_values_shape_and_dtype():
+    a = np.arange(12, dtype=np.float32).reshape(3, 4)
+    assert fingerprint(a) == fingerprint(a.copy())
+    assert len(fingerprint(a)) == 64
+    b = a.copy()
+    b[2, 3] += 1e-3
+    assert fingerprint(b) != fingerprint(a)
+    assert fingerprint(a.reshape(4, 3)) != fingerprint(a)
+    assert fingerprint(a.astype(np.float64)) != fingerprint(a)
+    assert fingerprint(np.asfortranarray(a)) == fingerprint(a)  # same values, other memory order
+
+
+# ------------------------------------------------------------------ EfficientNet-Lite0
+
+
+def test_efficientnet_weights_are_all_loaded_from_the_package():
+    source = load_source_state_dict()
+    model = build_model()
+    target = model.state_dict()
+    # The classifier was loaded (strict) and then dropped: everything else must match.
+    assert list(source)[-2:] == ["_fc.weight", "_fc.bias"]
+    assert len(target) == len(source) - 2
+    for (src_key, src), (dst_key, dst) in zip(source.items(), target.items()):
+        assert torch.equal(src, dst), f"{dst_key} differs from {src_key}"
+    # Spot checks by name, independent of the positional pairing.
+    assert torch.equal(target["conv_stem.weight"], source["_conv_stem.weight"])
+    assert torch.equal(target["blocks.0.0.conv_dw.weight"], source["_blocks.0._depthwise_conv.weight"])
+    assert torch.equal(target["blocks.6.0.conv_pwl.weight"], source["_blocks.15._project_conv.weight"])
+    assert torch.equal(target["bn2.running_var"], source["_bn1.running_var"])
+    assert not model.training
+
+
+def test_weight_pairing_refuses_a_mismatch():
+    source = load_source_state_dict()
+    target = build_model().state_dict()
+    with pytest.raises(VPRInputError, match="holds 296 tensors"):
+        pair_state_dicts(source, target, "weights.pth")  # target has no classifier: 294
+    import timm
+
+    full = timm.create_model("tf_efficientnet_lite0", pretrained=False, num_classes=1000).state_dict()
+    pair_state_dicts(source, full, "weights.pth")
+    keys = list(source)
+    # running_mean and running_var have equal shapes: only the names can catch a swap
+    i = keys.index("_bn0.running_mean")
+    keys[i], keys[i + 1] = keys[i + 1], keys[i]
+    swapped = {k: source[k] for k in keys}
+    with pytest.raises(VPRInputError, match="_bn0.running_var .* does not fit"):
+        pair_state_dicts(swapped, full, "weights.pth")
+
+
+def test_unit_range_scaling_by_hand(tmp_path):
+    rgb = np.array([[[0, 255, 51], [127, 128, 255]]], dtype=np.uint8)  # (H=1, W=2, 3)
+    got = to_unit_range(rgb)
+    assert got.shape == (3, 1, 2) and got.dtype == np.float32
+    np.testing.assert_allclose(got[:, 0, 0], [-1.0, 1.0, -0.6], atol=1e-6)
+    np.testing.assert_allclose(got[:, 0, 1], [127 / 127.5 - 1, 128 / 127.5 - 1, 1.0], atol=1e-6)
+
+    path = tmp_path / "solid.png"
+    Image.new("RGB", (300, 200), (0, 255, 51)).save(path)
+    loaded = get_extractor("efficientnet-lite0").load(path)
+    assert loaded.shape == (3, 224, 224)
+    for channel, value in enumerate((-1.0, 1.0, -0.6)):
+        np.testing.assert_allclose(loaded[channel], value, atol=1e-6)
+
+
+def test_efficientnet_descriptors(images):
+    extractor = get_extractor("efficientnet-lite0")
+    assert extractor.cache_key == "efficientnet-lite0-1" and extractor.dim == 1280
+    d = extract_descriptors(images[:3], extractor)
+    assert d.shape == (3, 1280) and d.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-6)
+    batch = np.stack([extractor.load(p) for p in images[:2]])
+    np.testing.assert_array_equal(extractor.forward(batch), extractor.forward(batch))
+    assert extractor.forward(batch).shape == (2, 1280)
+    # different images, different descriptors
+    assert not np.allclose(d[0], d[1])
+    assert get_extractor("efficientnet-lite0") is extractor  # the model is loaded once
+
+
+# ------------------------------------------------------------------ real data (GardensPoint)
+
+
+@pytest.fixture(scope="session")
+def gardens_point():
+    root = settings.data_root()
+    if root is None:
+        pytest.skip(
+            "VPR_EXPLORER_DATA is not set: point it at the shared datasets folder "
+            "(e.g. /work/shared/datasets) to run the real-data tests"
+        )
+    folder = root / "GardensPointWalking"
+    if not folder.is_dir():
+        pytest.skip(f"{folder} not found: VPR_EXPLORER_DATA must hold GardensPointWalking/")
+    return load_dataset(folder, ["day_right", "night_right"])
+
+
+@pytest.fixture(scope="session")
+def gardens_point_descriptors(gardens_point):
+    """``name -> (database day_right, queries night_right)``, extracted once per session."""
+    computed: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+
+    def get(name: str) -> tuple[np.ndarray, np.ndarray]:
+        if name not in computed:
+            d = extract_descriptors(gardens_point.image_paths, get_extractor(name))
+            n = gardens_point.n_frames
+            computed[name] = d[:n], d[n:]
+        return computed[name]
+
+    return get
+
+
+def recall_at_1(queries: np.ndarray, database: np.ndarray, tolerance: int = 2) -> float:
+    """Share of queries whose nearest database frame is within ``tolerance`` frames of its own index."""
+    nearest = np.argmax(queries @ database.T, axis=1)  # (n_queries, n_database) similarity
+    return float(np.mean(np.abs(nearest - np.arange(len(queries))) <= tolerance))
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize("name, at_least", [("efficientnet-lite0", 0.5), ("pixels", 0.1)])
+def test_gardens_point_night_to_day_recall(gardens_point_descriptors, name, at_least):
+    database, queries = gardens_point_descriptors(name)
+    assert database.shape == queries.shape == (200, get_extractor(name).dim)
+    r1 = recall_at_1(queries, database)
+    chance = 5 / 200
+    print(f"GardensPoint night_right -> day_right, {name}: R@1 (+-2 frames) = {r1:.3f} (chance {chance:.3f})")
+    assert r1 >= at_least

@@ -1,0 +1,24 @@
+"""Global image descriptors: extractors by name, extraction through an on-disk cache.
+
+Stage 3 of the data flow (datasets -> places -> **descriptors** -> statistics): turns
+image files into an ``(n_images, D)`` float32 matrix of L2-normalised rows, so that a dot
+product is the cosine similarity the thresholds are built on. Descriptors belong to
+images, not places: regrouping never recomputes them.
+"""
+
+from vpr_explorer.descriptors.base import Extractor
+from vpr_explorer.descriptors.cache import CacheHits, DescriptorCache, DescriptorCacheWarning
+from vpr_explorer.descriptors.extract import extract_descriptors, fingerprint
+from vpr_explorer.descriptors.registry import EXTRACTOR_NAMES, available_extractors, get_extractor
+
+__all__ = [
+    "EXTRACTOR_NAMES",
+    "CacheHits",
+    "DescriptorCache",
+    "DescriptorCacheWarning",
+    "Extractor",
+    "available_extractors",
+    "extract_descriptors",
+    "fingerprint",
+    "get_extractor",
+]
