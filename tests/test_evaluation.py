@@ -186,3 +186,16 @@ def test_gardens_point_traversal_protocol_effnet(gardens_point, gp_effnet):
     print("night_right -> day_right R@1 (±2):", r1)
     assert 0.45 < r1 < 0.8
     assert ev.settings["queries_scored"] == 200
+
+
+def test_to_dict_is_strict_json_when_nothing_is_accepted():
+    import json
+
+    d, labels, trav = _synthetic(seed=5)
+    ev = open_set_protocol(d, labels, trav, 12, runs=2, seed=0, user_theta=2.0, k_grid=(0.0,))
+    assert np.isnan(ev.row("global-user").precision[0])  # θ above every score: nothing accepted
+    data = json.loads(json.dumps(ev.to_dict(), allow_nan=False))
+    user = next(m for m in data["methods"] if m["key"] == "global-user")
+    assert user["precision"] == {"mean": None, "std": None} and user["accepted"]["mean"] == 0.0
+    adaptive = next(t for t in data["tradeoff"] if t["series"].startswith("adaptive"))
+    assert adaptive["param"] is None

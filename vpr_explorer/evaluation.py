@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from enum import StrEnum
 
 import numpy as np
@@ -118,15 +118,18 @@ class Evaluation:
     tradeoff: tuple[TradeoffRow, ...] = ()
     notes: tuple[str, ...] = ()
     seconds: float = 0.0
-    runs_detail: dict = field(default_factory=dict)
 
     def row(self, key: str) -> MethodRow:
         return next(r for r in self.rows if r.key == key)
 
     def to_dict(self) -> dict:
-        """JSON-ready numbers (rates in [0, 1])."""
+        """JSON-ready numbers (rates in [0, 1]); undefined values (e.g. precision with nothing accepted) are ``None``."""
+
+        def num(x):
+            return float(x) if x is not None and np.isfinite(x) else None
+
         def stat(s):
-            return None if s is None else {"mean": s[0], "std": s[1]}
+            return None if s is None else {"mean": num(s[0]), "std": num(s[1])}
 
         return {
             "protocol": self.protocol.value,
@@ -143,12 +146,11 @@ class Evaluation:
                 for r in self.rows
             ],
             "tradeoff": [
-                {**{k: v for k, v in asdict(t).items() if not isinstance(v, tuple)},
-                 **{k: stat(v) for k, v in asdict(t).items() if isinstance(v, tuple)}}
+                {"series": t.series, "rule": t.rule, "param": num(t.param),
+                 **{f: stat(getattr(t, f)) for f in ("known_recall1", "unknown_rejection", "precision", "accepted")}}
                 for t in self.tradeoff
             ],
             "notes": list(self.notes),
-            **({"runs_detail": self.runs_detail} if self.runs_detail else {}),
         }
 
 
