@@ -98,6 +98,21 @@ def test_pair_sample_when_large():
     assert not np.isclose(sample, 1.0).any()  # never an image with itself
 
 
+def test_pair_sample_memory_is_bounded_by_the_block():
+    import tracemalloc
+
+    rng = np.random.default_rng(4)
+    d = unit_rows(rng, 3000, 512).astype(np.float32)
+    whole = training_pair_scores(d, max_pairs=200_000, seed=1, block=200_000)
+    tracemalloc.start()
+    blocked = training_pair_scores(d, max_pairs=200_000, seed=1, block=1_000)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    np.testing.assert_array_equal(blocked, whole)
+    # gathering every pair at once would take 2 × 200,000 × 512 × 4 B = 819 MB
+    assert peak < 30e6, peak
+
+
 def test_unknown_method():
     st = _stats([0.2], [0.1], [1], [0], 1)
     with pytest.raises(VPRInputError, match="choose one of simple, weighted"):

@@ -63,6 +63,19 @@ def _evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _record(args: argparse.Namespace) -> int:
+    from vpr_explorer.recording import record_dataset
+
+    playback = record_dataset(
+        args.dataset, PlaceSpec(args.group, args.step, args.reading), args.descriptor,
+        database=args.database, queries=args.queries, out=args.out, k=args.k, tolerance=args.tolerance,
+        cache_root=args.cache_dir, extract_progress=_bar("descriptors"), progress=_bar("frames"),
+    )
+    print(playback.describe())
+    print(f"wrote {playback.rrd}: watch it with `rerun {playback.rrd}` (or `rerun --web-viewer {playback.rrd}`)")
+    return 0
+
+
 def _json_default(o):
     raise TypeError(f"not JSON: {type(o)}")
 
@@ -86,6 +99,15 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--theta", type=float, default=None, help="also evaluate this global threshold")
     ev.add_argument("--json", type=Path, default=None, help="write the numbers to this JSON file")
     ev.set_defaults(func=_evaluate)
+
+    rec = sub.add_parser("record", help="play a query traversal back against a database: write a rerun .rrd")
+    add_dataset_args(rec)
+    rec.add_argument("--database", nargs="+", required=True, help="database traversal(s), e.g. day_right")
+    rec.add_argument("--queries", required=True, help="query traversal, e.g. night_right")
+    rec.add_argument("--out", type=Path, required=True, help="the .rrd file to write, e.g. run.rrd")
+    rec.add_argument("--k", type=float, default=0.0, help="thresholds θ_p + k·s_p (default 0: the paper's)")
+    rec.add_argument("--tolerance", type=int, default=0, help="frames of slack for a right place (default 0)")
+    rec.set_defaults(func=_record)
     return parser
 
 

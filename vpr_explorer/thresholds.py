@@ -90,8 +90,14 @@ def adaptive_k(positive_mean: np.ndarray, negative_mean: np.ndarray, negative_st
     return np.clip(np.nan_to_num(k, nan=1.0), 1.0, 2.0)
 
 
-def training_pair_scores(descriptors: np.ndarray, *, max_pairs: int = AUTO_MAX_PAIRS, seed: int = 0) -> np.ndarray:
-    """Similarities of distinct training pairs i < j: all of them, or a seeded sample of ``max_pairs``."""
+def training_pair_scores(
+    descriptors: np.ndarray, *, max_pairs: int = AUTO_MAX_PAIRS, seed: int = 0, block: int = 65_536
+) -> np.ndarray:
+    """Similarities of distinct training pairs i < j: all of them, or a seeded sample of ``max_pairs``.
+
+    Sampled pairs are scored ``block`` at a time, so memory stays at ``2·block·D`` floats
+    whatever ``max_pairs`` is.
+    """
     d = np.asarray(descriptors, dtype=np.float32)
     n = len(d)
     total = n * (n - 1) // 2
@@ -104,7 +110,11 @@ def training_pair_scores(descriptors: np.ndarray, *, max_pairs: int = AUTO_MAX_P
     i = rng.integers(0, n, size=max_pairs)
     j = rng.integers(0, n - 1, size=max_pairs)
     j = j + (j >= i)  # uniform over j != i
-    return np.einsum("ij,ij->i", d[i], d[j])
+    out = np.empty(max_pairs, dtype=np.float32)
+    for lo in range(0, max_pairs, block):
+        hi = lo + block
+        out[lo:hi] = np.einsum("ij,ij->i", d[i[lo:hi]], d[j[lo:hi]])
+    return out
 
 
 def auto_global_threshold(scores: np.ndarray) -> float:
