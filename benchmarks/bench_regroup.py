@@ -1,0 +1,75 @@
+"""A group/step slider move on GardensPoint: the recomputation it triggers beside the extraction it avoids.
+
+Descriptors belong to images, so moving the Places page's group or step slider only
+relabels images and refits the closed-form negative statistics. This times exactly what
+the app runs on such a move, ``views.regroup`` (places, database thresholds from
+day_left + day_right, every night_right frame decided under every method), for a few
+group/step settings, one run each and not served from any cache; and, once, the
+descriptor extraction a naive app would redo on every move (a fresh temporary cache,
+so every image is decoded and run through the model). Run::
+
+    python benchmarks/bench_regroup.py --data /work/shared/datasets
+"""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from vpr_explorer import settings
+from vpr_explorer.datasets import load_dataset
+from vpr_explorer.pipeline import dataset_descriptors
+from vpr_explorer.places import PlaceSpec
+from vpr_explorer.views import regroup
+
+MOVES = ((3, 10), (4, 10), (4, 8), (2, 5), (5, 20), (3, 3))
+
+
+def time_regroup(descriptors: np.ndarray, dataset, spec: PlaceSpec) -> tuple[float, str]:
+    """Seconds of one ``regroup`` (what a slider move recomputes) and what it produced."""
+    start = time.perf_counter()
+    r = regroup(descriptors, dataset, spec)
+    seconds = time.perf_counter() - start
+    return seconds, f"{r.places.n_places} places, place-level R@1 {r.recall1['place-baseline']:.0%}"
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--data", type=Path, default=settings.data_root(),
+                        help=f"datasets folder (default ${settings.DATA_ENV})")
+    parser.add_argument("--descriptor", default="efficientnet-lite0", help="descriptor (default efficientnet-lite0)")
+    args = parser.parse_args(argv)
+    if args.data is None:
+        parser.error(f"give --data or set {settings.DATA_ENV}")
+    dataset = load_dataset(args.data / "GardensPointWalking")
+    print("$ python " + " ".join(shlex.quote(a) for a in [sys.argv[0], *(argv if argv is not None else sys.argv[1:])]))
+
+    with tempfile.TemporaryDirectory() as tmp:
+        start = time.perf_counter()
+        descriptors = dataset_descriptors(dataset, args.descriptor, cache_root=Path(tmp))
+        extraction = time.perf_counter() - start
+        start = time.perf_counter()
+        dataset_descriptors(dataset, args.descriptor, cache_root=Path(tmp))
+        cached = time.perf_counter() - start
+    print(f"GardensPoint: {dataset.n_images} images, {args.descriptor} descriptors {descriptors.shape}; "
+          f"database {' + '.join(dataset.traversals[:-1])}, queries {dataset.traversals[-1]}")
+    print(f"extraction (fresh cache, the work a move would redo without per-image descriptors): {extraction:.2f} s")
+    print(f"reading them back from the on-disk cache: {cached:.2f} s")
+    regroup(descriptors, dataset, PlaceSpec(3, 10))  # warm-up: first-call imports and allocations are not a move
+    header = f"{'group/step':<12}{'recompute ms':>14}{'extraction s':>14}{'extraction / recompute':>24}  result"
+    print(header)
+    print("-" * len(header))
+    for group, step in MOVES:
+        seconds, what = time_regroup(descriptors, dataset, PlaceSpec(group, step))
+        print(f"{f'{group}/{step}':<12}{1000 * seconds:>14.1f}{extraction:>14.2f}{extraction / seconds:>23.0f}x  {what}",
+              flush=True)
+
+
+if __name__ == "__main__":
+    main()

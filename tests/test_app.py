@@ -1,0 +1,542 @@
+"""Every page under Streamlit's AppTest: main interactions, figure numbers against the library, bad input.
+
+Figures are read from the element tree (the Plotly JSON spec Streamlit sends to the
+browser) and compared with the library's own values. The demo route with pixel
+descriptors keeps most tests to a second or two; ``realdata`` tests use GardensPoint.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import streamlit as st
+from PIL import Image
+from streamlit.testing.v1 import AppTest
+
+from vpr_explorer.database import explain_query
+from vpr_explorer.evaluation import Protocol
+from vpr_explorer.pipeline import dataset_descriptors, resolve_dataset, run_protocol
+from vpr_explorer.places import PlaceSpec, make_places
+from vpr_explorer.report import method_csv
+from vpr_explorer.views import place_detail, regroup, top_candidates
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # the app imports its top-level ``ui`` package, as ``streamlit run`` allows
+    sys.path.insert(0, str(ROOT))
+
+TIMEOUT = 60
+PAGES = ("places", "thresholds", "inspector", "evaluation")
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+@pytest.fixture(autouse=True)
+def fresh_caches():
+    """Each test starts with empty Streamlit caches (the on-disk descriptor cache is kept)."""
+    st.cache_data.clear()
+    st.cache_resource.clear()
+    yield
+
+
+@pytest.fixture(autouse=True)
+def navigation_mode(monkeypatch):
+    """Route every run through ``app.py``'s ``st.navigation``, as a running server does.
+
+    With a ``pages/`` folder beside ``app.py``, Streamlit starts in its older multipage
+    mode (pages found in the folder, each run on its own) and leaves it for good at the
+    first ``st.navigation`` call. AppTest resets that flag before every run, so without
+    this each page would run without ``app.py`` (and ``ui.routing`` would send it back).
+    """
+    from streamlit.runtime.pages_manager import PagesManager
+
+    init = PagesManager.__init__
+
+    def init_after_navigation(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        PagesManager.uses_pages_directory = False
+
+    monkeypatch.setattr(PagesManager, "__init__", init_after_navigation)
+
+
+@pytest.fixture
+def app() -> AppTest:
+    at = AppTest.from_file(str(ROOT / "app.py"), default_timeout=TIMEOUT)
+    return at
+
+
+def page(at: AppTest, name: str) -> AppTest:
+    return at.switch_page(f"pages/{name}.py").run()
+
+
+def assert_clean(at: AppTest, *, errors: bool = False) -> None:
+    """No exception box; and no st.error unless ``errors``."""
+    assert not at.exception, [e.value for e in at.exception]
+    if not errors:
+        assert not at.error, [e.value for e in at.error]
+
+
+def decode(value):
+    """Plotly's JSON typed arrays (``{"dtype", "bdata", "shape"}``) back to numpy; lists as arrays."""
+    if isinstance(value, dict) and "bdata" in value:
+        array = np.frombuffer(base64.b64decode(value["bdata"]), dtype=np.dtype(value["dtype"]))
+        if "shape" in value:
+            array = array.reshape([int(s) for s in str(value["shape"]).split(",")])
+        return array
+    return np.asarray(value) if isinstance(value, list) else value
+
+
+def figure(at: AppTest, key: str) -> dict:
+    """The Plotly spec of the chart with widget/element key ``key``."""
+    charts = [c for c in at.get("plotly_chart") if c.proto.id.endswith(f"-{key}")]
+    assert len(charts) == 1, f"chart {key!r}: found {[c.proto.id for c in at.get('plotly_chart')]}"
+    return json.loads(charts[0].proto.spec)
+
+
+def trace(spec: dict, meta: str) -> dict:
+    found = [t for t in spec["data"] if t.get("meta") == meta]
+    assert len(found) == 1, f"{meta!r} in {[t.get('meta') for t in spec['data']]}"
+    return {k: decode(v) for k, v in found[0].items()}
+
+
+def metric(at: AppTest, label: str) -> str:
+    return next(m.value for m in at.metric if m.label == label)
+
+
+@pytest.fixture(scope="module")
+def demo():
+    return resolve_dataset("demo")
+
+
+@pytest.fixture(scope="module")
+def demo_pixels(demo):
+    return dataset_descriptors(demo, "pixels")
+
+
+DEMO_SPEC = PlaceSpec(3, 5)  # the app's default on a 60-frame route
+
+
+# --------------------------------------------------------------------------- landing and every page
+
+
+def test_fresh_user_lands_on_the_demo_route(app):
+    at = app.run()
+    assert_clean(at)
+    assert at.selectbox(key="w_source").value == "demo"
+    assert at.radio(key="w_descriptor").value == "pixels"
+    assert any("descriptors ready: 180 × 2048" in s.value for s in at.success)
+    assert len(at.image) == 3 * 8  # a strip of 8 thumbnails per traversal
+    assert at.query_params == {}  # the default view needs no parameters
+
+
+@pytest.mark.parametrize("name", PAGES)
+def test_every_page_runs_on_the_demo(app, name):
+    at = page(app.run(), name)
+    assert_clean(at)
+    assert at.get("plotly_chart"), f"{name} shows no figure"
+    assert at.title[0].value
+
+
+def test_every_page_again_after_visiting_all(app):
+    at = app.run()
+    for name in (*PAGES, "home", *reversed(PAGES)):
+        page(at, name)
+        assert_clean(at)
+
+
+def test_playback_page_records_the_demo(app):
+    at = page(app.run(), "playback")
+    assert_clean(at)
+    assert at.title[0].value == "Playback"
+    at.button[0].click().run()
+    assert_clean(at)
+    frames = [e for e in at.get("iframe")]
+    assert frames, "no viewer embedded after recording"
+    assert at.get("download_button"), "no .rrd download offered"
+
+
+# --------------------------------------------------------------------------- places
+
+
+def test_places_live_numbers_are_the_library_regroup(app, demo, demo_pixels):
+    at = page(app.run(), "places")
+    r = regroup(demo_pixels, demo, DEMO_SPEC)
+    assert metric(at, "places") == str(r.places.n_places) == "12"
+    assert metric(at, "place-level R@1") == f"{r.recall1['place-baseline']:.0%}"
+    assert metric(at, "margin, weighted θ R@1") == f"{r.recall1['margin-weighted']:.0%}"
+    hist = figure(at, "theta_hist")
+    np.testing.assert_allclose(trace(hist, "θ_p weighted")["x"], r.model.theta["weighted"])
+    assert trace(hist, "global θ, automatic")["x"][0] == pytest.approx(r.model.auto)
+    bars = trace(figure(at, "recall_live"), "recall1")
+    np.testing.assert_allclose(bars["y"], [r.recall1[k] for k in bars["customdata"]])
+    stride = figure(at, "route_stride")
+    np.testing.assert_array_equal(trace(stride, "places snow")["x"], np.flatnonzero(r.places.frame_place >= 0))
+
+
+def test_places_slider_moves_recompute_and_go_into_the_url(app, demo, demo_pixels):
+    at = page(app.run(), "places")
+    at.slider(key="w_group").set_value(2).run()
+    at.slider(key="w_step").set_value(4).run()
+    assert_clean(at)
+    r = regroup(demo_pixels, demo, PlaceSpec(2, 4))
+    assert metric(at, "places") == str(r.places.n_places) == "15"
+    assert metric(at, "images per place") == "6"
+    np.testing.assert_allclose(trace(figure(at, "theta_hist"), "θ_p simple")["x"], r.model.theta["simple"])
+    assert at.query_params["group"] == "2" and at.query_params["step"] == "4"
+    at.radio(key="w_reading").set_value("skip").run()
+    assert_clean(at)
+    skip = make_places(demo, PlaceSpec(2, 4, "skip"))
+    assert metric(at, "places") == str(skip.n_places)
+    assert at.query_params["reading"] == "skip"
+
+
+def test_slider_moves_never_re_extract(app, monkeypatch):
+    """Descriptors are per image: a group/step move relabels images and refits the statistics only."""
+    import ui.cache
+
+    calls = []
+    extract = ui.cache.dataset_descriptors
+    monkeypatch.setattr(ui.cache, "dataset_descriptors", lambda *a, **k: calls.append(a) or extract(*a, **k))
+    at = page(app.run(), "places")
+    assert len(calls) == 1
+    for group, step in ((2, 4), (4, 6), (1, 1), (3, 5)):
+        at.slider(key="w_group").set_value(group).run()
+        at.slider(key="w_step").set_value(step).run()
+        assert_clean(at)
+    page(at, "thresholds")
+    page(at, "inspector")
+    assert len(calls) == 1
+
+
+def test_places_too_few_places_shows_an_error_and_keeps_the_last_good_value(app):
+    at = page(app.run(), "places")
+    at.slider(key="w_step").set_value(59).run()  # group 3, step 59 on 60 frames: one place
+    assert_clean(at, errors=True)
+    assert any("at least 2 places" in e.value and "lower group or step" in e.value for e in at.error)
+    assert at.slider(key="w_step").value == 5 and metric(at, "places") == "12"
+    at.slider(key="w_step").set_value(10).run()  # still usable
+    assert_clean(at)
+    assert metric(at, "places") == "6"
+
+
+def test_places_stride_overlap_is_refused_with_the_fix(app):
+    at = page(app.run(), "places")
+    at.slider(key="w_group").set_value(8).run()  # step 5 < group 8 in the stride reading
+    assert_clean(at, errors=True)
+    assert any("places would overlap" in e.value for e in at.error)
+    assert at.slider(key="w_group").value == 3
+
+
+# --------------------------------------------------------------------------- thresholds
+
+
+def test_thresholds_figure_lines_are_the_computed_thresholds(app, demo, demo_pixels):
+    at = page(app.run(), "thresholds")
+    r = regroup(demo_pixels, demo, DEMO_SPEC)
+    p = at.selectbox(key="w_place").value
+    spec = figure(at, "mixture")
+    assert trace(spec, "θ_p weighted")["x"][0] == pytest.approx(r.model.theta["weighted"][p])
+    assert trace(spec, "θ_p simple")["x"][0] == pytest.approx(r.model.theta["simple"][p])
+    assert trace(spec, "global θ, automatic")["x"][0] == pytest.approx(r.model.auto)
+    d = place_detail(r.model, demo_pixels, demo, r.places, p, "snow")
+    mix = trace(spec, "mixture")
+    from vpr_explorer.stats import mixture_pdf
+
+    np.testing.assert_allclose(mix["y"], mixture_pdf(mix["x"], d.mu, d.sigma, d.weight))
+    overview = trace(figure(at, "overview"), "theta")
+    np.testing.assert_allclose(overview["y"], np.sort(r.model.theta["weighted"]))
+    assert any("normalised" in i.value for i in at.info)
+
+
+def test_thresholds_place_k_and_user_theta_move_the_lines(app, demo, demo_pixels):
+    at = page(app.run(), "thresholds")
+    at.selectbox(key="w_place").set_value(7).run()
+    at.slider(key="w_k").set_value(1.5).run()
+    at.checkbox(key="w_user_on").check().run()
+    at.number_input(key="w_user_theta").set_value(0.42).run()
+    assert_clean(at)
+    r = regroup(demo_pixels, demo, DEMO_SPEC)
+    spec = figure(at, "mixture")
+    assert "Place 7" in spec["layout"]["title"]["text"]
+    assert trace(spec, "θ_p(k)")["x"][0] == pytest.approx(r.model.thresholds(1.5)["weighted"][7])
+    assert trace(spec, "global θ, user value")["x"][0] == pytest.approx(0.42)
+    assert at.query_params["place"] == "7" and at.query_params["k"] == "1.5"
+    at.radio(key="w_method").set_value("simple").run()
+    assert trace(figure(at, "mixture"), "θ_p(k)")["x"][0] == pytest.approx(r.model.thresholds(1.5)["simple"][7])
+
+
+# --------------------------------------------------------------------------- query inspector
+
+
+def test_inspector_bars_are_raw_p_with_thresholds_and_the_answer_in_words(app, demo, demo_pixels):
+    at = page(app.run(), "inspector")
+    at.slider(key="w_frame").set_value(31).run()
+    assert_clean(at)
+    r = regroup(demo_pixels, demo, DEMO_SPEC)
+    dec = explain_query(r.model, demo_pixels, demo, r.places, demo.image_index("snow", 31))
+    cands = top_candidates(dec, 8)
+    for key, threshold in (("place-baseline", None), ("margin-weighted", "weighted"), ("raw-simple", "simple"),
+                           ("global-auto", "auto")):
+        spec = figure(at, f"bars_{key}")
+        bars = trace(spec, "raw_p")
+        np.testing.assert_array_equal(bars["customdata"], cands)
+        np.testing.assert_allclose(bars["y"], dec.raw[cands])
+        if threshold:
+            np.testing.assert_allclose(trace(spec, "theta")["y"], dec.thresholds[threshold][cands])
+        assert any(c.value == dec.describe(key) for c in at.caption), key
+    assert at.query_params["frame"] == "31"
+
+
+def test_inspector_jumps_to_a_rejected_query(app, demo, demo_pixels):
+    at = page(app.run(), "inspector")
+    at.selectbox(key="w_find_method").set_value("global-auto").run()
+    at.button(key="w_find_next").click().run()
+    assert_clean(at)
+    frame = at.slider(key="w_frame").value
+    r = regroup(demo_pixels, demo, DEMO_SPEC)
+    assert r.decisions.outcomes["global-auto"].answer_place[frame] < 0
+    dec = explain_query(r.model, demo_pixels, demo, r.places, demo.image_index("snow", frame))
+    assert dec.describe("global-auto").startswith("rejected")
+    assert any(c.value.startswith("rejected") for c in at.caption)
+
+
+def test_inspector_jump_with_none_found_says_so(app):
+    at = page(app.run(), "inspector")
+    at.selectbox(key="w_find_method").set_value("place-baseline").run()  # never rejects
+    frame = at.slider(key="w_frame").value
+    at.button(key="w_find_next").click().run()
+    assert_clean(at)
+    assert at.slider(key="w_frame").value == frame
+    assert any("no query frame was rejected" in i.value for i in at.info)
+
+
+def test_inspector_opens_a_pair_picked_in_the_similarity_matrix(app, demo):
+    """What a heatmap click does (see ``pages/evaluation.py``'s callback): the pair opens in the inspector."""
+    at = app.run()
+    q, db = demo.image_index("snow", 12), demo.image_index("night", 13)
+    at.session_state["picked_pair"] = (q, db)
+    at.session_state["view"] = at.session_state["view"].__class__(frame=12)
+    page(at, "inspector")
+    assert_clean(at)
+    assert at.slider(key="w_frame").value == 12
+    assert any("Opened from the similarity matrix" in c.value and "night · frame 13" in c.value for c in at.caption)
+
+
+# --------------------------------------------------------------------------- evaluation
+
+
+def test_evaluation_paper_protocol_table_equals_the_library(app, demo, demo_pixels):
+    at = page(app.run(), "evaluation")
+    assert_clean(at)
+    ev = run_protocol(Protocol.PAPER, demo, make_places(demo, DEMO_SPEC), demo_pixels, runs=20, seed=0)
+    table = at.dataframe[0].value
+    np.testing.assert_allclose(table["R@1"], [100 * r.recall[1][0] for r in ev.rows])
+    np.testing.assert_allclose(table["R@5 ±"], [100 * r.recall[5][1] for r in ev.rows])
+    spec = figure(at, "recall")
+    np.testing.assert_allclose(trace(spec, "R@1")["y"], [r.recall[1][0] for r in ev.rows])
+    np.testing.assert_allclose(trace(spec, "R@3")["error_y"]["array"], [r.recall[3][1] for r in ev.rows])
+    csv = next(b for b in at.get("download_button") if b.proto.label == "Download CSV")
+    assert csv is not None
+    assert "top-1 from own traversal" in table.columns
+    assert method_csv(ev).splitlines()[0].startswith("protocol,method")
+
+
+def test_evaluation_open_set_and_traversal_protocols(app, demo, demo_pixels):
+    at = page(app.run(), "evaluation")
+    at.radio(key="w_protocol").set_value("open-set")
+    at.slider(key="w_runs").set_value(3)
+    at.button[0].click()  # the form's submit button
+    at = at.run()
+    assert_clean(at)
+    ev = run_protocol(Protocol.OPEN_SET, demo, make_places(demo, DEMO_SPEC), demo_pixels, runs=3, seed=0,
+                      unknown_share=0.3)
+    spec = figure(at, "tradeoff")
+    rows = [t for t in ev.tradeoff if t.series == "θ_p(k) weighted" and t.rule == "margin"]
+    np.testing.assert_allclose(trace(spec, "θ_p(k) weighted")["y"], [t.known_recall1[0] for t in rows])
+    k0 = next(t for t in rows if t.param == 0)
+    assert trace(spec, "k0 θ_p(k) weighted")["x"][0] == pytest.approx(k0.unknown_rejection[0])
+    assert "unknown rejected" in at.dataframe[0].value.columns
+    at.radio(key="w_protocol").set_value("traversal")
+    at.multiselect(key="w_database").set_value(["day"])
+    at.selectbox(key="w_eval_query").set_value("night")
+    at.button[0].click()
+    at = at.run()
+    assert_clean(at)
+    ev = run_protocol(Protocol.TRAVERSAL, demo, make_places(demo, DEMO_SPEC), demo_pixels, database=["day"],
+                      queries="night")
+    np.testing.assert_allclose(at.dataframe[0].value["R@1"], [100 * r.recall[1][0] for r in ev.rows])
+
+
+def test_evaluation_bad_protocol_setting_shows_an_error(app):
+    at = page(app.run(), "evaluation")
+    at.radio(key="w_protocol").set_value("traversal")
+    at.multiselect(key="w_database").set_value(["day", "snow"])
+    at.selectbox(key="w_eval_query").set_value("snow")  # query traversal also in the database
+    at.button[0].click()
+    at = at.run()
+    assert_clean(at, errors=True)
+    assert any("also a database traversal" in e.value for e in at.error)
+
+
+def test_evaluation_similarity_matrix_is_the_library_grid(app, demo, demo_pixels):
+    from vpr_explorer.views import similarity_grid
+
+    at = page(app.run(), "evaluation")
+    grid = similarity_grid(demo_pixels, demo, ("day", "night"), "snow")
+    spec = figure(at, "simgrid")
+    np.testing.assert_allclose(trace(spec, "similarity")["z"], grid.z, rtol=1e-6)
+    pairs = trace(spec, "cells")["customdata"]
+    np.testing.assert_array_equal(pairs[:, 0], grid.query_image.ravel())
+
+
+# --------------------------------------------------------------------------- URL
+
+
+def test_a_shared_url_reopens_the_view(app):
+    app.query_params.update({"group": "2", "step": "4", "place": "3", "k": "0.5"})
+    at = page(app.run(), "thresholds")
+    assert_clean(at)
+    assert at.selectbox(key="w_place").value == 3
+    assert at.slider(key="w_k").value == 0.5
+    page(at, "places")
+    assert metric(at, "places") == "15"
+
+
+def test_a_bad_url_parameter_is_ignored_with_a_warning(app):
+    app.query_params.update({"group": "three", "k": "nan"})
+    at = app.run()
+    assert_clean(at)
+    assert any("group='three'" in w.value for w in at.warning)
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def choose_folder(at: AppTest, path: Path | str) -> AppTest:
+    at.selectbox(key="w_source").set_value("__folder__").run()
+    at.text_input(key="w_folder").input(str(path)).run()
+    return at
+
+
+def test_a_folder_that_does_not_exist_shows_an_error_and_keeps_the_demo(app, tmp_path):
+    at = choose_folder(app.run(), tmp_path / "nope")
+    assert_clean(at, errors=True)
+    assert any("does not exist" in e.value for e in at.error)
+    assert at.session_state["view"].source == "demo"
+    page(at, "places")  # still usable
+    assert_clean(at)
+
+
+def test_a_folder_without_images_shows_an_error(app, tmp_path):
+    (tmp_path / "day").mkdir()
+    (tmp_path / "day" / "notes.txt").write_text("no images here")
+    at = choose_folder(app.run(), tmp_path)
+    assert_clean(at, errors=True)
+    assert any("no traversal found" in e.value for e in at.error)
+    assert at.session_state["view"].source == "demo"
+
+
+def make_route(root: Path, frames: int = 12, corrupt: str | None = None) -> Path:
+    rng = np.random.default_rng(0)
+    base = rng.integers(0, 255, size=(frames, 24, 32, 3), dtype=np.uint8)
+    for t, name in enumerate(("a", "b")):
+        (root / name).mkdir(parents=True)
+        for f in range(frames):
+            noisy = np.clip(base[f].astype(int) + rng.integers(-20, 20, base[f].shape), 0, 255).astype(np.uint8)
+            Image.fromarray(noisy).save(root / name / f"{f:03d}.png")
+    if corrupt:
+        (root / corrupt).write_bytes(b"\x89PNG\r\n\x1a\n this is not an image")
+    return root
+
+
+def test_a_corrupt_image_shows_an_error_naming_it_and_the_app_recovers(app, tmp_path):
+    route = make_route(tmp_path / "route", corrupt="b/005.png")
+    at = choose_folder(app.run(), route)
+    assert_clean(at, errors=True)
+    assert at.session_state["view"].source == str(route)  # the folder opens; its image fails at extraction
+    assert any("005.png" in e.value and "cannot read the image" in e.value for e in at.error)
+    for name in PAGES:
+        page(at, name)
+        assert_clean(at, errors=True)
+        assert any("005.png" in e.value for e in at.error), name
+    page(at, "home")
+    fixed = np.random.default_rng(5).integers(0, 255, size=(24, 32, 3), dtype=np.uint8)
+    Image.fromarray(fixed).save(route / "b" / "005.png")  # the user replaces the broken file
+    at.run()
+    assert_clean(at)
+    assert any("descriptors ready: 24 × 2048" in s.value for s in at.success)
+    at.selectbox(key="w_source").set_value("demo").run()
+    assert_clean(at)
+    page(at, "places")
+    assert_clean(at)
+    assert metric(at, "places") == "12"
+
+
+def test_a_small_typed_folder_works_end_to_end(app, tmp_path):
+    route = make_route(tmp_path / "route")
+    at = choose_folder(app.run(), route)
+    assert_clean(at)
+    assert at.query_params["source"] == str(route)
+    at = page(at, "places")
+    at.slider(key="w_step").set_value(3).run()  # 12 frames, group 3, step 3: 4 places
+    assert_clean(at)
+    assert metric(at, "places") == "4"
+    for name in ("thresholds", "inspector", "evaluation"):
+        page(at, name)
+        assert_clean(at)
+
+
+def test_an_unavailable_descriptor_is_listed_with_its_reason_and_refused(app, monkeypatch):
+    from vpr_explorer.descriptors import registry
+
+    entry = registry.ExtractorEntry(registry._pixels, lambda: "its weights are not on this machine")
+    monkeypatch.setitem(registry._REGISTRY, "needs-weights", entry)
+    at = app.run()
+    radio = at.radio(key="w_descriptor")
+    assert "needs-weights" in radio.options
+    assert any("its weights are not on this machine" in c for c in radio.proto.captions)
+    radio.set_value("needs-weights").run()
+    assert_clean(at, errors=True)
+    assert any("unavailable here" in e.value for e in at.error)
+    assert at.session_state["view"].descriptor == "pixels"
+
+
+# --------------------------------------------------------------------------- real data
+
+
+@pytest.mark.realdata
+def test_gardens_point_pages_show_the_library_numbers(app, data_root, gardens_point, gp_pixels):
+    gp = str(data_root / "GardensPointWalking")
+    at = app.run()
+    assert "GardensPointWalking  (under VPR_EXPLORER_DATA)" in at.selectbox(key="w_source").options
+    at.selectbox(key="w_source").set_value(gp).run()
+    assert_clean(at)
+    assert at.session_state["view"].source == gp
+    page(at, "places")
+    assert_clean(at)
+    r = regroup(gp_pixels, gardens_point, PlaceSpec(3, 10))
+    assert metric(at, "places") == "20" and metric(at, "images per place") == "9"
+    assert metric(at, "place-level R@1") == f"{r.recall1['place-baseline']:.0%}"
+    np.testing.assert_allclose(trace(figure(at, "theta_hist"), "θ_p weighted")["x"], r.model.theta["weighted"])
+    at.selectbox(key="w_query").set_value("day_right").run()  # database: day_left + night_right
+    assert_clean(at)
+    r2 = regroup(gp_pixels, gardens_point, PlaceSpec(3, 10), "day_right")
+    assert metric(at, "place-level R@1") == f"{r2.recall1['place-baseline']:.0%}"
+    at.selectbox(key="w_query").set_value("night_right").run()
+    page(at, "thresholds")
+    assert_clean(at)
+    p = at.selectbox(key="w_place").value
+    assert trace(figure(at, "mixture"), "θ_p weighted")["x"][0] == pytest.approx(r.model.theta["weighted"][p])
+    page(at, "inspector")
+    at.slider(key="w_frame").set_value(101).run()
+    assert_clean(at)
+    dec = explain_query(r.model, gp_pixels, gardens_point, r.places, gardens_point.image_index("night_right", 101))
+    np.testing.assert_allclose(trace(figure(at, "bars_margin-weighted"), "raw_p")["y"],
+                               dec.raw[top_candidates(dec, 8)])
+    page(at, "evaluation")
+    assert_clean(at)

@@ -1,0 +1,317 @@
+"""Figures draw the library's numbers: each figure's data is checked against the value it stands for.
+
+Mirrors ``vpr_explorer/plots.py`` and ``vpr_explorer/views.py``. Most tests use the
+built-in demo route with pixel descriptors (seconds); the ``realdata`` ones use
+GardensPoint through ``VPR_EXPLORER_DATA``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from vpr_explorer import plots
+from vpr_explorer.database import explain_query, fit_database
+from vpr_explorer.evaluation import Protocol
+from vpr_explorer.pipeline import dataset_descriptors, resolve_dataset, run_protocol
+from vpr_explorer.places import PlaceSpec, make_places
+from vpr_explorer.retrieval import similarity
+from vpr_explorer.stats import mixture_pdf
+from vpr_explorer.views import (
+    LIVE_METHODS,
+    place_detail,
+    regroup,
+    similarity_grid,
+    split_traversals,
+    top_candidates,
+)
+
+SPEC = PlaceSpec(3, 5)
+
+
+@pytest.fixture(scope="module")
+def demo():
+    return resolve_dataset("demo")
+
+
+@pytest.fixture(scope="module")
+def demo_pixels(demo):
+    return dataset_descriptors(demo, "pixels")
+
+
+@pytest.fixture(scope="module")
+def regrouped(demo, demo_pixels):
+    return regroup(demo_pixels, demo, SPEC)
+
+
+def by_meta(fig, meta):
+    """The one trace whose ``meta`` is ``meta``."""
+    found = [t for t in fig.data if t.meta == meta]
+    assert len(found) == 1, f"{len(found)} traces with meta {meta!r}: {[t.meta for t in fig.data]}"
+    return found[0]
+
+
+def vline_x(fig, name):
+    trace = by_meta(fig, name)
+    assert trace.x[0] == trace.x[1]
+    return trace.x[0]
+
+
+# --------------------------------------------------------------------------- views (the numbers)
+
+
+def test_split_is_every_other_traversal_against_the_last(demo):
+    assert split_traversals(demo) == (("day", "night"), "snow")
+    assert split_traversals(demo, "day") == (("night", "snow"), "day")
+
+
+def test_regroup_recall_equals_the_traversal_protocol(demo, demo_pixels, regrouped):
+    """The live page's Recall@1 is the library's traversal protocol on the same split."""
+    ev = run_protocol(Protocol.TRAVERSAL, demo, make_places(demo, SPEC), demo_pixels,
+                      database=list(regrouped.database), queries=regrouped.query)
+    for key in LIVE_METHODS:
+        assert regrouped.recall1[key] == pytest.approx(ev.row(key).recall[1][0]), key
+    assert regrouped.n_scored == ev.settings["queries_scored"]
+
+
+def test_regroup_thresholds_come_from_the_database_only(demo, demo_pixels, regrouped):
+    model = fit_database(demo_pixels, demo, make_places(demo, SPEC), ["day", "night"])
+    np.testing.assert_allclose(regrouped.model.theta["weighted"], model.theta["weighted"])
+    assert set(demo.image_traversal[regrouped.model.images]) == {0, 1}
+
+
+def test_place_detail_scores_equal_a_pairwise_reference(demo, demo_pixels, regrouped):
+    p = 4
+    d = place_detail(regrouped.model, demo_pixels, demo, regrouped.places, p, "snow")
+    model = regrouped.model
+    own = model.images[model.places == p]
+    other = model.images[model.places != p]
+    sims = np.asarray(demo_pixels, dtype=np.float64) @ np.asarray(demo_pixels, dtype=np.float64).T
+    np.testing.assert_allclose(np.sort(d.negatives), np.sort(sims[np.ix_(own, other)].ravel()), atol=1e-5)
+    pos = [sims[i, j] for a, i in enumerate(own) for j in own[a + 1:]]
+    np.testing.assert_allclose(np.sort(d.positives), np.sort(pos), atol=1e-5)
+    # μᵢ of each component is the mean of that image's negative scores (the closed form equals the pairs).
+    np.testing.assert_allclose(d.mu, sims[np.ix_(own, other)].mean(axis=1), atol=1e-5)
+    frames = regrouped.places.frames_of(p)
+    query = [demo.image_index("snow", f) for f in frames]
+    np.testing.assert_array_equal(d.query_images, query)
+    np.testing.assert_allclose(d.query_raw, sims[np.ix_(query, own)].max(axis=1), atol=1e-5)
+    assert d.theta["weighted"] == pytest.approx(model.theta["weighted"][p])
+    assert d.theta_k(1.5) == pytest.approx(model.thresholds(1.5)["weighted"][p])
+    assert d.share_negatives_above(-2.0) == 1.0 and d.share_negatives_above(2.0) == 0.0
+
+
+def test_top_candidates_keeps_the_right_place(demo, demo_pixels, regrouped):
+    dec = explain_query(regrouped.model, demo_pixels, demo, regrouped.places, demo.image_index("snow", 16))
+    cands = top_candidates(dec, 3)
+    np.testing.assert_array_equal(cands[:3], np.argsort(-dec.raw, kind="stable")[:3])
+    assert set(dec.true_places) <= set(cands)
+
+
+def test_similarity_grid_pools_block_maxima_and_keeps_their_pair(demo, demo_pixels):
+    full = similarity_grid(demo_pixels, demo, ("day", "night"), "snow")
+    assert full.block == 1 and full.z.shape == (60, 60)
+    pooled = similarity_grid(demo_pixels, demo, ("day", "night"), "snow", max_side=25)
+    assert pooled.block == 3 and pooled.z.shape == (20, 20)
+    for r in range(20):
+        for c in range(20):
+            block = full.z[3 * r:3 * r + 3, 3 * c:3 * c + 3]
+            assert pooled.z[r, c] == pytest.approx(block.max())
+    # The pair behind every cell scores exactly the cell's value, and is a query x database pair.
+    d = np.asarray(demo_pixels)
+    for grid in (full, pooled):
+        s = np.einsum("ijk,ijk->ij", d[grid.query_image], d[grid.db_image])
+        np.testing.assert_allclose(s, grid.z, atol=1e-5)
+        assert set(demo.image_traversal[grid.query_image.ravel()]) == {2}
+        assert set(demo.image_traversal[grid.db_image.ravel()]) <= {0, 1}
+
+
+# --------------------------------------------------------------------------- figures
+
+
+def test_route_figure_marks_place_and_skipped_frames(demo, regrouped):
+    fp = regrouped.places.frame_place
+    fig = plots.route_figure(fp, demo.traversals, demo.positions)
+    for t in demo.traversals:
+        places = by_meta(fig, f"places {t}")
+        np.testing.assert_array_equal(places.x, np.flatnonzero(fp >= 0))
+        np.testing.assert_array_equal(places.customdata, fp[fp >= 0])
+        np.testing.assert_array_equal(by_meta(fig, f"skipped {t}").x, np.flatnonzero(fp < 0))
+    np.testing.assert_allclose(by_meta(fig, "map places").x, demo.positions[fp >= 0, 0])
+    assert all(t.meta != "route" for t in plots.route_figure(fp, demo.traversals).data)
+
+
+def test_theta_histogram_holds_every_theta_and_the_global_line(regrouped):
+    model = regrouped.model
+    fig = plots.theta_histogram(model.theta, model.auto, user_theta=0.3)
+    for name in ("simple", "weighted"):
+        np.testing.assert_allclose(by_meta(fig, f"θ_p {name}").x, model.theta[name])
+    assert vline_x(fig, "global θ, automatic") == pytest.approx(model.auto)
+    assert vline_x(fig, "global θ, user value") == pytest.approx(0.3)
+
+
+def test_recall_bars_heights_are_the_recalls(regrouped):
+    recall = {k: regrouped.recall1[k] for k in LIVE_METHODS}
+    fig = plots.recall_bars(recall, rejected={k: regrouped.rejected[k] for k in LIVE_METHODS})
+    np.testing.assert_allclose(by_meta(fig, "recall1").y, list(recall.values()))
+    assert list(by_meta(fig, "recall1").customdata) == list(LIVE_METHODS)
+    np.testing.assert_allclose(by_meta(fig, "rejected").y, [regrouped.rejected[k] for k in LIVE_METHODS])
+
+
+def test_places_overview_sorted_by_theta_with_place_ids(regrouped):
+    model = regrouped.model
+    fig = plots.places_overview(model.theta["weighted"], model.positive_mean, model.negative_mean, selected=2)
+    bars = by_meta(fig, "theta")
+    order = np.argsort(model.theta["weighted"], kind="stable")
+    np.testing.assert_array_equal(bars.customdata, order)
+    np.testing.assert_allclose(bars.y, model.theta["weighted"][order])
+    assert np.all(np.diff(bars.y) >= 0)
+    np.testing.assert_allclose(by_meta(fig, "positive_mean").y, model.positive_mean[order])
+    assert bars.marker.color[list(order).index(2)] == plots.POSITIVE
+
+
+def test_mixture_figure_curves_and_lines_are_the_library_values(demo, demo_pixels, regrouped):
+    p = 6
+    d = place_detail(regrouped.model, demo_pixels, demo, regrouped.places, p, "snow")
+    fig = plots.mixture_figure(d, k=1.0, method="simple", user_theta=0.45)
+    mixture = by_meta(fig, "mixture")
+    x = np.asarray(mixture.x)
+    np.testing.assert_allclose(mixture.y, mixture_pdf(x, d.mu, d.sigma, d.weight))
+    components = [by_meta(fig, f"component {i}") for i in range(len(d.mu))]
+    for i, c in enumerate(components):
+        np.testing.assert_allclose(c.y, d.weight[i] * np.exp(-0.5 * ((x - d.mu[i]) / d.sigma[i]) ** 2)
+                                   / (d.sigma[i] * np.sqrt(2 * np.pi)))
+    np.testing.assert_allclose(np.sum([c.y for c in components], axis=0), mixture.y)
+    model = regrouped.model
+    assert vline_x(fig, "θ_p simple") == pytest.approx(model.theta["simple"][p])
+    assert vline_x(fig, "θ_p weighted") == pytest.approx(model.theta["weighted"][p])
+    assert vline_x(fig, "θ_p(k)") == pytest.approx(model.thresholds(1.0)["simple"][p])
+    assert vline_x(fig, "global θ, automatic") == pytest.approx(model.auto)
+    assert vline_x(fig, "global θ, user value") == pytest.approx(0.45)
+    np.testing.assert_allclose(by_meta(fig, "negatives").x, d.negatives)
+    np.testing.assert_allclose(by_meta(fig, "positives").x, d.positives)
+    np.testing.assert_allclose(by_meta(fig, "query_raw").x, d.query_raw)
+
+
+@pytest.mark.parametrize("key", LIVE_METHODS)
+def test_candidate_bars_are_raw_p_with_theta_and_kept_colours(demo, demo_pixels, regrouped, key):
+    dec = explain_query(regrouped.model, demo_pixels, demo, regrouped.places, demo.image_index("snow", 31), k=0.5)
+    cands = top_candidates(dec, 6)
+    fig = plots.candidate_bars(dec, key, cands)
+    bars = by_meta(fig, "raw_p")
+    np.testing.assert_allclose(bars.y, dec.raw[cands])
+    np.testing.assert_array_equal(bars.customdata, cands)
+    kept = dec.kept(key)[cands]
+    assert list(bars.marker.color) == [plots.KEPT if k else plots.DROPPED for k in kept]
+    outlined = [c for c, colour in zip(cands, bars.marker.line.color) if colour == "#000"]
+    assert outlined == ([dec.answer(key)] if dec.answer(key) in cands else [])
+    threshold = {"place-baseline": None, "global-auto": "auto"}.get(key, key.split("-")[1])
+    if threshold is None:
+        assert all(t.meta != "theta" for t in fig.data)
+    else:
+        np.testing.assert_allclose(by_meta(fig, "theta").y, dec.thresholds[threshold][cands])
+        np.testing.assert_array_equal(np.asarray(by_meta(fig, "theta").y) <= bars.y, kept)
+
+
+@pytest.fixture(scope="module")
+def open_set(demo, demo_pixels):
+    return run_protocol(Protocol.OPEN_SET, demo, make_places(demo, SPEC), demo_pixels, runs=4, seed=1)
+
+
+def test_evaluation_rows_and_strict_json(open_set):
+    import json
+
+    from vpr_explorer.views import evaluation_json, evaluation_rows
+
+    rows = evaluation_rows(open_set)
+    assert [r["method"] for r in rows] == [r.label for r in open_set.rows]
+    for row, r in zip(rows, open_set.rows):
+        assert row["R@1"] == pytest.approx(100 * r.recall[1][0])
+        assert row["R@10 ±"] == pytest.approx(100 * r.recall[10][1])
+        assert row["unknown rejected"] == pytest.approx(100 * r.unknown_rejection[0])
+    text = evaluation_json(open_set)
+    data = json.loads(text, parse_constant=lambda c: pytest.fail(f"non-JSON constant {c}"))
+    assert data["protocol"] == "open-set" and len(data["tradeoff"]) == len(open_set.tradeoff)
+    auto = next(m for m in data["methods"] if m["key"] == "global-auto")
+    assert auto["precision"]["mean"] is None or math.isfinite(auto["precision"]["mean"])
+
+
+def test_recall_figure_bars_and_error_bars_are_the_rows(open_set):
+    fig = plots.recall_figure(open_set)
+    for k in open_set.ks:
+        trace = by_meta(fig, f"R@{k}")
+        np.testing.assert_allclose(trace.y, [r.recall[k][0] for r in open_set.rows])
+        np.testing.assert_allclose(trace.error_y.array, [r.recall[k][1] for r in open_set.rows])
+        assert list(trace.customdata) == [r.key for r in open_set.rows]
+
+
+@pytest.mark.parametrize("rule", ["margin", "raw"])
+def test_tradeoff_figure_points_are_the_tradeoff_rows(open_set, rule):
+    fig = plots.tradeoff_figure(open_set, rule)
+    for series in ("θ_p(k) simple", "θ_p(k) weighted"):
+        rows = [t for t in open_set.tradeoff if t.series == series and t.rule == rule]
+        curve = by_meta(fig, series)
+        np.testing.assert_allclose(curve.x, [t.unknown_rejection[0] for t in rows])
+        np.testing.assert_allclose(curve.y, [t.known_recall1[0] for t in rows])
+        np.testing.assert_allclose(curve.customdata, [t.param for t in rows])
+        paper = next(t for t in rows if t.param == 0.0)
+        k0 = by_meta(fig, f"k0 {series}")
+        assert (k0.x[0], k0.y[0]) == pytest.approx((paper.unknown_rejection[0], paper.known_recall1[0]))
+    auto = next(t for t in open_set.tradeoff if t.series == "global θ, automatic")
+    marker = by_meta(fig, "global θ, automatic")
+    assert (marker.x[0], marker.y[0]) == pytest.approx((auto.unknown_rejection[0], auto.known_recall1[0]))
+    sweep = [t for t in open_set.tradeoff if t.series == "global θ"]
+    np.testing.assert_allclose(by_meta(fig, "global θ").customdata, [t.param for t in sweep])
+
+
+def test_similarity_heatmap_cells_carry_their_pair(demo, demo_pixels):
+    grid = similarity_grid(demo_pixels, demo, ("day", "night"), "snow", max_side=30)
+    fig = plots.similarity_heatmap(grid, query="snow", database=("day", "night"), marked=(4, 7))
+    np.testing.assert_allclose(by_meta(fig, "similarity").z, grid.z)
+    cells = by_meta(fig, "cells")
+    assert len(cells.x) == grid.z.size
+    pairs = np.asarray(cells.customdata)
+    np.testing.assert_array_equal(pairs[:, 0], grid.query_image.ravel())
+    np.testing.assert_array_equal(pairs[:, 1], grid.db_image.ravel())
+    # A cell's marker sits at its row/column frame, so a click opens the pair drawn there.
+    np.testing.assert_array_equal(cells.y, np.repeat(grid.row_frames, len(grid.col_frames)))
+    np.testing.assert_array_equal(cells.x, np.tile(grid.col_frames, len(grid.row_frames)))
+    assert (by_meta(fig, "marked").x[0], by_meta(fig, "marked").y[0]) == (7, 4)
+
+
+def test_selected_pair_reads_both_forms_of_a_clicked_point():
+    assert plots.selected_pair({"customdata": [132, 30]}) == (132, 30)
+    assert plots.selected_pair({"customdata": {"1": 30, "0": 132}}) == (132, 30)  # typed-array form
+    assert plots.selected_pair({"x": 3}) is None
+    assert plots.selected_pair({"customdata": 7}) is None
+
+
+def test_plots_module_never_imports_streamlit():
+    import ast
+    from pathlib import Path
+
+    for module in ("plots.py", "views.py"):
+        tree = ast.parse((Path(plots.__file__).parent / module).read_text())
+        names = {a.name for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom)) for a in n.names}
+        names |= {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
+        assert not any(str(x).startswith("streamlit") for x in names), module
+
+
+# --------------------------------------------------------------------------- real data
+
+
+@pytest.mark.realdata
+def test_gardens_point_theta_line_is_the_computed_theta(gardens_point, gp_pixels):
+    """GardensPoint, paper places (group 3, step 10): 20 places; the drawn θ_p is the fitted one."""
+    r = regroup(gp_pixels, gardens_point, PlaceSpec(3, 10))
+    assert r.places.n_places == 20 and r.database == ("day_left", "day_right") and r.query == "night_right"
+    for p in (0, 7, 19):
+        d = place_detail(r.model, gp_pixels, gardens_point, r.places, p, r.query)
+        fig = plots.mixture_figure(d, k=0.5)
+        assert vline_x(fig, "θ_p weighted") == pytest.approx(r.model.theta["weighted"][p])
+        assert vline_x(fig, "θ_p(k)") == pytest.approx(r.model.thresholds(0.5)["weighted"][p])
+        assert len(d.images) == 6 and len(d.query_images) == 3
+    sims = similarity(gp_pixels[d.query_images], gp_pixels[d.images])
+    np.testing.assert_allclose(d.query_raw, sims.max(axis=1), atol=1e-6)

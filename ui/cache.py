@@ -1,0 +1,297 @@
+"""Every Streamlit cache of the app, in one place, chained like the data flow.
+
+dataset (listing) -> descriptors (extraction, on-disk cache) -> regrouped (places,
+database thresholds, query decisions) -> place detail / query decision / similarity grid
+/ evaluation.
+
+Keys: Streamlit samples large arrays when it hashes them, so functions never hash the
+descriptors; they take them as an underscore argument (unhashed) beside ``data.key``,
+which holds the descriptors' content ``fingerprint()``. Models and big matrices go in
+``st.cache_resource`` (returned as is, never mutated), small results in
+``st.cache_data``. Work that reports progress (extraction, evaluation protocols) goes
+through ``_memo`` instead: a cached function replays the ``st.*`` calls made inside it,
+which must not happen to a progress bar.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import streamlit as st
+from PIL import Image
+
+from vpr_explorer import settings
+from vpr_explorer.database import QueryDecision, TraversalDecisions, decide_traversal, explain_query
+from vpr_explorer.datasets import Dataset
+from vpr_explorer.descriptors import fingerprint
+from vpr_explorer.descriptors.base import open_image
+from vpr_explorer.errors import VPRInputError
+from vpr_explorer.evaluation import Evaluation
+from vpr_explorer.pipeline import DEMO, dataset_descriptors, resolve_dataset, run_protocol
+from vpr_explorer.places import PlaceSpec
+from vpr_explorer.views import PlaceDetail, Regrouped, SimilarityGrid, place_detail, regroup, similarity_grid
+
+from ui.feedback import progress_reporter
+
+MEMO_ENTRIES = 8
+
+
+@dataclass(frozen=True, eq=False)
+class Loaded:
+    """A dataset with its descriptors: what every page after the Dataset page starts from.
+
+    Attributes:
+        dataset: the dataset.
+        descriptor: extractor name.
+        descriptors: ``(n_images, D)`` L2-normalised, read-only.
+        key: content key (dataset files + descriptor fingerprint) for the caches below.
+    """
+
+    dataset: Dataset
+    descriptor: str
+    descriptors: np.ndarray
+    key: str
+
+
+# --------------------------------------------------------------------------- memo with progress
+
+
+class _Memo:
+    """A small thread-safe LRU shared by all sessions, for results computed with a progress bar."""
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self.items: OrderedDict[tuple, object] = OrderedDict()
+        self.lock = threading.Lock()
+
+    def get(self, key: tuple) -> object | None:
+        with self.lock:
+            if key in self.items:
+                self.items.move_to_end(key)
+                return self.items[key]
+        return None
+
+    def put(self, key: tuple, value: object) -> None:
+        with self.lock:
+            self.items[key] = value
+            self.items.move_to_end(key)
+            while len(self.items) > self.size:
+                self.items.popitem(last=False)
+
+
+@st.cache_resource(show_spinner=False)
+def _memo() -> _Memo:
+    return _Memo(MEMO_ENTRIES)
+
+
+@dataclass(frozen=True)
+class _Failed:
+    """A remembered ``VPRInputError``: a rerun shows it at once instead of redoing the work up to it."""
+
+    message: str
+
+
+def _memoised(key: tuple, label: str, compute: Callable[[Callable[..., None]], object]) -> object:
+    hit = _memo().get(key)
+    if isinstance(hit, _Failed):
+        raise VPRInputError(hit.message)
+    if hit is not None:
+        return hit
+    progress, clear = progress_reporter(label)
+    try:
+        value = compute(progress)
+    except VPRInputError as exc:
+        # Keys hold the files' sizes and mtimes, so fixing the file makes a new key.
+        _memo().put(key, _Failed(str(exc)))
+        raise
+    finally:
+        clear()
+    _memo().put(key, value)
+    return value
+
+
+# --------------------------------------------------------------------------- dataset and descriptors
+
+
+def _folder_stamp(source: str) -> str:
+    """Changes when a dataset folder's listing may have changed (its and its sub-folders' mtimes)."""
+    if source == DEMO:
+        return f"demo@{settings.cache_root()}"
+    root = Path(source).expanduser()
+    try:
+        parts = [f"{root.resolve()}:{root.stat().st_mtime_ns}"]
+        parts += [f"{p.name}:{p.stat().st_mtime_ns}" for p in sorted(root.iterdir()) if p.is_dir()]
+    except OSError:
+        return "missing"
+    return "|".join(parts)
+
+
+@st.cache_resource(show_spinner="Reading the dataset folder…", max_entries=8)
+def _dataset(source: str, stamp: str) -> Dataset:
+    return resolve_dataset(source)
+
+
+def dataset(source: str) -> Dataset:
+    """The dataset at ``source`` (a folder or ``"demo"``); raises ``VPRInputError`` for bad folders."""
+    return _dataset(source, _folder_stamp(source))
+
+
+def _files_key(ds: Dataset) -> str:
+    """A digest of every image's path, size and mtime: descriptors are recomputed when one changes."""
+    h = hashlib.sha256()
+    for p in ds.image_paths:
+        try:
+            s = p.stat()
+        except OSError as exc:
+            raise VPRInputError(f"{p}: cannot read the image file ({exc}); check the dataset folder") from exc
+        h.update(f"{p}|{s.st_size}|{s.st_mtime_ns}\n".encode())
+    return h.hexdigest()
+
+
+def load(source: str, descriptor: str) -> Loaded:
+    """The dataset and its descriptors, computed with a progress bar and time estimate if not in memory."""
+    ds = dataset(source)
+    files = _files_key(ds)
+
+    def compute(progress):
+        d = dataset_descriptors(ds, descriptor, progress=progress)
+        d = np.array(d, dtype=np.float32)
+        d.setflags(write=False)
+        return Loaded(ds, descriptor, d, f"{files[:16]}-{fingerprint(d)[:24]}")
+
+    return _memoised(("descriptors", descriptor, files), f"Computing {descriptor} descriptors of "
+                     f"{ds.n_images} images", compute)
+
+
+def loaded_in_memory(source: str, descriptor: str) -> bool:
+    """True when ``load`` would return at once (descriptors already in this server's memory)."""
+    try:
+        return _memo().get(("descriptors", descriptor, _files_key(dataset(source)))) is not None
+    except VPRInputError:
+        return False
+
+
+# --------------------------------------------------------------------------- derived results
+
+
+@st.cache_resource(show_spinner=False, max_entries=32)
+def _regrouped(key: str, group: int | None, step: int | None, reading: str, query: str,
+               _data: Loaded) -> tuple[Regrouped, float]:
+    spec = None if group is None else PlaceSpec(group, step, reading)
+    start = time.perf_counter()
+    r = regroup(_data.descriptors, _data.dataset, spec, query)
+    return r, time.perf_counter() - start
+
+
+def regrouped_timed(data: Loaded, spec: PlaceSpec | None, query: str) -> tuple[Regrouped, float]:
+    """``regrouped`` and the seconds its computation took (when first asked for; cached after)."""
+    if spec is None:
+        return _regrouped(data.key, None, None, "stride", query, data)
+    return _regrouped(data.key, spec.group, spec.step, spec.reading.value, query, data)
+
+
+def regrouped(data: Loaded, spec: PlaceSpec | None, query: str) -> Regrouped:
+    """Places, database thresholds and every query frame decided, for one group/step (no re-extraction)."""
+    return regrouped_timed(data, spec, query)[0]
+
+
+@st.cache_data(show_spinner=False, max_entries=64)
+def _place_detail(key: str, group, step, reading, query: str, place: int, _data: Loaded) -> PlaceDetail:
+    spec = None if group is None else PlaceSpec(group, step, reading)
+    r = regrouped(_data, spec, query)
+    return place_detail(r.model, _data.descriptors, _data.dataset, r.places, place, query)
+
+
+def detail(data: Loaded, spec: PlaceSpec | None, query: str, place: int) -> PlaceDetail:
+    """One place's mixture, scores and thresholds."""
+    g, s, rd = (None, None, "stride") if spec is None else (spec.group, spec.step, spec.reading.value)
+    return _place_detail(data.key, g, s, rd, query, place, data)
+
+
+@st.cache_data(show_spinner=False, max_entries=256)
+def _decision(key: str, group, step, reading, query: str, image: int, k: float, user_theta, _data: Loaded) -> QueryDecision:
+    spec = None if group is None else PlaceSpec(group, step, reading)
+    r = regrouped(_data, spec, query)
+    return explain_query(r.model, _data.descriptors, _data.dataset, r.places, image, k=k, user_theta=user_theta)
+
+
+def decision(data: Loaded, spec: PlaceSpec | None, query: str, image: int, *, k: float = 0.0,
+             user_theta: float | None = None) -> QueryDecision:
+    """The decision record of one query image under every method."""
+    g, s, rd = (None, None, "stride") if spec is None else (spec.group, spec.step, spec.reading.value)
+    return _decision(data.key, g, s, rd, query, image, float(k), user_theta, data)
+
+
+@st.cache_resource(show_spinner=False, max_entries=16)
+def _decisions(key: str, group, step, reading, query: str, k: float, user_theta, _data: Loaded) -> TraversalDecisions:
+    spec = None if group is None else PlaceSpec(group, step, reading)
+    r = regrouped(_data, spec, query)
+    return decide_traversal(r.model, _data.descriptors, _data.dataset, r.places, query, k=k, user_theta=user_theta)
+
+
+def decisions(data: Loaded, spec: PlaceSpec | None, query: str, *, k: float = 0.0,
+              user_theta: float | None = None) -> TraversalDecisions:
+    """Every frame of the query traversal decided at θ_p(k) (and the user's θ)."""
+    g, s, rd = (None, None, "stride") if spec is None else (spec.group, spec.step, spec.reading.value)
+    return _decisions(data.key, g, s, rd, query, float(k), user_theta, data)
+
+
+@st.cache_resource(show_spinner="Computing the similarity matrix…", max_entries=8)
+def _grid(key: str, database: tuple[str, ...], query: str, _data: Loaded) -> SimilarityGrid:
+    return similarity_grid(_data.descriptors, _data.dataset, database, query)
+
+
+def grid(data: Loaded, database: tuple[str, ...], query: str) -> SimilarityGrid:
+    """Query frames × database frames similarity, pooled for display."""
+    return _grid(data.key, tuple(database), query, data)
+
+
+def evaluation(data: Loaded, spec: PlaceSpec | None, protocol: str, **options) -> Evaluation:
+    """A protocol run (see ``pipeline.run_protocol``), with a progress bar the first time."""
+    from vpr_explorer.places import make_places
+
+    places = make_places(data.dataset, spec)
+    key = ("evaluation", data.key, None if spec is None else (spec.group, spec.step, spec.reading.value), protocol,
+           tuple(sorted((k, tuple(v) if isinstance(v, list) else v) for k, v in options.items())))
+    return _memoised(key, f"Running the {protocol} protocol", lambda progress: run_protocol(
+        protocol, data.dataset, places, data.descriptors, progress=progress,
+        settings={"descriptor": data.descriptor}, **options))
+
+
+# --------------------------------------------------------------------------- images
+
+
+@st.cache_data(show_spinner=False, max_entries=2048)
+def _thumbnail(path: str, mtime_ns: int, height: int) -> bytes | None:
+    try:
+        image = open_image(Path(path), "RGB", (height * 2, height))
+    except VPRInputError:
+        return None
+    image.thumbnail((height * 4, height))
+    buf = io.BytesIO()
+    image.save(buf, format="JPEG", quality=85)
+    return buf.getvalue()
+
+
+def thumbnail(path: Path, height: int = 96) -> bytes | Image.Image:
+    """A small JPEG of an image, or a grey placeholder when it cannot be read."""
+    try:
+        mtime = path.stat().st_mtime_ns
+    except OSError:
+        mtime = -1
+    data = _thumbnail(str(path), mtime, height)
+    return data if data is not None else Image.new("RGB", (height * 16 // 9, height), (200, 200, 200))
+
+
+def clear_all() -> None:
+    """Forget every cached result of this server (the on-disk descriptor cache stays)."""
+    st.cache_data.clear()
+    st.cache_resource.clear()

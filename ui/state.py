@@ -1,0 +1,154 @@
+"""The view a session is looking at, kept in ``st.session_state`` and mirrored into the URL.
+
+One frozen ``View`` holds every choice that more than one page reads: the dataset, the
+descriptor, group/step and their reading, the query traversal, the selected place and
+query frame. It lives in ``st.session_state["view"]``; ``sync_url`` writes it into
+``st.query_params`` on every run, so the address bar always holds a link that reopens
+the same view, and a fresh session starts from the URL it was opened with.
+
+Widgets edit it through ``bind``: the widget's own state is set from the view before it
+is drawn and copied back in its ``on_change`` callback, so the view is the one source
+of truth even when another page (or a click on a figure) changes it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import streamlit as st
+
+from vpr_explorer.places import Reading
+from vpr_explorer.pipeline import DEMO
+
+DEFAULT_DESCRIPTOR = "pixels"
+"""Always available and instant; efficientnet-lite0 is the learned choice, one click away."""
+DEFAULT_GROUP = 3
+
+_KEY = "view"
+_INT_FIELDS = ("group", "step", "place", "frame")
+_FLOAT_FIELDS = ("k", "theta")
+# Changing one of these makes the fields after it meaningless: they are reset.
+_RESETS = {
+    "source": ("group", "step", "query", "place", "frame"),
+    "group": ("place",),
+    "step": ("place",),
+    "reading": ("place",),
+}
+
+
+@dataclass(frozen=True)
+class View:
+    """Everything that identifies what the app shows; ``None`` means "the dataset's default"."""
+
+    source: str = DEMO
+    descriptor: str = DEFAULT_DESCRIPTOR
+    group: int | None = None
+    step: int | None = None
+    reading: str = Reading.STRIDE.value
+    query: str | None = None
+    place: int | None = None
+    frame: int | None = None
+    k: float = 0.0
+    theta: float | None = None
+
+    def to_params(self) -> dict[str, str]:
+        """Query parameters for the fields that differ from the defaults."""
+        default = View()
+        return {f.name: str(getattr(self, f.name)) for f in dataclasses.fields(self)
+                if getattr(self, f.name) != getattr(default, f.name) and getattr(self, f.name) is not None}
+
+    @classmethod
+    def from_params(cls, params: dict[str, str]) -> tuple[View, list[str]]:
+        """A view from query parameters, and the parameters that had to be ignored (with why)."""
+        values: dict[str, object] = {}
+        ignored = []
+        names = {f.name for f in dataclasses.fields(cls)}
+        for name, text in params.items():
+            if name not in names:
+                continue
+            if name in _INT_FIELDS:
+                try:
+                    values[name] = int(text)
+                except ValueError:
+                    ignored.append(f"{name}={text!r} (not a whole number)")
+                    continue
+            elif name in _FLOAT_FIELDS:
+                try:
+                    values[name] = float(text)
+                except ValueError:
+                    ignored.append(f"{name}={text!r} (not a number)")
+                    continue
+                if not math.isfinite(values[name]):
+                    ignored.append(f"{name}={text!r} (not a finite number)")
+                    del values[name]
+                    continue
+            elif name == "reading" and text not in {r.value for r in Reading}:
+                ignored.append(f"reading={text!r} (choose {' or '.join(r.value for r in Reading)})")
+                continue
+            else:
+                values[name] = text
+        return cls(**values), ignored
+
+
+def view() -> View:
+    """The session's view; on the first run of a session, read from the URL."""
+    if _KEY not in st.session_state:
+        v, ignored = View.from_params({k: st.query_params[k] for k in st.query_params})
+        st.session_state[_KEY] = v
+        if ignored:
+            st.session_state["url_ignored"] = ignored
+    return st.session_state[_KEY]
+
+
+def update(**changes: object) -> View:
+    """Replace fields of the view (resetting those that depend on a changed one)."""
+    old = view()
+    for name in list(changes):
+        if changes[name] != getattr(old, name):
+            for dependent in _RESETS.get(name, ()):
+                changes.setdefault(dependent, None)
+    new = dataclasses.replace(old, **changes)
+    st.session_state[_KEY] = new
+    return new
+
+
+def sync_url() -> None:
+    """Write the view into ``st.query_params`` (only when it changed, to avoid needless history entries)."""
+    wanted = view().to_params()
+    current = {k: st.query_params[k] for k in st.query_params}
+    if current != wanted:
+        st.query_params.from_dict(wanted)
+
+
+def bind(widget_key: str, field: str, value: object, *, validate: Callable[[object], None] | None = None) -> dict:
+    """Keyword arguments that make a widget edit one field of the view.
+
+    ``value`` is the field's effective value (the default resolved). The widget's state is
+    set to it before the widget is drawn; on change the new value is committed to the
+    view, unless ``validate`` raises, in which case the view is unchanged and the error
+    is kept for ``ui.feedback.show_rejected`` to display.
+    """
+    st.session_state[widget_key] = value
+    return dict(key=widget_key, on_change=_commit, args=(widget_key, field, validate))
+
+
+def _commit(widget_key: str, field: str, validate: Callable[[object], None] | None) -> None:
+    value = st.session_state[widget_key]
+    commit(**{field: value}, validate=None if validate is None else (lambda: validate(value)))
+
+
+def commit(*, validate: Callable[[], None] | None = None, **changes: object) -> bool:
+    """Update the view if ``validate()`` passes; else keep it and remember the error for ``show_rejected``."""
+    if validate is not None:
+        from vpr_explorer.errors import VPRInputError
+
+        try:
+            validate()
+        except VPRInputError as exc:
+            st.session_state["rejected_input"] = str(exc)
+            return False
+    update(**changes)
+    return True

@@ -1,0 +1,411 @@
+"""Plotly figures of the explorer: pure functions, library results in, ``go.Figure`` out.
+
+A leaf of the library (like LightGlue's ``viz2d``): nothing here computes a threshold or a
+score, it only draws what ``database``, ``views`` and ``evaluation`` computed, so a test
+can read a figure's data and compare it with the library's numbers. No streamlit import.
+
+Conventions: vertical threshold lines are drawn as two-point scatter traces (not layout
+shapes), so their ``x`` is in the figure's data; every trace that stands for a library
+quantity has a ``name`` naming it (``"θ_p weighted"``, ``"raw_p"`` …) and, where a click
+must select something, ``customdata`` carrying its id.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import pandas  # noqa: F401  # imported before plotly: plotly.py#2433 (lazy-import race under threads)
+import plotly.graph_objects as go
+from plotly.subplots import make_subplots
+
+from vpr_explorer.evaluation import Evaluation
+from vpr_explorer.retrieval import METHODS_BY_KEY, QueryDecision
+from vpr_explorer.stats import mixture_pdf
+from vpr_explorer.views import PlaceDetail, SimilarityGrid
+
+KEPT = "#2e8b57"
+DROPPED = "#c4c4c4"
+SKIPPED = "#dcdcdc"
+NEGATIVE = "#8c9eff"
+POSITIVE = "#e4572e"
+QUERY = "#f0a202"
+BASELINE = "#6b6b6b"
+REJECTED = "#e4572e"
+PALETTE = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22")
+LINE_COLOURS = {
+    "θ_p simple": "#6a3d9a",
+    "θ_p weighted": "#1f78b4",
+    "θ_p(k)": "#e31a1c",
+    "global θ, automatic": "#333333",
+    "global θ, user value": "#b15928",
+}
+_MARGIN = dict(l=10, r=10, t=40, b=10)
+
+
+def _vline(name: str, x: float, y_top: float, *, dash: str = "solid", colour: str | None = None) -> go.Scatter:
+    """A vertical line at ``x`` as a trace (so tests read its ``x``)."""
+    return go.Scatter(
+        x=[x, x], y=[0.0, y_top], mode="lines", name=f"{name} = {x:.3f}",
+        line=dict(color=colour or LINE_COLOURS.get(name, "#444"), width=2, dash=dash),
+        hovertemplate=f"{name} = {x:.4f}<extra></extra>", meta=name,
+    )
+
+
+def place_colours(place_ids: np.ndarray) -> list[str]:
+    """A colour per place id (cycling), grey for ``-1``."""
+    return [SKIPPED if p < 0 else PALETTE[int(p) % len(PALETTE)] for p in np.asarray(place_ids)]
+
+
+# --------------------------------------------------------------------------- places
+
+
+def route_figure(
+    frame_place: np.ndarray,
+    traversals: Sequence[str],
+    positions: np.ndarray | None = None,
+    *,
+    title: str = "",
+) -> go.Figure:
+    """Each traversal as a strip of frames: place frames coloured by place, skipped frames grey.
+
+    Args:
+        frame_place: ``(n_frames,)`` place of each frame, ``-1`` where skipped.
+        traversals: traversal names (one strip each; frame ``f`` is the same spot in all).
+        positions: optional ``(n_frames, 2)`` route map; drawn beside the strips.
+    """
+    frame_place = np.asarray(frame_place)
+    frames = np.arange(len(frame_place))
+    inside = frame_place >= 0
+    has_map = positions is not None
+    fig = make_subplots(rows=1, cols=2 if has_map else 1, column_widths=[0.65, 0.35] if has_map else None,
+                        subplot_titles=("frames per traversal", "route map") if has_map else None,
+                        horizontal_spacing=0.06)
+    for t in traversals:
+        fig.add_trace(go.Scatter(
+            x=frames[~inside], y=[t] * int((~inside).sum()), mode="markers", name="skipped frames",
+            legendgroup="skipped", showlegend=t == traversals[0],
+            marker=dict(symbol="line-ns-open", size=14, color=SKIPPED, line=dict(width=2, color=SKIPPED)),
+            hovertemplate="frame %{x}: skipped<extra></extra>", meta=f"skipped {t}",
+        ), row=1, col=1)
+        fig.add_trace(go.Scatter(
+            x=frames[inside], y=[t] * int(inside.sum()), mode="markers", name="place frames",
+            legendgroup="places", showlegend=t == traversals[0], customdata=frame_place[inside],
+            marker=dict(symbol="square", size=9, color=place_colours(frame_place[inside])),
+            hovertemplate="frame %{x}: place %{customdata}<extra></extra>", meta=f"places {t}",
+        ), row=1, col=1)
+    fig.update_xaxes(title_text="frame", row=1, col=1)
+    fig.update_yaxes(type="category", row=1, col=1)
+    if has_map:
+        xy = np.asarray(positions)
+        fig.add_trace(go.Scatter(x=xy[:, 0], y=xy[:, 1], mode="lines", line=dict(color=SKIPPED, width=6),
+                                 name="route", showlegend=False, hoverinfo="skip", meta="route"), row=1, col=2)
+        fig.add_trace(go.Scatter(
+            x=xy[inside, 0], y=xy[inside, 1], mode="markers", name="place frames (map)", showlegend=False,
+            customdata=np.stack([frames[inside], frame_place[inside]], axis=1),
+            marker=dict(size=7, color=place_colours(frame_place[inside])),
+            hovertemplate="frame %{customdata[0]}: place %{customdata[1]}<extra></extra>", meta="map places",
+        ), row=1, col=2)
+        fig.update_xaxes(showticklabels=False, row=1, col=2)
+        fig.update_yaxes(showticklabels=False, scaleanchor="x2", row=1, col=2)
+    fig.update_layout(title=title or None, height=max(140 + 45 * len(traversals), 340 if has_map else 0), margin=_MARGIN,
+                      legend=dict(orientation="h", y=-0.25))
+    return fig
+
+
+def theta_histogram(theta: Mapping[str, np.ndarray], auto: float, user_theta: float | None = None) -> go.Figure:
+    """Histogram of θ_p over places for each variant, with the global thresholds as lines."""
+    fig = go.Figure()
+    values = [np.asarray(v, dtype=float) for v in theta.values()]
+    for name, v in theta.items():
+        v = np.asarray(v, dtype=float)
+        fig.add_trace(go.Histogram(x=v[np.isfinite(v)], name=f"θ_p {name}", opacity=0.6, nbinsx=30,
+                                   marker_color=LINE_COLOURS.get(f"θ_p {name}"), meta=f"θ_p {name}"))
+    counts = max((np.histogram(v[np.isfinite(v)], bins=30)[0].max() for v in values if np.isfinite(v).any()), default=1)
+    fig.add_trace(_vline("global θ, automatic", auto, float(counts), dash="dot"))
+    if user_theta is not None:
+        fig.add_trace(_vline("global θ, user value", user_theta, float(counts), dash="dash"))
+    fig.update_layout(barmode="overlay", title="θ_p of every place", xaxis_title="similarity",
+                      yaxis_title="places", height=320, margin=_MARGIN, legend=dict(orientation="h", y=-0.3))
+    return fig
+
+
+def recall_bars(recall1: Mapping[str, float], *, rejected: Mapping[str, float] | None = None,
+                title: str = "Recall@1 of the query traversal") -> go.Figure:
+    """One bar per method: Recall@1 (and, when given, the share rejected as a second bar)."""
+    keys = list(recall1)
+    labels = [METHODS_BY_KEY[k].label for k in keys]
+    fig = go.Figure(go.Bar(x=labels, y=[recall1[k] for k in keys], name="Recall@1", customdata=keys,
+                           marker_color=[BASELINE if k == "place-baseline" else KEPT for k in keys],
+                           text=[f"{recall1[k]:.0%}" for k in keys], textposition="outside", meta="recall1"))
+    if rejected is not None:
+        fig.add_trace(go.Bar(x=labels, y=[rejected[k] for k in keys], name="rejected", customdata=keys,
+                             marker_color=REJECTED, opacity=0.6, meta="rejected"))
+    fig.update_layout(title=title, yaxis=dict(range=[0, 1.12], tickformat=".0%"), height=320, margin=_MARGIN,
+                      barmode="group", legend=dict(orientation="h", y=-0.45))
+    return fig
+
+
+# --------------------------------------------------------------------------- thresholds
+
+
+def places_overview(theta: np.ndarray, positive_mean: np.ndarray, negative_mean: np.ndarray,
+                    selected: int | None = None) -> go.Figure:
+    """Every place sorted by θ_p, with its mean negative and mean same-place score; clicking a bar selects it.
+
+    Bars carry ``customdata`` = place id, in sorted order.
+    """
+    theta = np.asarray(theta, dtype=float)
+    order = np.argsort(theta, kind="stable")
+    order = order[np.isfinite(theta[order])]
+    labels = [f"P{p}" for p in order]
+    fig = go.Figure()
+    fig.add_trace(go.Bar(
+        x=labels, y=theta[order], customdata=order.tolist(), name="θ_p weighted", meta="theta",
+        marker=dict(color=[POSITIVE if p == selected else LINE_COLOURS["θ_p weighted"] for p in order]),
+        hovertemplate="place %{customdata}: θ_p = %{y:.3f}<extra></extra>",
+    ))
+    fig.add_trace(go.Scatter(x=labels, y=np.asarray(positive_mean, dtype=float)[order], mode="markers",
+                             name="mean same-place score μ⁺", marker=dict(symbol="diamond", color=POSITIVE, size=7),
+                             customdata=order, meta="positive_mean"))
+    fig.add_trace(go.Scatter(x=labels, y=np.asarray(negative_mean, dtype=float)[order], mode="markers",
+                             name="mixture mean μ⁻", marker=dict(symbol="circle-open", color=NEGATIVE, size=7),
+                             customdata=order, meta="negative_mean"))
+    lo = np.nanmin(np.r_[theta[order], np.asarray(negative_mean, float)[order]])
+    hi = np.nanmax(np.r_[theta[order], np.asarray(positive_mean, float)[order]])
+    pad = 0.05 * (hi - lo if hi > lo else 1.0)
+    fig.update_layout(title="All places, sorted by θ_p (click a bar to pick the place)", height=300, margin=_MARGIN,
+                      yaxis=dict(range=[lo - pad, hi + pad], title="similarity"),
+                      xaxis=dict(title="place", type="category"),
+                      legend=dict(orientation="h", y=-0.35))
+    return fig
+
+
+def mixture_grid(detail: PlaceDetail, n: int = 400) -> np.ndarray:
+    """The x values a mixture figure draws its curves on: covering negatives, positives and thresholds."""
+    pts = np.r_[detail.negatives, detail.positives, detail.query_raw, list(detail.theta.values()), detail.auto,
+                detail.mu - 4 * detail.sigma, detail.mu + 4 * detail.sigma]
+    pts = pts[np.isfinite(pts)]
+    lo, hi = float(pts.min()), float(pts.max())
+    pad = 0.03 * (hi - lo if hi > lo else 1.0)
+    return np.linspace(lo - pad, hi + pad, n)
+
+
+def mixture_figure(
+    detail: PlaceDetail,
+    *,
+    k: float = 0.0,
+    method: str = "weighted",
+    user_theta: float | None = None,
+    n: int = 400,
+) -> go.Figure:
+    """One place's negative Gaussian mixture with its scores and every threshold.
+
+    Thin curves: each training image's component wᵢ·N(x; μᵢ, σᵢ²) (its share of the
+    mixture); bold: the mixture M(p) = Σ wᵢ N(μᵢ, σᵢ²); light bars: the actual negative
+    scores (density); rugs: the place's same-place database scores and the raw_p of its
+    own query frames; vertical lines: θ_p simple, θ_p weighted, θ_p(k) of ``method``, the
+    automatic global θ and the user's θ.
+    """
+    x = mixture_grid(detail, n)
+    mixture = mixture_pdf(x, detail.mu, detail.sigma, detail.weight)
+    fig = go.Figure()
+    if detail.negatives.size:
+        fig.add_trace(go.Histogram(x=detail.negatives, histnorm="probability density",
+                                   xbins=dict(start=float(detail.negatives.min()), end=float(detail.negatives.max()),
+                                              size=float(np.ptp(detail.negatives)) / 60 or 0.01),
+                                   marker_color=NEGATIVE, opacity=0.35, name="negative scores s(i, j), j another place",
+                                   meta="negatives"))
+    for i, (m, s, w) in enumerate(zip(detail.mu, detail.sigma, detail.weight)):
+        fig.add_trace(go.Scatter(
+            x=x, y=mixture_pdf(x, m[None], s[None], w[None]), mode="lines", line=dict(width=1, color="#5c6bc0"),
+            name="component wᵢ·N(μᵢ, σᵢ²) per training image", legendgroup="components", showlegend=i == 0,
+            hovertemplate=f"image {int(detail.images[i])}: μ={m:.3f}, σ={s:.3f}, w={w:.2f}<extra></extra>",
+            meta=f"component {i}",
+        ))
+    fig.add_trace(go.Scatter(x=x, y=mixture, mode="lines", line=dict(width=4, color="#1a237e"),
+                             name="mixture M(p)", meta="mixture"))
+    peak = float(mixture.max())
+    if detail.negatives.size:
+        peak = max(peak, float(np.histogram(detail.negatives, bins=60, density=True)[0].max()))
+    top = max(peak, 1e-9) * 1.15
+    rug_y = -0.06 * top
+    if detail.positives.size:
+        fig.add_trace(go.Scatter(x=detail.positives, y=np.full(detail.positives.size, rug_y), mode="markers",
+                                 marker=dict(symbol="line-ns-open", size=16, color=POSITIVE, line=dict(width=2)),
+                                 name="same-place scores (database pairs)", meta="positives",
+                                 hovertemplate="same-place score %{x:.3f}<extra></extra>"))
+    if detail.query_raw.size:
+        fig.add_trace(go.Scatter(x=detail.query_raw, y=np.full(detail.query_raw.size, 2 * rug_y), mode="markers",
+                                 marker=dict(symbol="triangle-up", size=10, color=QUERY),
+                                 name="raw_p of this place's query frames", meta="query_raw",
+                                 customdata=detail.query_images,
+                                 hovertemplate="query image %{customdata}: raw_p %{x:.3f}<extra></extra>"))
+    fig.add_trace(_vline("θ_p simple", detail.theta["simple"], top, dash="dot"))
+    fig.add_trace(_vline("θ_p weighted", detail.theta["weighted"], top))
+    fig.add_trace(_vline("θ_p(k)", detail.theta_k(k, method), top, dash="dash"))
+    fig.data[-1].name = f"θ_p(k={k:g}) {method} = {detail.theta_k(k, method):.3f}"
+    fig.add_trace(_vline("global θ, automatic", detail.auto, top, dash="dashdot"))
+    if user_theta is not None:
+        fig.add_trace(_vline("global θ, user value", user_theta, top, dash="longdash"))
+    fig.update_layout(
+        title=f"Place {detail.place}: negative mixture, scores and thresholds", barmode="overlay",
+        xaxis_title="cosine similarity", yaxis=dict(title="density", range=[3 * rug_y, top]),
+        height=460, margin=_MARGIN, legend=dict(orientation="h", y=-0.2),
+    )
+    return fig
+
+
+# --------------------------------------------------------------------------- query inspector
+
+
+def candidate_bars(decision: QueryDecision, key: str, candidates: Sequence[int], *, title: str | None = None) -> go.Figure:
+    """raw_p of the candidate places under one method: bars coloured kept/dropped, θ_p ticks, margins.
+
+    Bars (``meta="raw_p"``) carry ``customdata`` = place id; the θ ticks (``meta="theta"``) sit
+    at the method's threshold of each candidate; the answer has a black outline and right
+    places are starred.
+    """
+    m = METHODS_BY_KEY[key]
+    cands = np.asarray(candidates, dtype=np.int64)
+    raw = decision.raw[cands]
+    kept = decision.kept(key)[cands] if m.level == "place" else np.ones(len(cands), dtype=bool)
+    answer = decision.answer(key)
+    true = set(int(p) for p in decision.true_places)
+    labels = [f"{'★ ' if p in true else ''}P{p}" for p in cands]
+    theta = decision.thresholds[m.threshold][cands] if m.threshold else None
+    text = [f"{r - t:+.3f}" for r, t in zip(raw, theta)] if theta is not None else [f"{r:.3f}" for r in raw]
+    fig = go.Figure(go.Bar(
+        x=labels, y=raw, customdata=cands, name="raw_p", meta="raw_p", text=text, textposition="outside",
+        marker=dict(color=[KEPT if k else DROPPED for k in kept],
+                    line=dict(color=["#000" if p == answer else "rgba(0,0,0,0)" for p in cands], width=3)),
+        hovertemplate="place %{customdata}: raw_p %{y:.3f}<extra></extra>",
+    ))
+    if theta is not None:
+        fig.add_trace(go.Scatter(x=labels, y=theta, mode="markers", name=f"θ ({m.threshold})", meta="theta",
+                                 customdata=cands, marker=dict(symbol="line-ew-open", size=26, color="#d62728",
+                                                               line=dict(width=3)),
+                                 hovertemplate="place %{customdata}: θ %{y:.3f}<extra></extra>"))
+    finite = np.r_[raw, theta if theta is not None else []]
+    finite = finite[np.isfinite(finite)]
+    lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+    pad = 0.15 * (hi - lo if hi > lo else 0.1)
+    fig.update_layout(title=title or m.label, height=300, margin=_MARGIN, showlegend=False,
+                      yaxis=dict(range=[lo - pad, hi + 2 * pad], title="raw_p"), xaxis=dict(type="category"))
+    return fig
+
+
+# --------------------------------------------------------------------------- evaluation
+
+
+def recall_figure(ev: Evaluation) -> go.Figure:
+    """Recall@K of every method as grouped bars (one group per method, one bar per K), ± std over runs."""
+    fig = go.Figure()
+    labels = [r.label for r in ev.rows]
+    for k in ev.ks:
+        fig.add_trace(go.Bar(
+            x=labels, y=[r.recall[k][0] for r in ev.rows], name=f"R@{k}", meta=f"R@{k}",
+            customdata=[r.key for r in ev.rows],
+            error_y=dict(type="data", array=[0.0 if math.isnan(r.recall[k][1]) else r.recall[k][1] for r in ev.rows],
+                         visible=True),
+        ))
+    fig.update_layout(barmode="group", title="Recall@K (mean ± std over runs)", yaxis=dict(range=[0, 1.05],
+                      tickformat=".0%"), height=380, margin=_MARGIN, legend=dict(orientation="h", y=-0.35))
+    return fig
+
+
+def tradeoff_figure(ev: Evaluation, rule: str = "margin") -> go.Figure:
+    """Open-set trade-off: unknown-place rejection (x) against known-place Recall@1 (y).
+
+    One line per θ_p(k) family (``rule``), k = 0 (the paper) marked with a large symbol,
+    adaptive k as a diamond, the global θ sweep as a grey line, the automatic and oracle
+    global θ as stars.
+    """
+    fig = go.Figure()
+    colours = {"θ_p(k) simple": LINE_COLOURS["θ_p simple"], "θ_p(k) weighted": LINE_COLOURS["θ_p weighted"]}
+    for series, colour in colours.items():
+        pts = [t for t in ev.tradeoff if t.series == series and t.rule == rule]
+        if not pts:
+            continue
+        fig.add_trace(go.Scatter(
+            x=[t.unknown_rejection[0] for t in pts], y=[t.known_recall1[0] for t in pts], mode="lines+markers",
+            name=f"{series} ({rule})", meta=series, customdata=[t.param for t in pts], line=dict(color=colour),
+            text=[f"k={t.param:+g}, precision {t.precision[0]:.0%}" for t in pts],
+            hovertemplate="%{text}<br>rejected %{x:.0%}, R@1 %{y:.0%}<extra></extra>",
+        ))
+        zero = [t for t in pts if t.param == 0.0]
+        if zero:
+            fig.add_trace(go.Scatter(x=[zero[0].unknown_rejection[0]], y=[zero[0].known_recall1[0]], mode="markers",
+                                     marker=dict(size=16, symbol="circle-open", color=colour, line=dict(width=3)),
+                                     name=f"k = 0 (paper), {series.split()[-1]}", meta=f"k0 {series}"))
+        adaptive = [t for t in ev.tradeoff if t.series == f"adaptive k {series.split()[-1]}" and t.rule == rule]
+        if adaptive:
+            fig.add_trace(go.Scatter(x=[adaptive[0].unknown_rejection[0]], y=[adaptive[0].known_recall1[0]],
+                                     mode="markers", marker=dict(size=12, symbol="diamond", color=colour),
+                                     name=f"adaptive k, {series.split()[-1]}", meta=adaptive[0].series))
+    sweep = [t for t in ev.tradeoff if t.series == "global θ"]
+    if sweep:
+        fig.add_trace(go.Scatter(
+            x=[t.unknown_rejection[0] for t in sweep], y=[t.known_recall1[0] for t in sweep], mode="lines+markers",
+            name="global θ sweep", meta="global θ", line=dict(color="#999", dash="dot"),
+            customdata=[t.param for t in sweep], hovertemplate="θ=%{customdata:.3f}: rejected %{x:.0%}, R@1 %{y:.0%}<extra></extra>",
+        ))
+    for series, symbol in (("global θ, automatic", "star"), ("global θ, oracle", "star-triangle-up")):
+        pts = [t for t in ev.tradeoff if t.series == series]
+        if pts:
+            fig.add_trace(go.Scatter(x=[pts[0].unknown_rejection[0]], y=[pts[0].known_recall1[0]], mode="markers",
+                                     marker=dict(size=14, symbol=symbol, color="#333"), meta=series,
+                                     name=f"{series} (θ={pts[0].param:.3f})"))
+    fig.update_layout(title="Open set: unknown places rejected vs known-place Recall@1",
+                      xaxis=dict(title="unknown-place queries rejected", tickformat=".0%", range=[-0.03, 1.03]),
+                      yaxis=dict(title="known-place Recall@1", tickformat=".0%", range=[-0.03, 1.03]),
+                      height=460, margin=_MARGIN, legend=dict(orientation="h", y=-0.25))
+    return fig
+
+
+def similarity_heatmap(grid: SimilarityGrid, *, query: str, database: Sequence[str],
+                       marked: tuple[int, int] | None = None) -> go.Figure:
+    """Query frames × database frames similarity; a click anywhere selects the pair behind that cell.
+
+    Plotly heatmaps emit no selection events in Streamlit (streamlit#8760), so an
+    invisible marker sits on every cell (``meta="cells"``) with ``customdata`` =
+    ``[query image, database image]``: clicking a cell selects its marker.
+    """
+    rows, cols = grid.z.shape
+    fig = go.Figure(go.Heatmap(z=grid.z, x=grid.col_frames, y=grid.row_frames, colorscale="Viridis",
+                               colorbar=dict(title="s"), meta="similarity", hoverinfo="skip"))
+    xx, yy = np.meshgrid(grid.col_frames, grid.row_frames)
+    fig.add_trace(go.Scattergl(
+        x=xx.ravel(), y=yy.ravel(), mode="markers", meta="cells",
+        marker=dict(size=max(3, int(600 / max(rows, cols))), color="rgba(0,0,0,0)", symbol="square"),
+        # Plain lists, not a typed array: the browser then hands each point's pair back as a list.
+        customdata=np.stack([grid.query_image.ravel(), grid.db_image.ravel()], axis=1).tolist(),
+        text=[f"{v:.3f}" for v in grid.z.ravel()],
+        hovertemplate="query frame %{y}, database frame %{x}: s = %{text}<br>click to inspect<extra></extra>",
+        showlegend=False,
+    ))
+    if marked is not None:
+        fig.add_trace(go.Scatter(x=[marked[1]], y=[marked[0]], mode="markers", meta="marked", showlegend=False,
+                                 marker=dict(symbol="x-thin-open", size=14, color="#e4572e", line=dict(width=3)),
+                                 hoverinfo="skip"))
+    block = f" (max over {grid.block}×{grid.block} frame blocks)" if grid.block > 1 else ""
+    fig.update_layout(title=f"Similarity: {query} queries × {' + '.join(database)} database{block}",
+                      xaxis=dict(title=f"database frame ({' + '.join(database)}, best traversal)"),
+                      yaxis=dict(title=f"query frame ({query})", autorange="reversed"),
+                      height=560, margin=_MARGIN, dragmode="zoom")
+    return fig
+
+
+def selected_pair(point: Mapping) -> tuple[int, int] | None:
+    """``(query image, database image)`` of a clicked ``similarity_heatmap`` cell, from a selection point.
+
+    The point's ``customdata`` arrives as a list, or as an index-keyed dict when the
+    figure was sent with typed arrays; ``None`` for a point without a pair.
+    """
+    data = point.get("customdata")
+    if isinstance(data, Mapping):
+        data = [data[k] for k in sorted(data, key=int)]
+    if not isinstance(data, Sequence) or len(data) != 2:
+        return None
+    return int(data[0]), int(data[1])
