@@ -4,12 +4,16 @@ Walks every page with efficientnet-lite0 descriptors (computed once per session 
 ``gp_effnet`` fixture into the session cache, which the server shares), moves the
 group/step sliders, clicks while pages are still running, picks a place in the
 overview, opens a similarity-matrix cell and a rejected query in the inspector, and
-finds no exception anywhere. It saves the README's screenshots to ``docs/screenshots/``.
+finds no exception anywhere. It saves screenshots of every page: to the test's temporary
+folder, or to the README's ``docs/screenshots/`` when ``VPR_EXPLORER_SCREENSHOTS=docs``
+(so a test run never edits the source tree unless asked to).
 """
 
 from __future__ import annotations
 
+import os
 import re
+import tempfile
 import time
 from pathlib import Path
 from urllib.parse import quote
@@ -20,7 +24,8 @@ from streamlit_server import ROOT, streamlit_server
 
 pytestmark = [pytest.mark.browser, pytest.mark.realdata]
 
-SCREENSHOTS = ROOT / "docs" / "screenshots"
+SCREENSHOTS = (ROOT / "docs" / "screenshots" if os.environ.get("VPR_EXPLORER_SCREENSHOTS") == "docs"
+               else Path(tempfile.mkdtemp(prefix="vpr_screenshots_")))
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update", "--disable-sync"]
