@@ -8,6 +8,7 @@ import streamlit as st
 
 from vpr_explorer import settings
 from vpr_explorer.descriptors import available_extractors
+from vpr_explorer.descriptors.custom import MODELS_ENV
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.pipeline import DEMO
 
@@ -46,8 +47,17 @@ def check_folder(path: object) -> None:
     cache.dataset(str(path).strip())
 
 
+def descriptor_status() -> dict[str, str | None]:
+    """Extractors and why any cannot run; a broken models settings file is shown, not raised."""
+    try:
+        return available_extractors()
+    except VPRInputError as exc:
+        show_error(exc, hint=f"Fix the file or unset {MODELS_ENV}; the built-in descriptors still work.")
+        return {name: None for name in ("pixels", "efficientnet-lite0")}
+
+
 def check_descriptor(name: object) -> None:
-    reason = available_extractors().get(str(name))
+    reason = descriptor_status().get(str(name))
     if reason is not None:
         raise VPRInputError(f"descriptor {name!r} is unavailable here: {reason}")
 
@@ -85,7 +95,7 @@ with col_data:
 
 with col_desc:
     st.subheader("Descriptor")
-    status = available_extractors()
+    status = descriptor_status()
     st.radio("Global image descriptor", list(status),
              captions=[("available" if reason is None else f"unavailable: {reason.split(':')[0].split(';')[0]}")
                        for reason in status.values()],

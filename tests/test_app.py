@@ -149,6 +149,16 @@ def test_every_page_again_after_visiting_all(app):
         assert_clean(at)
 
 
+def test_a_broken_models_settings_file_is_an_error_not_a_crash(app, tmp_path, monkeypatch):
+    bad = tmp_path / "models.toml"
+    bad.write_text("[models.mine\nfile = ")  # not TOML
+    monkeypatch.setenv("VPR_EXPLORER_MODELS", str(bad))
+    at = app.run()
+    assert_clean(at, errors=True)
+    assert any("models.toml" in e.value for e in at.error)
+    assert at.radio(key="w_descriptor").value == "pixels"  # the built-ins still work
+
+
 def test_playback_page_records_the_demo(app):
     at = page(app.run(), "playback")
     assert_clean(at)

@@ -4,12 +4,24 @@ Stage 3 of the data flow (datasets -> places -> **descriptors** -> statistics): 
 image files into an ``(n_images, D)`` float32 matrix of L2-normalised rows, so that a dot
 product is the cosine similarity the thresholds are built on. Descriptors belong to
 images, not places: regrouping never recomputes them.
+
+Built in: ``pixels``, ``efficientnet-lite0`` and the paper's ``alexnet-conv3``,
+``cosplace`` and ``eigenplaces`` (their weights: :mod:`.checkpoints`); users add their
+own models with :func:`register_extractor` or a ``VPR_EXPLORER_MODELS`` settings file
+(:mod:`.custom`).
 """
 
 from vpr_explorer.descriptors.base import Extractor
 from vpr_explorer.descriptors.cache import CacheHits, DescriptorCache, DescriptorCacheWarning
 from vpr_explorer.descriptors.extract import extract_descriptors, fingerprint
-from vpr_explorer.descriptors.registry import EXTRACTOR_NAMES, available_extractors, get_extractor
+from vpr_explorer.descriptors.registry import (
+    EXTRACTOR_NAMES,
+    available_extractors,
+    extractor_names,
+    get_extractor,
+    register_extractor,
+    unregister_extractor,
+)
 
 __all__ = [
     "EXTRACTOR_NAMES",
@@ -19,6 +31,9 @@ __all__ = [
     "Extractor",
     "available_extractors",
     "extract_descriptors",
+    "extractor_names",
     "fingerprint",
     "get_extractor",
+    "register_extractor",
+    "unregister_extractor",
 ]

@@ -10,6 +10,7 @@ they are mapped onto timm's names by position (:func:`pair_state_dicts`).
 
 from __future__ import annotations
 
+import copy
 import functools
 import threading
 from collections import OrderedDict
@@ -20,8 +21,9 @@ import timm
 import torch
 from PIL import Image
 
-from vpr_explorer.descriptors.base import Extractor, open_image
+from vpr_explorer.descriptors.base import open_image
 from vpr_explorer.descriptors.efficientnet_weights import WEIGHTS_PACKAGE, unavailable_reason, weights_path
+from vpr_explorer.descriptors.runtime import Precision, TorchExtractor, resolve_device, resolve_precision
 from vpr_explorer.errors import VPRInputError
 
 ARCHITECTURE = "tf_efficientnet_lite0"
@@ -102,43 +104,60 @@ def to_unit_range(rgb: np.ndarray) -> np.ndarray:
     return (rgb.astype(np.float32) / np.float32(127.5) - np.float32(1.0)).transpose(2, 0, 1).copy()
 
 
-class EfficientNetLite0Extractor(Extractor):
+class EfficientNetLite0Extractor(TorchExtractor):
     """ImageNet EfficientNet-Lite0, global average pool of the last feature map: 1280-d.
 
     Input: RGB resized (bilinear, aspect not kept) to 224 x 224, scaled to [-1, 1].
+    Runs on ``device`` (a copy of the shared CPU model is moved there) in ``precision``.
     """
 
-    name = "efficientnet-lite0"
-    version = "1"
-    dim = FEATURE_DIM
+    def __init__(self, device: torch.device | None = None, precision: Precision = Precision.FP32) -> None:
+        device = device if device is not None else torch.device("cpu")
+        model = build_model()
+        if device.type != "cpu":
+            model = copy.deepcopy(model).to(device)
+        super().__init__(
+            name="efficientnet-lite0",
+            version="1",
+            dim=FEATURE_DIM,
+            model=model,
+            load=self._load_image,
+            device=device,
+            precision=precision,
+            channels_last=True,
+        )
 
-    def __init__(self) -> None:
-        self._model = build_model()
-
-    def load(self, path: Path) -> np.ndarray:
-        """``(3, 224, 224)`` float32 in [-1, 1]."""
+    @staticmethod
+    def _load_image(path: Path) -> np.ndarray:
         image = open_image(path, "RGB", (INPUT_SIZE, INPUT_SIZE)).resize((INPUT_SIZE, INPUT_SIZE), Image.BILINEAR)
         return to_unit_range(np.asarray(image))
 
+    def load(self, path: Path) -> np.ndarray:
+        """``(3, 224, 224)`` float32 in [-1, 1]."""
+        return self._load_image(path)
+
     def forward(self, batch: np.ndarray) -> np.ndarray:
         """``(B, 3, 224, 224)`` float32 -> ``(B, 1280)`` float32 pooled features."""
-        x = torch.from_numpy(np.ascontiguousarray(batch, dtype=np.float32))
-        with torch.inference_mode():
-            features = self._model(x.contiguous(memory_format=torch.channels_last))
-        return features.numpy().astype(np.float32, copy=True)
+        return super().forward(batch)
 
 
 _BUILD_LOCK = threading.Lock()
 
 
-@functools.lru_cache(maxsize=1)
-def _shared_extractor() -> EfficientNetLite0Extractor:
-    return EfficientNetLite0Extractor()
+@functools.lru_cache(maxsize=4)
+def _shared_extractor(device: torch.device, precision: Precision) -> EfficientNetLite0Extractor:
+    return EfficientNetLite0Extractor(device, precision)
 
 
-def efficientnet_lite0() -> EfficientNetLite0Extractor:
-    """The shared EfficientNet-Lite0 extractor (its model is loaded once per process)."""
+def efficientnet_lite0(device: str = "auto", precision: str = "fp32") -> EfficientNetLite0Extractor:
+    """The shared EfficientNet-Lite0 extractor for a device and precision (its model is loaded once per process).
+
+    ``device="auto"`` is the GPU when torch sees one; ``precision`` ``"bf16"`` / ``"fp16"``
+    autocasts, with a cache key of its own.
+    """
+    resolved = resolve_device(device)
+    mode = resolve_precision(precision, resolved)
     # lru_cache alone lets two first callers (two Streamlit sessions) both spend
     # seconds building the model; the lock makes the second wait for the first.
     with _BUILD_LOCK:
-        return _shared_extractor()
+        return _shared_extractor(resolved, mode)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import os
 from collections import deque
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -14,13 +15,20 @@ from vpr_explorer.descriptors.base import Extractor
 from vpr_explorer.descriptors.cache import DescriptorCache, hash_file
 from vpr_explorer.errors import VPRInputError
 
-# Batches decoded ahead of the one in the model: enough to keep the model fed while the
-# decoders work, few enough that memory stays at a few batches (a 224x224 float32 image
-# is 0.6 MB).
-PREFETCH_BATCHES = 2
+# Batches decoded ahead of the one in the model. When the model runs on the CPU it
+# shares the cores with the decoders: one batch ahead hides decoding, and more only lets
+# the decoders steal more from the forward pass (2 busy shared cores, paired runs of
+# 96 GardensPoint frames: end-to-end at a median 0.84 of the bare forward pass for
+# AlexNet conv3 with 1 ahead, 0.78 with 2; EfficientNet-Lite0 0.94 vs 0.93). A GPU leaves
+# the cores to the decoders, which then should never wait. Memory stays at a few batches (a 224x224 float32 image is 0.6 MB).
+PREFETCH_BATCHES = 1
+PREFETCH_BATCHES_GPU = 3
 # New vectors are written in shards of this many once the whole run has succeeded:
 # nothing is cached from a failed run (issue: a failed run must never leave state behind).
 SHARD_SIZE = 4096
+# Default decoding threads: one per core this process may use, up to this many. On a
+# small CPU they share the cores with the model; beside a GPU they are what feeds it.
+MAX_DEFAULT_WORKERS = 8
 MIN_NORM = 1e-12
 NAMED_IN_ERRORS = 3
 
@@ -37,6 +45,15 @@ def _name_files(paths: Sequence[Path]) -> str:
     shown = ", ".join(str(p) for p in paths[:NAMED_IN_ERRORS])
     more = len(paths) - NAMED_IN_ERRORS
     return f"{shown} and {more} more" if more > 0 else shown
+
+
+def default_workers() -> int:
+    """Decoding threads when none are asked for: the usable cores, at most ``MAX_DEFAULT_WORKERS``."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        cores = os.cpu_count() or 1
+    return max(1, min(cores, MAX_DEFAULT_WORKERS))
 
 
 def _check_options(paths: Sequence[Path], batch_size: int, workers: int) -> None:
@@ -68,26 +85,49 @@ def _normalise_rows(raw: np.ndarray, paths: Sequence[Path], extractor: Extractor
     return (raw / norms[:, None]).astype(np.float32)
 
 
+def _forward(images: list[np.ndarray], extractor: Extractor) -> np.ndarray:
+    """``extractor.forward`` on loaded images, one call per distinct image shape.
+
+    Extractors that keep the aspect ratio (CosPlace, EigenPlaces) load frames of another
+    aspect as another shape; those cannot share a batch tensor. Usually every image has
+    the same shape and this is one call.
+    """
+    shapes = list(dict.fromkeys(image.shape for image in images))
+    if len(shapes) == 1:
+        return np.asarray(extractor.forward(np.stack(images)))
+    raw = np.empty((len(images), extractor.dim), dtype=np.float32)
+    for shape in shapes:
+        rows = [i for i, image in enumerate(images) if image.shape == shape]
+        part = np.asarray(extractor.forward(np.stack([images[i] for i in rows])))
+        if part.shape != (len(rows), extractor.dim):
+            return part  # _normalise_rows reports the wrong shape
+        raw[rows] = part
+    return raw
+
+
 def extract_descriptors(
     paths: Sequence[Path],
     extractor: Extractor,
     *,
     cache: DescriptorCache | None = None,
     batch_size: int = 32,
-    workers: int = 2,
+    workers: int | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> np.ndarray:
     """Descriptors of ``paths``, one L2-normalised row per image.
 
     Images whose content is cached for ``extractor.cache_key`` are not decoded; images
     with identical bytes are computed once. The others are decoded by ``workers``
-    threads (PIL releases the GIL) up to ``PREFETCH_BATCHES`` batches ahead of the
-    forward pass, which runs in the calling thread, ``batch_size`` images at a time.
+    threads (PIL releases the GIL) up to ``PREFETCH_BATCHES`` batches
+    (``PREFETCH_BATCHES_GPU`` for a model on a GPU) ahead of the forward pass, which
+    runs in the calling thread, ``batch_size`` images at a time (split by image shape
+    when an extractor keeps the aspect ratio).
     New vectors reach the cache only after every batch passed the checks, in shards of
     ``SHARD_SIZE``; a failing run writes nothing.
 
     Args:
         paths: image files; repeats allowed.
+        workers: decoding threads; default :func:`default_workers` (2 on a 2-core machine).
         progress: ``progress(done, total)`` in images; cache hits count as done at once.
 
     Returns:
@@ -100,6 +140,7 @@ def extract_descriptors(
     if isinstance(paths, (str, Path)):
         raise VPRInputError(f"paths={str(paths)!r}: give a list of image files, not a single path")
     paths = [Path(p) for p in paths]
+    workers = default_workers() if workers is None else workers
     _check_options(paths, batch_size, workers)
     total = len(paths)
     out = np.empty((total, extractor.dim), dtype=np.float32)
@@ -139,19 +180,24 @@ def extract_descriptors(
         unsaved_hashes: list[str] = []
         unsaved_vectors: list[np.ndarray] = []
 
-        def submit(batch: list[str]) -> None:
-            pending.append([pool.submit(extractor.load, paths[groups[h][0]]) for h in batch])
+        submitted = 0
 
+        def submit_up_to(end: int) -> None:
+            nonlocal submitted
+            for batch in batches[submitted:end]:
+                pending.append([pool.submit(extractor.load, paths[groups[h][0]]) for h in batch])
+            submitted = max(submitted, min(end, len(batches)))
+
+        on_gpu = str(getattr(extractor, "device", "cpu")).startswith("cuda")
+        ahead = PREFETCH_BATCHES_GPU if on_gpu else PREFETCH_BATCHES
         try:
-            for batch in batches[:PREFETCH_BATCHES]:
-                submit(batch)
             for b, batch in enumerate(batches):
+                # Batches b+1 .. b+ahead decode while this one is forwarded.
+                submit_up_to(b + 1 + ahead)
                 futures = pending.popleft()
-                if b + PREFETCH_BATCHES < len(batches):
-                    submit(batches[b + PREFETCH_BATCHES])
-                images = np.stack([f.result() for f in futures])
                 batch_paths = [paths[groups[h][0]] for h in batch]
-                vectors = _normalise_rows(np.asarray(extractor.forward(images)), batch_paths, extractor)
+                raw = _forward([f.result() for f in futures], extractor)
+                vectors = _normalise_rows(raw, batch_paths, extractor)
                 for h, v in zip(batch, vectors):
                     out[groups[h]] = v
                     done += len(groups[h])
