@@ -19,10 +19,10 @@ from vpr_explorer.evaluation import (
     Progress,
     Protocol,
     open_set_protocol,
-    paper_protocol,
     traversal_protocol,
 )
 from vpr_explorer.places import Places, PlaceSpec, make_places
+from vpr_explorer.scale import fast_paper_protocol
 
 DEMO = "demo"
 
@@ -112,7 +112,8 @@ def run_protocol(
         )
     pooled = dict(runs=runs, seed=seed, cross_condition=cross_condition, progress=progress, **common)
     if protocol is Protocol.PAPER:
-        return paper_protocol(descriptors, places.image_place, dataset.image_traversal, places.n_places, **pooled)
+        # evaluation.paper_protocol's numbers (tests/test_scale.py) in one pass over the image pairs
+        return fast_paper_protocol(descriptors, places.image_place, dataset.image_traversal, places.n_places, **pooled)
     return open_set_protocol(
         descriptors, places.image_place, dataset.image_traversal, places.n_places,
         unknown_share=unknown_share, k_grid=k_grid, **pooled,

@@ -1,0 +1,173 @@
+"""The 50-split paper protocol at Nordland scale, beside one full similarity pass (issue 6).
+
+    python benchmarks/bench_nordland_scale.py                       # 110,364 × 1,280, 9,197 places
+    python benchmarks/bench_nordland_scale.py --places 1000 --runs 5 --check   # small, vs paper_protocol
+
+Generates seeded unit descriptors with place structure (Nordland g3s3's shape: every place
+is 3 consecutive frames × 4 traversals; place centres follow the route, so neighbouring
+places are correlated; each traversal adds its own appearance shift; frames add noise),
+then times
+
+* the floor: one blocked pass computing the similarity of all images to all images
+  (float32 sgemm in 4,096² blocks, each block reduced to one number), and
+* ``scale.fast_paper_protocol`` on the same data,
+
+and prints both wall times, their ratio, the CPU seconds of each (this machine may be
+shared, so CPU time is the steadier comparison) and the process's peak resident memory.
+The floor is timed before and after the protocol and the faster of the two is the one
+compared against.
+``--check`` also runs ``evaluation.paper_protocol`` and asserts identical tables (small N).
+``--storage float16`` writes the descriptors as a float16 ``.npy`` and memory-maps it, as
+the descriptor cache can.
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from vpr_explorer.report import render
+from vpr_explorer.scale import fast_paper_protocol
+
+FRAMES, TRAVERSALS = 3, 4
+
+
+def nordland_like(places: int, dim: int, seed: int, *, chunk: int = 8192) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(places·12, dim)`` float32 unit descriptors, place labels and traversal labels.
+
+    Image (place p, frame f, traversal t) = c_p + 0.25·(frame drift) + 0.5·u_t + 1.0·noise,
+    normalised, with c_p an AR(1) walk along the route (ρ = 0.96) and u_t one unit vector per
+    traversal. Images are stored traversal-major, as a dataset's folders are.
+    """
+    rng = np.random.default_rng(seed)
+    centres = np.empty((places, dim), dtype=np.float32)
+    prev = rng.standard_normal(dim, dtype=np.float32)
+    rho = np.float32(0.96)
+    for lo in range(0, places, chunk):
+        z = rng.standard_normal((min(chunk, places - lo), dim), dtype=np.float32)
+        for k in range(len(z)):
+            prev = rho * prev + np.sqrt(1 - rho**2) * z[k]
+            centres[lo + k] = prev
+    centres /= np.linalg.norm(centres, axis=1, keepdims=True)
+    shift = rng.standard_normal((TRAVERSALS, dim), dtype=np.float32)
+    shift /= np.linalg.norm(shift, axis=1, keepdims=True)
+    n = places * FRAMES * TRAVERSALS
+    d = np.empty((n, dim), dtype=np.float32)
+    per_trav = places * FRAMES
+    frame_place = np.repeat(np.arange(places), FRAMES)
+    for t in range(TRAVERSALS):
+        for lo in range(0, per_trav, chunk):
+            p = frame_place[lo : lo + chunk]
+            drift = rng.standard_normal((len(p), dim), dtype=np.float32) / np.sqrt(dim, dtype=np.float32)
+            noise = rng.standard_normal((len(p), dim), dtype=np.float32) / np.sqrt(dim, dtype=np.float32)
+            x = centres[p] + 0.25 * drift + 0.5 * shift[t] + 1.0 * noise
+            d[t * per_trav + lo : t * per_trav + lo + len(p)] = x / np.linalg.norm(x, axis=1, keepdims=True)
+    labels = np.tile(frame_place, TRAVERSALS)
+    traversal = np.repeat(np.arange(TRAVERSALS), per_trav)
+    return d, labels, traversal
+
+
+def full_similarity_pass(d: np.ndarray, block: int = 4096) -> float:
+    """All N² similarities in float32 blocks (the floor of any exact method); returns a checksum."""
+    buf = np.empty((block, block), dtype=np.float32)
+    total = 0.0
+    for i in range(0, len(d), block):
+        xi = np.asarray(d[i : i + block], dtype=np.float32)
+        for j in range(0, len(d), block):
+            xj = np.asarray(d[j : j + block], dtype=np.float32)
+            out = buf[: len(xi), : len(xj)]
+            np.matmul(xi, xj.T, out=out)
+            total += float(out[0, 0])  # one number per block, so the product is not wasted work
+    return total
+
+
+def peak_gib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB on Linux
+
+
+def timed(fn):
+    w, c = time.perf_counter(), time.process_time()
+    out = fn()
+    return out, time.perf_counter() - w, time.process_time() - c
+
+
+def _same(a, b) -> bool:
+    """Two method rows with the same numbers (NaN, e.g. the precision of nothing accepted, equals NaN)."""
+    pairs = [(a.recall[k], b.recall[k]) for k in a.recall] + [(a.accepted, b.accepted), (a.precision, b.precision),
+                                                              (a.own_traversal, b.own_traversal)]
+    return a.key == b.key and all(np.array_equal(np.asarray(x, float), np.asarray(y, float), equal_nan=True)
+                                  for x, y in pairs)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--places", type=int, default=9197, help="places of 12 images (default 9,197: 110,364 images)")
+    ap.add_argument("--n", type=int, default=None, help="images instead of places (rounded down to whole places)")
+    ap.add_argument("--dim", type=int, default=1280)
+    ap.add_argument("--runs", type=int, default=50)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--cross-condition", action="store_true")
+    ap.add_argument("--storage", choices=["float32", "float16"], default="float32")
+    ap.add_argument("--skip-floor", action="store_true", help="do not time the full similarity pass")
+    ap.add_argument("--check", action="store_true", help="also run paper_protocol and compare (small N only)")
+    args = ap.parse_args()
+    places = args.n // (FRAMES * TRAVERSALS) if args.n else args.places
+
+    (d, labels, trav), t_gen, _ = timed(lambda: nordland_like(places, args.dim, args.seed))
+    print(f"data: {len(d):,} images × {args.dim} in {places:,} places of {FRAMES * TRAVERSALS} "
+          f"({FRAMES} frames × {TRAVERSALS} traversals), seed {args.seed}; generated in {t_gen:.1f} s", flush=True)
+    tmp = None
+    if args.storage == "float16":
+        tmp = tempfile.TemporaryDirectory()
+        path = Path(tmp.name) / "descriptors.npy"
+        np.save(path, d.astype(np.float16))
+        del d
+        d = np.load(path, mmap_mode="r")
+        print(f"storage: float16, memory-mapped from {path} ({d.nbytes / 2**20:.0f} MiB)", flush=True)
+
+    if not args.skip_floor:
+        _, w_floor, c_floor = timed(lambda: full_similarity_pass(d))
+        print(f"floor  (one blocked pass, all N² similarities): {w_floor:8.1f} s wall  {c_floor:8.1f} s CPU   "
+              f"peak RSS so far {peak_gib():.2f} GiB", flush=True)
+
+    def bar(done, total, what):
+        if done == total or done % max(1, total // 10) == 0:
+            print(f"  … {what}", file=sys.stderr, flush=True)
+
+    ev, w_fast, c_fast = timed(lambda: fast_paper_protocol(
+        d, labels, trav, places, runs=args.runs, seed=args.seed, cross_condition=args.cross_condition, progress=bar,
+        settings={"data": "nordland-like synthetic"}))
+    print(f"fast paper protocol ({args.runs} splits):        {w_fast:8.1f} s wall  {c_fast:8.1f} s CPU   "
+          f"peak RSS {peak_gib():.2f} GiB", flush=True)
+    if not args.skip_floor:
+        # timed again after: on a shared machine the load can change between the two phases
+        _, w_again, c_again = timed(lambda: full_similarity_pass(d))
+        print(f"floor again, after the protocol:                  {w_again:8.1f} s wall  {c_again:8.1f} s CPU",
+              flush=True)
+        w_floor, c_floor = min(w_floor, w_again), min(c_floor, c_again)
+        print(f"ratio protocol / floor (the faster floor): {w_fast / w_floor:.2f}× wall, {c_fast / c_floor:.2f}× CPU "
+              f"(goal ≤ 1.5×, peak < 8 GiB)")
+    print()
+    print(render(ev))
+
+    if args.check:
+        from vpr_explorer.evaluation import paper_protocol
+
+        ref, w_ref, _ = timed(lambda: paper_protocol(d, labels, trav, places, runs=args.runs, seed=args.seed,
+                                                     cross_condition=args.cross_condition))
+        same = all(_same(a, b) for a, b in zip(ref.rows, ev.rows)) and len(ref.rows) == len(ev.rows)
+        print(f"\npaper_protocol: {w_ref:.1f} s; identical numbers: {same}")
+        if not same:
+            sys.exit(1)
+    if tmp is not None:
+        tmp.cleanup()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,289 @@
+"""``scale.fast_paper_protocol`` against ``evaluation.paper_protocol``: the same numbers.
+
+Every comparison is exact (recall, accepted, precision and own-traversal share: mean and
+std; per split: ranks, answered places and images, the automatic and oracle θ) except the
+per-place thresholds, which agree to float rounding (the fast path downdates float32
+scores; see the module doc of ``vpr_explorer.scale``), and image-level ranks, which the
+fast path resolves up to max(ks) (beyond: max(ks) + 1; Recall@K needs no more).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import vpr_explorer.evaluation as evaluation
+from vpr_explorer.errors import VPRInputError
+from vpr_explorer.evaluation import draw_splits, paper_protocol
+from vpr_explorer.scale import fast_paper_protocol, make_layout, scale_splits
+
+THETA_TOL = 1e-8  # per-place θ: float32 rounding in the downdated σ (typically 1e-11 here)
+
+
+# --------------------------------------------------------------------------- data
+
+
+def structured(seed=0, n_places=300, per_place=10, dim=256, noise=1.0, n_trav=2, rho=0.9):
+    """Unit descriptors: place centres along a route (neighbours correlated) plus noise, shuffled."""
+    rng = np.random.default_rng(seed)
+    centres = np.empty((n_places, dim))
+    prev = rng.standard_normal(dim)
+    for k in range(n_places):
+        prev = rho * prev + np.sqrt(1 - rho**2) * rng.standard_normal(dim)
+        centres[k] = prev
+    centres /= np.linalg.norm(centres, axis=1, keepdims=True)
+    labels = np.repeat(np.arange(n_places), per_place)
+    d = centres[labels] + noise * rng.standard_normal((len(labels), dim)) / np.sqrt(dim)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    trav = np.tile(np.arange(per_place) % n_trav, n_places)
+    perm = rng.permutation(len(labels))
+    return d[perm].astype(np.float32), labels[perm], trav[perm]
+
+
+def awkward(seed=0, n_places=260, dim=64, noise=1.0):
+    """Unequal place sizes (2..15), empty place ids, skipped frames, exact duplicates.
+
+    Duplicates: two images inside a place, one image across two places, a whole place
+    copied into the next (identical training sets: the thresholds must tie exactly), and a
+    place seen in one traversal only (no cross-condition match for its queries).
+    """
+    rng = np.random.default_rng(seed)
+    sizes = rng.integers(2, 16, n_places)
+    sizes[[5, 77]] = 0
+    sizes[31] = sizes[30]
+    centres = rng.standard_normal((n_places, dim))
+    centres /= np.linalg.norm(centres, axis=1, keepdims=True)
+    labels = np.repeat(np.arange(n_places), sizes)
+    d = centres[labels] + noise * rng.standard_normal((len(labels), dim)) / np.sqrt(dim)
+    trav = rng.integers(0, 3, len(labels))
+    inside = np.flatnonzero(labels == 10)
+    d[inside[1]] = d[inside[0]]
+    d[np.flatnonzero(labels == 21)[0]] = d[np.flatnonzero(labels == 20)[0]]
+    d[labels == 31] = d[labels == 30]
+    trav[labels == 31] = trav[labels == 30]
+    trav[labels == 40] = 1
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    skipped = rng.standard_normal((50, dim))
+    skipped /= np.linalg.norm(skipped, axis=1, keepdims=True)
+    d = np.r_[d, skipped]
+    labels = np.r_[labels, np.full(50, -1)]
+    trav = np.r_[trav, rng.integers(0, 3, 50)]
+    perm = rng.permutation(len(labels))
+    return d[perm].astype(np.float32), labels[perm], trav[perm]
+
+
+# --------------------------------------------------------------------------- comparisons
+
+
+def reference_with_splits(monkeypatch, d, labels, trav, n_places, **kw):
+    """``paper_protocol`` and the per-split scores it summarised."""
+    captured = {}
+    pooled = evaluation._pooled_splits
+
+    def capture(*a, **k):
+        captured["splits"] = pooled(*a, **k)
+        return captured["splits"]
+
+    monkeypatch.setattr(evaluation, "_pooled_splits", capture)
+    ev = paper_protocol(d, labels, trav, n_places, **kw)
+    monkeypatch.setattr(evaluation, "_pooled_splits", pooled)
+    return ev, captured["splits"]
+
+
+def assert_same_evaluation(ref, fast):
+    assert [r.key for r in fast.rows] == [r.key for r in ref.rows]
+    assert fast.settings == ref.settings and fast.notes == ref.notes and fast.ks == ref.ks
+    for a, b in zip(ref.rows, fast.rows):
+        for k in ref.ks:
+            np.testing.assert_array_equal(b.recall[k], a.recall[k], err_msg=f"{a.key} R@{k}")
+        for what in ("accepted", "precision", "own_traversal", "unknown_rejection"):
+            x, y = getattr(a, what), getattr(b, what)
+            assert (x is None) == (y is None), (a.key, what)
+            if x is not None:
+                np.testing.assert_array_equal(y, x, err_msg=f"{a.key} {what}")
+
+
+def assert_same_splits(ref_splits, fast_splits, max_k):
+    """Per split: θ to rounding, global θs exactly, every outcome exactly."""
+    assert len(ref_splits) == len(fast_splits)
+    for r, (a, b) in enumerate(zip(ref_splits, fast_splits)):
+        assert list(b.outcomes) == list(a.outcomes)
+        for key in ("simple", "weighted"):
+            np.testing.assert_allclose(b.thresholds[key], a.thresholds[key], rtol=0, atol=THETA_TOL, equal_nan=True)
+        for key in ("auto", "oracle", "user"):
+            assert b.thresholds.get(key) == a.thresholds.get(key), (r, key)
+        for key, oa in a.outcomes.items():
+            ob = b.outcomes[key]
+            rank_a = oa.rank
+            if key == "image-baseline":  # the fast path resolves image-level ranks up to max(ks)
+                rank_a = np.where(np.isfinite(rank_a) & (rank_a > max_k), max_k + 1, rank_a)
+            np.testing.assert_array_equal(ob.rank, rank_a, err_msg=f"split {r} {key} rank")
+            np.testing.assert_array_equal(ob.answer_place, oa.answer_place, err_msg=f"split {r} {key} place")
+            np.testing.assert_array_equal(ob.answer_image, oa.answer_image, err_msg=f"split {r} {key} image")
+        np.testing.assert_array_equal(b.query_traversal, a.query_traversal)
+        np.testing.assert_array_equal(b.train_traversal, a.train_traversal)
+
+
+def check(monkeypatch, d, labels, trav, n_places, *, runs=3, seed=0, ks=(1, 3, 5, 10), fast_kw=None, **kw):
+    ref, ref_splits = reference_with_splits(monkeypatch, d, labels, trav, n_places, runs=runs, seed=seed, ks=ks, **kw)
+    fast = fast_paper_protocol(d, labels, trav, n_places, runs=runs, seed=seed, ks=ks, **kw, **(fast_kw or {}))
+    assert_same_evaluation(ref, fast)
+    splits = draw_splits(labels, n_places, runs=runs, seed=seed)
+    fast_splits = scale_splits(d, labels, trav, n_places, splits, seed=seed, max_k=max(ks), **kw, **(fast_kw or {}))
+    assert_same_splits(ref_splits, fast_splits, max(ks))
+    return ref, fast
+
+
+# --------------------------------------------------------------------------- tests
+
+
+@pytest.fixture(scope="module")
+def data3000():
+    return structured()
+
+
+@pytest.mark.parametrize("fast_kw", [{}, {"block": 640, "table_memory": 0}])
+def test_equals_paper_protocol_structured(monkeypatch, data3000, fast_kw):
+    # 3,000 × 256 in 300 places of 10: 2,700 training images, so the automatic θ samples
+    # its 2M pairs (the mirrored branch); block=640 makes 5 blocks, table_memory=0 spills
+    d, labels, trav = data3000
+    ref, fast = check(monkeypatch, d, labels, trav, 300, user_theta=0.3, fast_kw=fast_kw)
+    r1 = ref.row("place-baseline").recall[1][0]
+    assert 0.3 < r1 < 0.99, r1  # neither trivial nor hopeless: ranks and ties get exercised
+
+
+def test_equals_paper_protocol_cross_condition(monkeypatch, data3000):
+    d, labels, trav = data3000
+    _, fast = check(monkeypatch, d, labels, trav, 300, cross_condition=True, fast_kw={"block": 1000})
+    assert fast.row("place-baseline").own_traversal[0] == 0.0
+
+
+@pytest.mark.parametrize("cross_condition", [False, True])
+def test_equals_paper_protocol_unequal_places_and_ties(monkeypatch, cross_condition):
+    d, labels, trav = awkward()
+    check(monkeypatch, d, labels, trav, 260, seed=4, cross_condition=cross_condition, user_theta=0.2, ks=(1, 2, 7),
+          fast_kw={"block": 500})
+
+
+def test_equals_paper_protocol_hard_queries(monkeypatch):
+    # heavy noise: many wrong places above the own one, image-level records overflow K
+    d, labels, trav = awkward(seed=1, noise=4.0)
+    check(monkeypatch, d, labels, trav, 260, runs=2, ks=(1, 3), fast_kw={"block": 600})
+
+
+def test_equals_paper_protocol_small_exact_pair_branch(monkeypatch):
+    # under 2,001 training images the automatic θ uses every pair, as the reference does
+    d, labels, trav = structured(seed=3, n_places=90, per_place=8, dim=48)
+    check(monkeypatch, d, labels, trav, 90, cross_condition=True, fast_kw={"block": 200})
+
+
+@pytest.mark.parametrize("dtype", [np.float16, np.float64])
+def test_equals_paper_protocol_other_dtypes(monkeypatch, tmp_path, dtype):
+    if dtype == np.float16:  # the descriptor cache's half-precision, memory-mapped storage
+        d, labels, trav = awkward(seed=2)
+        np.save(tmp_path / "d.npy", d.astype(np.float16))
+        d = np.load(tmp_path / "d.npy", mmap_mode="r")
+        n_places = 260
+    else:  # float64: scores from the float32 rounding, statistics from the float64 values
+        d, labels, trav = structured(seed=2, n_places=150, per_place=12, dim=64)
+        d = d.astype(np.float64) + 1e-6 * np.random.default_rng(0).standard_normal(d.shape)
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        n_places = 150
+    check(monkeypatch, d, labels, trav, n_places, runs=2, fast_kw={"block": 700})
+
+
+def test_identical_places_tie_exactly_as_in_the_reference(monkeypatch):
+    # place 30: one image six times; place 290 (another block) the same: equal training sets.
+    # A shared component makes every score large, so float32 sums round in the last bits.
+    d, labels, trav = structured(seed=4, n_places=400, per_place=6, dim=32, noise=2.0)
+    d = d + 1.5 * np.ones(32, dtype=np.float32) / np.sqrt(32)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d[labels == 30] = d[np.flatnonzero(labels == 30)[0]]
+    d[labels == 290] = d[labels == 30]
+    _, ref_splits = reference_with_splits(monkeypatch, d, labels, trav, 400, runs=3, seed=0)
+    fast_splits = scale_splits(d, labels, trav, 400, draw_splits(labels, 400, runs=3, seed=0), block=600)
+    for a, b in zip(ref_splits, fast_splits):
+        for key in ("simple", "weighted"):
+            assert a.thresholds[key][30] == a.thresholds[key][290]  # the reference ties them ...
+            assert b.thresholds[key][30] == b.thresholds[key][290]  # ... and so must we
+    assert_same_splits(ref_splits, fast_splits, 10)  # and with them every margin tie
+
+
+def test_near_tie_repair_recomputes_exactly(monkeypatch):
+    # with every weighted θ declared unreliable, every query is a near tie: the repair path
+    # recomputes its places in float64, which must then agree with the closed form to the
+    # last digits, and every outcome with the reference
+    import vpr_explorer.scale as scale
+
+    def unreliable(sd, lay, kappa):
+        sd.uncertainty = np.full(len(lay.places), np.inf)
+
+    d, labels, trav = awkward(seed=3)
+    _, ref_splits = reference_with_splits(monkeypatch, d, labels, trav, 260, runs=2, seed=0)
+    monkeypatch.setattr(scale, "_set_uncertainty", unreliable)
+    fast = scale_splits(d, labels, trav, 260, draw_splits(labels, 260, runs=2, seed=0), block=600)
+    assert_same_splits(ref_splits, fast, 10)
+    for a, b in zip(ref_splits, fast):
+        np.testing.assert_allclose(b.thresholds["weighted"], a.thresholds["weighted"], rtol=0, atol=1e-14,
+                                   equal_nan=True)
+
+
+def test_the_comparison_can_fail(monkeypatch, data3000):
+    # a different seed is a different set of splits: the helpers must see it
+    d, labels, trav = data3000
+    ref, ref_splits = reference_with_splits(monkeypatch, d, labels, trav, 300, runs=2, seed=0)
+    fast = fast_paper_protocol(d, labels, trav, 300, runs=2, seed=1)
+    with pytest.raises(AssertionError):
+        assert_same_evaluation(ref, fast)
+    other = scale_splits(d, labels, trav, 300, draw_splits(labels, 300, runs=2, seed=1), seed=1)
+    with pytest.raises(AssertionError):
+        assert_same_splits(ref_splits, other, 10)
+
+
+def test_layout_blocks_whole_places_slot_major():
+    labels = np.array([2, 0, 2, 1, -1, 0, 2, 1, 1, 1])
+    lay = make_layout(labels, 4, block_rows=8)
+    assert list(lay.places) == [0, 1, 2] and lay.slots == 4
+    real = lay.image_of_row >= 0
+    # every labelled image once; its row holds its place and its rank within the place
+    assert sorted(lay.image_of_row[real]) == [0, 1, 2, 3, 5, 6, 7, 8, 9]
+    for img in np.flatnonzero(labels >= 0):
+        row = lay.row_of_image[img]
+        assert lay.places[lay.place_of_row[row]] == labels[img]
+        assert lay.slot_of_row[row] == np.sum((labels == labels[img]) & (np.arange(10) < img))
+    assert lay.row_of_image[4] == -1
+    for b in range(lay.n_blocks):  # inside a block: slot-major, place-minor
+        rows = lay.rows(b)
+        g = lay.block_start[b + 1] - lay.block_start[b]
+        assert list(lay.slot_of_row[rows]) == list(np.repeat(np.arange(4), g))
+
+
+def test_bad_input_raises_like_the_reference():
+    d, labels, trav = structured(seed=5, n_places=20, per_place=4, dim=16)
+    with pytest.raises(VPRInputError, match="runs=0"):
+        fast_paper_protocol(d, labels, trav, 20, runs=0)
+    with pytest.raises(VPRInputError, match="cross_condition needs at least 2 traversals"):
+        fast_paper_protocol(d, labels, np.zeros_like(trav), 20, runs=1, cross_condition=True)
+    with pytest.raises(VPRInputError, match="have a single image"):
+        fast_paper_protocol(d[:20], np.arange(20), trav[:20], 20, runs=1)
+    with pytest.raises(VPRInputError, match="block="):
+        fast_paper_protocol(d, labels, trav, 20, runs=1, block=0)
+    with pytest.raises(VPRInputError, match="open set"):
+        scale_splits(d, labels, trav, 20, draw_splits(labels, 20, runs=1, seed=0, unknown_share=0.3))
+
+
+# --------------------------------------------------------------------------- real Nordland
+
+
+@pytest.mark.realdata
+def test_nordland_g3s3_pixels_equals_paper_protocol(monkeypatch, data_root):
+    from vpr_explorer.datasets import load_dataset
+    from vpr_explorer.pipeline import dataset_descriptors
+    from vpr_explorer.places import PlaceSpec, make_places
+
+    dataset = load_dataset(data_root / "Nordland_64x32")
+    places = make_places(dataset, PlaceSpec(3, 3))
+    desc = dataset_descriptors(dataset, "pixels")
+    assert places.n_places == 1192 and desc.shape == (7152, 2048)
+    ref, fast = check(monkeypatch, desc, places.image_place, dataset.image_traversal, places.n_places, runs=2)
+    assert fast.seconds < ref.seconds

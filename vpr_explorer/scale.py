@@ -1,0 +1,1163 @@
+"""The paper protocol at Nordland scale: one blocked pass over all image pairs (issue 6).
+
+``fast_paper_protocol`` returns the numbers of ``evaluation.paper_protocol`` — same seeded
+splits, the same float32 similarities, the same thresholds (to float rounding), ranks, tie
+rules and answers — without an N×N matrix and without a pass per split. At Nordland g3s3's
+110,000 images the straightforward protocol does, per split, an N×D² gram and a 9,197 × N
+similarity; this module does one pass over the image pairs for all splits.
+
+Algorithm
+---------
+A split holds exactly one image of every place out (the query) and trains on the rest.
+
+1. **Negative statistics by downdating** (DESIGN.md §2). From the full-set sums T = Σⱼ dⱼ,
+   T_p, C = Σⱼ dⱼdⱼᵀ and aᵢ = Σ_{j∉p(i)} (dᵢ·dⱼ − c)² (from dᵢᵀCdᵢ, float64, once; c is the
+   mean score, a float32 value), a training image i of place p in split r (queries Q_r,
+   p's held-out image h) has
+
+       n⁻ᵢ μᵢ             = dᵢ·(T − T_p) − dᵢ·Σ_{q∈Q_r} d_q + dᵢ·d_h
+       n⁻ᵢ E[(s − c)²]ᵢ   = aᵢ − V_{i,r},    V_{i,r} = Σ_{q∈Q_r, p(q)≠p} (dᵢ·d_q − c)²
+       σᵢ²                = E[(s − c)²]ᵢ − (μᵢ − c)²
+
+   so no split forms a D×D gram: dᵢ·Σ_q d_q for all splits is one (N×D)·(D×R) product and
+   V comes out of the pass (2). μ, hence the simple θ, is exact to float64 rounding; σ
+   carries the float32 rounding of the scores in V (taken about c, so descriptors whose
+   scores all sit near 0.8 lose no more than centred ones), which moves a weighted θ_p by
+   ~1e-11 (synthetic) to ~2e-9 (Nordland pixels). Step 6 keeps that from changing any
+   outcome. Places whose training images are byte-identical get one θ, as in the
+   reference (same inputs, same operations: their margins tie exactly).
+2. **One blocked pass** over the block pairs I ≤ J of a place-major layout. S = X_I X_Jᵀ is
+   the float32 sgemm the reference ranks with (syrk on the diagonal, as ``d @ d.T``). Each
+   block gives, for its rows and, by symmetry, its columns:
+
+   * V (above): (S∘S) @ M with M the (N × R) query indicator, float32 products over row
+     chunks of ``_W_CHUNK`` (a few dozen nonzero terms), summed in float64;
+   * the **top-2 table**: per (image, place) the best and second-best score and the slots
+     reaching them. In split r, raw_p of a query is p's best score unless p's held-out
+     image is that best, then the second (on a tie the second equals the best). A query is
+     held out of its own place, so its best correct score b_q is split-independent;
+   * the scores of the automatic threshold's sampled pairs (4);
+   * for the image-level baseline, the places where two or more images reach b_q, with
+     the slots that do (at most max(ks) per image: more, and the rank is beyond every K).
+
+   The table is kept only where it can matter: every θ_p is a convex combination of its
+   place's μᵢ, so all thresholds lie in [min μ, max μ] (known before the pass), and no
+   split's scoring (5) looks below the row's floor b − (max μ − min μ) (or min μ when the
+   own place can be dropped, −∞ when b is). Entries are (row, place, t1, a1, t2, a2),
+   18 bytes each, in RAM up to ``table_memory`` bytes, then in a temporary file.
+3. **Per split thresholds** from the downdated moments through the library's own
+   ``NegativeStats`` and ``place_thresholds``.
+4. **The automatic global θ** mirrors ``thresholds.training_pair_scores`` exactly: the same
+   seeded pairs; the pass supplies their sgemm scores, which differ from the reference's
+   einsum scores by at most ε = 2γ_D·max‖d‖² (γ_D = D·u/(1 − D·u), u = 2⁻²⁴: Higham's bound
+   for any summation order). Only pairs within 2ε of the median (and then of the MAD) are
+   recomputed with the reference's einsum, which fixes those order statistics exactly.
+5. **Per split scoring** reads each query's table entries above its cutoff — the lowest
+   score that can still reach its own place's rank or answer under any method of the
+   split — and runs every method on those candidates only (the cutoff is a bound, not a
+   heuristic: a place below it can change no rank and no answer).
+6. **Near ties.** Each weighted θ_p gets an error bound: first order in the σ errors,
+   scaled by the largest error of V seen when a seeded sample of images is recomputed
+   exactly, times ``_SAFETY`` (observed errors stay under 3% of the bound). A query whose
+   outcome a change within those bounds could overturn (a margin, a kept test or the top
+   answer within the bounds) has the places involved recomputed in float64 — exactly the
+   closed form — and is scored again, until no such query is left.
+
+Ranks, ties and answers follow ``retrieval``: ties count against the query, answers are
+the first best (lowest place id; lowest image index within a place; lowest image index
+across places at the image level), cross-condition queries see other traversals only.
+Image-level ranks beyond max(ks) are reported as max(ks) + 1 (Recall@K never needs more).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from vpr_explorer.errors import VPRInputError
+from vpr_explorer.evaluation import (
+    KS,
+    Evaluation,
+    Progress,
+    Protocol,
+    Split,
+    SplitScores,
+    _check_common,
+    _members,
+    _summarise,
+    draw_splits,
+    oracle_global_threshold,
+)
+from vpr_explorer.retrieval import METHODS_BY_KEY, Outcome
+from vpr_explorer.stats import SIGMA_FLOOR, NegativeStats, mixture_moments
+from vpr_explorer.thresholds import (
+    AUTO_MAX_PAIRS,
+    AUTO_Z,
+    ThresholdMethod,
+    adaptive_k,
+    auto_global_threshold,
+    mixture_spread,
+    place_thresholds,
+    training_pair_scores,
+)
+
+#: Default rows per block of the pass: a 4,096 × 4,096 float32 block is 64 MiB.
+BLOCK_ROWS = 4096
+#: Bytes of top-2 table entries kept in RAM; beyond, entries go to a temporary file.
+TABLE_MEMORY = 2 * 1024**3
+#: Rows per float32 product of the second-moment downdate (about 1/12 of them are queries,
+#: so each float32 sum has a few hundred terms at most); the chunks are summed in float64.
+_W_CHUNK = 2048
+_U32 = 2.0**-24
+_CHUNK = 8192
+_ENTRY = (("row", np.int32), ("place", np.int32), ("t1", np.float32), ("a1", np.uint8), ("t2", np.float32),
+          ("a2", np.uint8))
+
+
+# --------------------------------------------------------------------------- layout
+
+
+@dataclass(frozen=True, eq=False)
+class Layout:
+    """Labelled images reordered place by place, each place padded to ``slots`` rows, in blocks.
+
+    Inside a block of G places rows run slot-major: row = first_row + slot·G + (place − first),
+    so a block's similarity viewed as ``(rows, slots, G)`` or ``(slots, G, cols)`` reduces over
+    a place's images along a middle axis. Padding rows are zero descriptors, masked to −inf.
+
+    Attributes:
+        places: ``(P,)`` place ids that have images, ascending; "place index" c means places[c].
+        slots: the largest place size m; slot k of a place is its k-th image by index.
+        block_start: ``(n_blocks + 1,)`` first place index of each block.
+        image_of_row: ``(n_rows,)`` image of each layout row, ``-1`` for padding.
+        row_of_image: ``(n_images,)`` layout row of each image, ``-1`` for unlabelled frames.
+        sizes: ``(P,)`` images per place.
+        place_of_row, slot_of_row: ``(n_rows,)`` place index and slot of every row.
+    """
+
+    places: np.ndarray
+    slots: int
+    block_start: np.ndarray
+    image_of_row: np.ndarray
+    row_of_image: np.ndarray
+    sizes: np.ndarray
+    place_of_row: np.ndarray
+    slot_of_row: np.ndarray
+
+    @property
+    def n_blocks(self) -> int:
+        return len(self.block_start) - 1
+
+    @property
+    def n_rows(self) -> int:
+        return len(self.image_of_row)
+
+    @property
+    def full_rows(self) -> int:
+        """Rows of every block but the last (which may be shorter)."""
+        return self.slots * int(self.block_start[1] - self.block_start[0])
+
+    def rows(self, b: int) -> slice:
+        return slice(int(self.block_start[b]) * self.slots, int(self.block_start[b + 1]) * self.slots)
+
+    def cols(self, b: int) -> slice:
+        """The place indices of block b."""
+        return slice(int(self.block_start[b]), int(self.block_start[b + 1]))
+
+    def row_of(self, c: np.ndarray, slot: np.ndarray) -> np.ndarray:
+        """Layout row of (place index, slot)."""
+        blk = np.searchsorted(self.block_start, c, side="right") - 1
+        first = self.block_start[blk]
+        return first * self.slots + slot * (self.block_start[blk + 1] - first) + (c - first)
+
+
+def make_layout(image_place: np.ndarray, n_places: int, block_rows: int = BLOCK_ROWS) -> Layout:
+    """The place-major, slot-padded, blocked layout of the labelled images.
+
+    Blocks hold whole places and about ``block_rows`` rows; all but the last hold the same
+    number of places (so a row's block is row // full_rows).
+    """
+    if isinstance(block_rows, bool) or not isinstance(block_rows, (int, np.integer)) or not 1 <= block_rows <= 40_000:
+        raise VPRInputError(f"block={block_rows!r}: rows per block must be a whole number from 1 to 40,000 (e.g. 4096)")
+    order, starts, sizes = _members(image_place, n_places)
+    places = np.flatnonzero(sizes > 0)
+    psize = sizes[places]
+    m = int(psize.max())
+    n_p = len(places)
+    n_blocks = max(1, -(-n_p * m // int(block_rows)))
+    per = -(-n_p // n_blocks)
+    block_start = np.r_[np.arange(0, n_p, per), n_p].astype(np.int64)
+    n_blocks = len(block_start) - 1
+    if m * per > 46_000:
+        raise VPRInputError(f"places of {m} images: a block would exceed 46,000 rows; lower block=")
+    pidx = np.repeat(np.arange(n_p), psize)
+    slot = np.arange(len(order)) - np.repeat(starts[places], psize)
+    none = np.empty(0, np.int64)
+    rows = Layout(places, m, block_start, none, none, psize, none, none).row_of(pidx, slot)
+    image_of_row = np.full(n_p * m, -1, dtype=np.int64)
+    image_of_row[rows] = order
+    row_of_image = np.full(len(image_place), -1, dtype=np.int64)
+    row_of_image[order] = rows
+    width = np.diff(block_start)
+    place_of_row = np.concatenate([np.tile(np.arange(block_start[b], block_start[b + 1]), m) for b in range(n_blocks)])
+    slot_of_row = np.concatenate([np.repeat(np.arange(m), width[b]) for b in range(n_blocks)])
+    return Layout(places, m, block_start, image_of_row, row_of_image, psize, place_of_row, slot_of_row)
+
+
+# --------------------------------------------------------------------------- top-2 entries
+
+
+def _top2_rows(vals: np.ndarray) -> dict[str, np.ndarray]:
+    """Best and second-best of each row of ``vals`` ``(n, m)`` and the first slots reaching them.
+
+    a1 is the first slot of the best value; with the best twice, t2 = t1 and a2 is the next
+    such slot (argmax returns the first maximum).
+    """
+    at = np.arange(len(vals))
+    a1 = np.argmax(vals, axis=1)
+    rest = vals.copy()
+    rest[at, a1] = -np.inf
+    a2 = np.argmax(rest, axis=1)
+    return {"t1": vals[at, a1], "a1": a1.astype(np.uint8), "t2": rest[at, a2], "a2": a2.astype(np.uint8)}
+
+
+class _Entries:
+    """Top-2 table entries (row, place, t1, a1, t2, a2), filed by the block of their row.
+
+    In RAM up to ``limit`` bytes, then appended to a temporary file that is deleted on
+    ``close`` (or by the OS if the process dies). ``get`` returns a row block's entries
+    sorted by (row, place) with a CSR row pointer.
+    """
+
+    def __init__(self, lay: Layout, limit: int, spill_dir: str | os.PathLike | None):
+        self.lay, self.limit, self.spill_dir = lay, limit, spill_dir
+        self.in_ram = 0
+        self.file = None
+        self.offset = 0
+        self.chunks: dict[int, list] = {}
+
+    def put(self, row_block: int, parts: dict[str, np.ndarray]) -> None:
+        n = len(parts["row"])
+        if n == 0:
+            return
+        arrays = {k: np.ascontiguousarray(parts[k], dtype=t) for k, t in _ENTRY}
+        size = sum(a.nbytes for a in arrays.values())
+        if self.in_ram + size <= self.limit:
+            self.in_ram += size
+            self.chunks.setdefault(row_block, []).append(arrays)
+            return
+        if self.file is None:
+            self.file = tempfile.TemporaryFile(prefix="vpr_top2_", dir=self.spill_dir)
+        self.file.seek(self.offset)
+        for k, _ in _ENTRY:
+            self.file.write(arrays[k].tobytes())
+        self.chunks.setdefault(row_block, []).append((self.offset, n))
+        self.offset += size
+
+    def get(self, row_block: int) -> dict[str, np.ndarray]:
+        parts = []
+        for chunk in self.chunks.get(row_block, []):
+            if isinstance(chunk, dict):
+                parts.append(chunk)
+                continue
+            offset, n = chunk
+            self.file.seek(offset)
+            parts.append({k: np.fromfile(self.file, dtype=t, count=n) for k, t in _ENTRY})
+        out = {k: np.concatenate([p[k] for p in parts]) if parts else np.empty(0, t) for k, t in _ENTRY}
+        order = np.lexsort((out["place"], out["row"]))
+        out = {k: v[order] for k, v in out.items()}
+        rows = self.lay.rows(row_block)
+        out["ptr"] = np.r_[0, np.cumsum(np.bincount(out["row"], minlength=rows.stop - rows.start))]
+        return out
+
+    def close(self) -> None:
+        if self.file is not None:
+            self.file.close()
+
+
+class _Records:
+    """Per layout row, up to ``cap`` (place, slots ≥ b) records for the image-level count.
+
+    A record is kept where two or more images of a wrong place reach the row's own best
+    score b; the packed slot mask says which. Such a place adds at least one wrong image
+    above b in any split, so ``cap`` records already put the rank beyond ``cap``.
+    """
+
+    def __init__(self, n_rows: int, slots: int, cap: int):
+        self.cap = cap
+        self.n = np.zeros(n_rows, dtype=np.int64)
+        self.place = np.full((n_rows, cap), -1, dtype=np.int64)
+        self.bits = np.zeros((n_rows, cap, (slots + 7) // 8), dtype=np.uint8)
+
+    def add(self, rows: np.ndarray, places: np.ndarray, ge: np.ndarray) -> None:
+        """``rows``, ``places`` ``(n,)``; ``ge`` ``(n, slots)`` bool, which slots reach b."""
+        if len(rows) == 0:
+            return
+        order = np.argsort(rows, kind="stable")
+        rows, places, ge = rows[order], places[order], ge[order]
+        first = np.r_[True, rows[1:] != rows[:-1]]
+        run_start = np.maximum.accumulate(np.where(first, np.arange(len(rows)), 0))
+        pos = self.n[rows] + (np.arange(len(rows)) - run_start)
+        keep = pos < self.cap
+        self.place[rows[keep], pos[keep]] = places[keep]
+        self.bits[rows[keep], pos[keep]] = np.packbits(ge[keep], axis=1, bitorder="little")
+        np.add.at(self.n, rows, 1)
+
+
+# --------------------------------------------------------------------------- automatic θ
+
+
+@dataclass(eq=False)
+class _PairPlan:
+    """One split's seeded training pairs, grouped by the block pair holding their score.
+
+    ``flat`` is the pair's index into the (rows of I) × (rows of J) block, I ≤ J, and
+    ``offsets[I * n_blocks + J]`` starts block pair (I, J); ``approx`` gets the sgemm scores.
+    """
+
+    offsets: np.ndarray
+    flat: np.ndarray
+    approx: np.ndarray
+
+
+def _pair_plan(train: np.ndarray, lay: Layout, seed: int, max_pairs: int) -> _PairPlan:
+    """The pairs ``training_pair_scores(d[train], seed=seed)`` samples, located in the blocks."""
+    n = len(train)
+    rng = np.random.default_rng(seed)
+    i = rng.integers(0, n, size=max_pairs)
+    j = rng.integers(0, n - 1, size=max_pairs)
+    j += j >= i  # the reference's uniform j != i
+    ra = lay.row_of_image[train[i]]
+    rb = lay.row_of_image[train[j]]
+    del i, j
+    ra, rb = np.minimum(ra, rb), np.maximum(ra, rb)  # blocks are row ranges: the lower row, the lower block
+    nb, full = lay.n_blocks, lay.full_rows
+    ba, bb = ra // full, rb // full
+    key = (ba * nb + bb).astype(np.uint16 if nb * nb < 2**16 else np.int64)  # uint16 sorts by radix
+    order = np.argsort(key, kind="stable")
+    width = np.diff(lay.block_start)[bb] * lay.slots
+    flat = ((ra - ba * full) * width + (rb - bb * full))[order].astype(np.int32)
+    offsets = np.r_[0, np.cumsum(np.bincount(key, minlength=nb * nb))]
+    return _PairPlan(offsets, flat, np.empty(max_pairs, dtype=np.float32))
+
+
+def _order_stats(approx: np.ndarray, eps: float, ks: list[int],
+                 exact: Callable[[np.ndarray], np.ndarray]) -> list[float]:
+    """Exact order statistics ``ks`` (adjacent ranks) of values known to within ``eps``.
+
+    The k-th smallest exact value lies within eps of the k-th smallest approximation, so an
+    element more than 2·eps below the window is exactly below it, one more than 2·eps above
+    is above, and the k-th value is the (k − #below)-th of the rest, computed exactly.
+    """
+    part = np.partition(approx, ks)
+    lo, hi = part[min(ks)] - 2 * eps, part[max(ks)] + 2 * eps
+    below = int(np.count_nonzero(approx < lo))
+    cand = np.flatnonzero((approx >= lo) & (approx <= hi))
+    values = np.sort(exact(cand))
+    return [float(values[k - below]) for k in ks]
+
+
+def _median_of(values: list[float]) -> float:
+    # np.median of an even count is the mean of the two middle values: the same arithmetic
+    return float(np.mean(np.asarray(values, dtype=np.float64)))
+
+
+def _auto_threshold_from_plan(plan: _PairPlan, d: np.ndarray, lay: Layout, eps: float) -> float:
+    """``auto_global_threshold(training_pair_scores(...))`` from the pass's approximations."""
+    nb, full = lay.n_blocks, lay.full_rows
+    width = np.diff(lay.block_start) * lay.slots
+    m = len(plan.approx)
+
+    def exact_scores(idx: np.ndarray) -> np.ndarray:
+        key = np.searchsorted(plan.offsets, idx, side="right") - 1
+        bi, bj = key // nb, key % nb
+        flat = plan.flat[idx].astype(np.int64)
+        a = lay.image_of_row[bi * full + flat // width[bj]]
+        b = lay.image_of_row[bj * full + flat % width[bj]]
+        order = np.argsort(a)  # gather rows in memory order
+        out = np.empty(len(idx), dtype=np.float64)
+        for lo in range(0, len(idx), _CHUNK):
+            o = order[lo : lo + _CHUNK]
+            x = np.asarray(d[a[o]], dtype=np.float32)
+            y = np.asarray(d[b[o]], dtype=np.float32)
+            out[o] = np.einsum("ij,ij->i", x, y)  # the reference's scores, bit for bit
+        return out
+
+    approx = plan.approx.astype(np.float64)
+    mid = [m // 2 - 1, m // 2] if m % 2 == 0 else [m // 2]
+    med = _median_of(_order_stats(approx, eps, mid, exact_scores))
+    np.subtract(approx, med, out=approx)
+    np.abs(approx, out=approx)
+    eps_dev = eps * (1 + 1e-9) + 1e-12  # the float64 subtraction adds one rounding
+    mad = _median_of(_order_stats(approx, eps_dev, mid, lambda idx: np.abs(exact_scores(idx) - med)))
+    med, mad = np.float64(med), np.float64(mad)
+    return float(med + AUTO_Z * mad / 0.675)
+
+
+def _score_bound(d: np.ndarray, lay: Layout) -> float:
+    """ε: the most an sgemm score and an einsum score of the same pair can differ."""
+    top = 0.0
+    for lo in range(0, len(d), _CHUNK):
+        z = np.asarray(d[lo : lo + _CHUNK], dtype=np.float32).astype(np.float64)
+        ok = lay.row_of_image[lo : lo + _CHUNK] >= 0
+        if ok.any():
+            top = max(top, float(np.einsum("ij,ij->i", z[ok], z[ok]).max()))
+    dim = d.shape[1]
+    gamma = dim * _U32 / (1 - dim * _U32)
+    return 2 * gamma * top * (1 + 1e-6)
+
+
+# --------------------------------------------------------------------------- exact full-set sums
+
+
+@dataclass(frozen=True, eq=False)
+class _FullSums:
+    """Float64 sums over all labelled images, per layout row (zero on padding rows)."""
+
+    dot_total: np.ndarray  # (n_rows,) dᵢ·T
+    dot_place: np.ndarray  # (n_rows,) dᵢ·T_p(i)
+    a: np.ndarray  # (n_rows,) dᵢᵀCdᵢ − Σ_{j∈p(i)} (dᵢ·dⱼ)²
+    dot_queries: np.ndarray  # (n_rows, R) dᵢ·Σ_{q∈Q_r} d_q
+    gram: np.ndarray  # (P, m, m) within-place dᵢ·dⱼ
+    centre: float  # c: the mean score over all pairs, a float32 value
+    a_centred: np.ndarray  # (n_rows,) Σ_{j∉p(i)} (dᵢ·dⱼ − c)² = aᵢ − 2c·dᵢ·(T − T_p) + c²·n_other
+
+
+def _layout_rows64(d: np.ndarray, lay: Layout, rows: slice) -> np.ndarray:
+    img = lay.image_of_row[rows]
+    out = np.zeros((len(img), d.shape[1]), dtype=np.float64)
+    real = img >= 0
+    out[real] = d[img[real]]
+    return out
+
+
+def _full_sums(d: np.ndarray, lay: Layout, query_rows: np.ndarray) -> _FullSums:
+    """T, T_p, C and the quadratic forms, once (O(N·D²) float64), from the original values."""
+    n_rows, dim = lay.n_rows, d.shape[1]
+    m, n_p = lay.slots, len(lay.places)
+    total = np.zeros(dim)
+    gram_all = np.zeros((dim, dim))
+    gram = np.zeros((n_p, m, m))
+    for b in range(lay.n_blocks):
+        x = _layout_rows64(d, lay, lay.rows(b))
+        total += x.sum(axis=0)
+        gram_all += x.T @ x
+        x3 = x.reshape(m, -1, dim).transpose(1, 0, 2)  # (G, m, D): each place's images
+        gram[lay.cols(b)] = x3 @ x3.transpose(0, 2, 1)
+    queries = np.zeros((len(query_rows), dim))
+    q_img = lay.image_of_row[query_rows]
+    for r in range(len(query_rows)):
+        for lo in range(0, q_img.shape[1], _CHUNK):
+            queries[r] += np.asarray(d[q_img[r, lo : lo + _CHUNK]], dtype=np.float64).sum(axis=0)
+    dot_total, dot_place, a = np.zeros(n_rows), np.zeros(n_rows), np.zeros(n_rows)
+    dot_q = np.zeros((n_rows, len(query_rows)))
+    for b in range(lay.n_blocks):
+        rows = lay.rows(b)
+        x = _layout_rows64(d, lay, rows)
+        gb = gram[lay.cols(b)]  # (G, m, m); row (k, g) of the block is gb[g, k]
+        dot_total[rows] = x @ total
+        dot_q[rows] = x @ queries.T
+        dot_place[rows] = gb.sum(axis=2).T.reshape(-1)
+        a[rows] = np.einsum("ij,ij->i", x @ gram_all, x) - (gb**2).sum(axis=2).T.reshape(-1)
+    # scores are taken relative to c in the pass: (s − c)² sums carry float32 rounding in
+    # proportion to |s − c|, not |s| (descriptors with a shared component score 0.7 everywhere)
+    n_lab = int(lay.sizes.sum())
+    norms = np.einsum("pkk->", gram)
+    centre = float(np.float32((total @ total - norms) / max(n_lab * (n_lab - 1), 1)))
+    n_other = n_lab - lay.sizes[lay.place_of_row]
+    a_centred = a - 2 * centre * (dot_total - dot_place) + centre**2 * n_other
+    return _FullSums(dot_total, dot_place, a, dot_q, gram, centre, a_centred)
+
+
+# --------------------------------------------------------------------------- the pass
+
+
+@dataclass(frozen=True, eq=False)
+class _PassResult:
+    v: np.ndarray  # (n_rows, R) Σ_{q∈Q_r, other place} (s_iq − c)²
+    best_own: np.ndarray  # (n_rows,) b: best score in the own place, the image itself left out
+    records: _Records
+
+
+def _as_layout32(d: np.ndarray, lay: Layout) -> np.ndarray:
+    """``(n_rows, D)`` float32 descriptors in layout order, zero rows for padding."""
+    x = np.zeros((lay.n_rows, d.shape[1]), dtype=np.float32)
+    real = np.flatnonzero(lay.image_of_row >= 0)
+    for lo in range(0, len(real), _CHUNK):
+        r = real[lo : lo + _CHUNK]
+        x[r] = np.asarray(d[lay.image_of_row[r]], dtype=np.float32)
+    return x
+
+
+def _halves(pool: ThreadPoolExecutor | None, fn: Callable[[slice], object], n: int, parts: int) -> list:
+    """``fn`` on ``parts`` contiguous slices of ``range(n)`` in the pool's threads (numpy frees the GIL)."""
+    edges = np.linspace(0, n, parts + 1).astype(int)
+    slices = [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+    if pool is None or len(slices) < 2:
+        return [fn(sl) for sl in slices]
+    return [f.result() for f in [pool.submit(fn, sl) for sl in slices]]
+
+
+def _floor(best: np.ndarray, mu_range: tuple[float, float], is_query: np.ndarray) -> np.ndarray:
+    """Per row: no split's candidate cutoff for this query lies below it (float32, rounded down).
+
+    With b ≥ max μ ≥ θ_own the own place is kept in every split and the cutoff is at least
+    b − (max μ − min μ); otherwise the answer may be any kept place, and kept means
+    raw ≥ θ ≥ min μ. Rows that are never a query get +∞.
+    """
+    lo, hi = mu_range
+    b = best.astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        f = np.where(b >= hi + 1e-9, b - (hi - lo), np.minimum(b - (hi - lo), lo)) - 1e-9
+    f = np.where(np.isfinite(b), f, -np.inf)
+    f32 = f.astype(np.float32)
+    f32 = np.where(f32.astype(np.float64) > f, np.nextafter(f32, np.float32(-np.inf)), f32)
+    return np.where(is_query, f32, np.float32(np.inf))
+
+
+def _select(pool, s3: np.ndarray, floor: np.ndarray, *, axis: int, parts: int) -> dict[str, np.ndarray]:
+    """One side of a block's top-2 table, the entries whose best score reaches the row's floor.
+
+    ``s3`` is ``(rows, m, places)`` (axis=1: the block's rows are the table's rows) or
+    ``(m, places, cols)`` (axis=0: its columns are). Returns the entries' local row and
+    place, t1/a1/t2/a2 and their ``(n, m)`` slot scores.
+    """
+    if axis == 1:
+        t1 = np.concatenate(_halves(pool, lambda sl: np.max(s3[sl], axis=1), s3.shape[0], parts), axis=0)
+        r, c = np.nonzero(t1 >= floor[:, None])
+        vals = s3[r, :, c]
+    else:
+        t1 = np.concatenate(_halves(pool, lambda sl: np.max(s3[:, :, sl], axis=0), s3.shape[2], parts), axis=1)
+        c, r = np.nonzero(t1 >= floor[None, :])
+        vals = s3[:, c, r].T
+    return {"row": r, "place": c, **_top2_rows(vals), "vals": vals}
+
+
+def _blocked_pass(
+    x: np.ndarray,
+    lay: Layout,
+    query_rows: np.ndarray,
+    row_traversal: np.ndarray | None,
+    entries: _Entries,
+    plans: dict[int, _PairPlan],
+    cap: int,
+    mu_range: tuple[float, float],
+    is_query: np.ndarray,
+    centre: float,
+    threads: int,
+    progress: Progress | None,
+) -> _PassResult:
+    """Everything the splits need from the similarities, in one pass over block pairs I ≤ J.
+
+    Diagonal blocks come first: they hold each image's own place, hence b and the row's
+    floor, which the off-diagonal blocks need.
+    """
+    n_rows, m, nb = lay.n_rows, lay.slots, lay.n_blocks
+    runs = query_rows.shape[0]
+    centre = np.float32(centre)
+    indicator = np.zeros((n_rows, runs), dtype=np.float32)
+    indicator[query_rows.T, np.arange(runs)[None, :]] = 1.0
+    v = np.zeros((n_rows, runs))
+    best_own = np.full(n_rows, -np.inf, dtype=np.float32)
+    floor = np.full(n_rows, np.inf, dtype=np.float32)
+    records = _Records(n_rows, m, cap)
+    pad = lay.image_of_row < 0
+    widest = m * int(np.diff(lay.block_start).max())
+    s_buf = np.empty(widest * widest, dtype=np.float32)
+    q_buf = np.empty(widest * widest, dtype=np.float32)
+    pairs = [(i, i) for i in range(nb)] + [(i, j) for i in range(nb) for j in range(i + 1, nb)]
+    parts = max(1, threads)
+    pool = ThreadPoolExecutor(threads) if threads > 1 else None
+    try:
+        for step, (bi, bj) in enumerate(pairs):
+            ri, rj = lay.rows(bi), lay.rows(bj)
+            gi = int(lay.block_start[bi + 1] - lay.block_start[bi])
+            gj = int(lay.block_start[bj + 1] - lay.block_start[bj])
+            ni, nj = m * gi, m * gj
+            xi = x[ri]
+            s = s_buf[: ni * nj].reshape(ni, nj)
+            np.matmul(xi, xi.T if bi == bj else x[rj].T, out=s)  # A @ A.T: the syrk of the reference's d @ d.T
+            flat_s = s.reshape(-1)
+            for plan in plans.values():  # the automatic threshold's pairs, unmasked
+                lo, hi = plan.offsets[bi * nb + bj], plan.offsets[bi * nb + bj + 1]
+                if hi > lo:
+                    np.take(flat_s, plan.flat[lo:hi], out=plan.approx[lo:hi])
+            # second moments: squared scores against each split's queries of other places
+            q = q_buf[: ni * nj].reshape(ni, nj)
+            _halves(pool, lambda sl: np.square(np.subtract(s[sl], centre, out=q[sl]), out=q[sl]), ni, parts)
+            if bi == bj:
+                np.putmask(q, lay.place_of_row[ri][:, None] == lay.place_of_row[rj][None, :], 0.0)
+            for c0 in range(0, nj, _W_CHUNK):
+                v[ri] += q[:, c0 : c0 + _W_CHUNK] @ indicator[rj.start + c0 : min(rj.start + c0 + _W_CHUNK, rj.stop)]
+            if bi != bj:
+                for c0 in range(0, ni, _W_CHUNK):
+                    v[rj] += q[c0 : c0 + _W_CHUNK].T @ indicator[ri.start + c0 : min(ri.start + c0 + _W_CHUNK, ri.stop)]
+            # what a query may match: never padding; in cross-condition, not its own traversal
+            if pad[ri].any():
+                s[pad[ri]] = -np.inf
+            if pad[rj].any():
+                s[:, pad[rj]] = -np.inf
+            if row_traversal is not None:
+                ti, tj = row_traversal[ri], row_traversal[rj]
+                _halves(pool, lambda sl: np.putmask(s[sl], ti[sl, None] == tj[None, :], -np.inf), ni, parts)
+            s3 = s.reshape(ni, m, gj)
+            own = None
+            if bi == bj:  # b: the best of the own place's other images
+                own = lay.place_of_row[ri] - lay.block_start[bi]
+                mine = s3[np.arange(ni), :, own]
+                mine[np.arange(ni), lay.slot_of_row[ri]] = -np.inf
+                best_own[ri] = mine.max(axis=1)
+                floor[ri] = _floor(best_own[ri], mu_range, is_query[ri])
+            side = _select(pool, s3, floor[ri], axis=1, parts=parts)
+            _file(entries, records, side, bi, ri.start, lay.block_start[bj], best_own[ri], own)
+            if bi != bj:
+                side = _select(pool, s.reshape(m, gi, nj), floor[rj], axis=0, parts=parts)
+                _file(entries, records, side, bj, rj.start, lay.block_start[bi], best_own[rj], None)
+            if progress:
+                progress(step + 1, len(pairs), f"similarity block {step + 1}/{len(pairs)}")  # see scale_splits
+    finally:
+        if pool is not None:
+            pool.shutdown()
+    return _PassResult(v, best_own, records)
+
+
+def _file(entries: _Entries, records: _Records, side: dict, row_block: int, row0: int, place0: int,
+          best: np.ndarray, own: np.ndarray | None) -> None:
+    """Store one side's entries; record the wrong places whose second best already reaches b."""
+    r = side["row"]
+    entries.put(row_block, {**side, "place": place0 + side["place"]})
+    b = best[r]
+    sel = (side["t2"] >= b) & np.isfinite(b)
+    if own is not None:
+        sel &= side["place"] != own[r]
+    if sel.any():
+        records.add(row0 + r[sel], place0 + side["place"][sel], side["vals"][sel] >= b[sel][:, None])
+
+
+# --------------------------------------------------------------------------- per split
+
+
+@dataclass(eq=False)
+class _SplitData:
+    """One split's statistics and thresholds; ``uncertainty`` bounds each weighted θ's error."""
+
+    split: Split
+    held: np.ndarray  # (P,) held-out slot of every place
+    rows: np.ndarray  # (n_train,) layout rows of the training images, in the reference's order
+    stats: NegativeStats
+    v: np.ndarray  # (n_train,) the downdate V of each training image
+    twins: np.ndarray  # (P,)
+    thresholds: dict[str, np.ndarray | float]
+    spread: np.ndarray
+    k_adaptive: np.ndarray
+    uncertainty: np.ndarray | None = None  # (P,) bound on |θ_weighted error|; 0 where exact
+
+
+def _split_mu(r: int, train_rows: np.ndarray, lay: Layout, sums: _FullSums, held: np.ndarray):
+    """μᵢ and n⁻ᵢ of split r's training rows: n⁻μ = d·(T − T_p) − d·Σ_q d_q + d·d_h (float64)."""
+    cr, kr = lay.place_of_row[train_rows], lay.slot_of_row[train_rows]
+    n_neg = len(train_rows) - (lay.sizes - 1)[cr]
+    sum_neg = (sums.dot_total[train_rows] - sums.dot_place[train_rows]
+               - (sums.dot_queries[train_rows, r] - sums.gram[cr, kr, held[cr]]))
+    return sum_neg / n_neg, n_neg
+
+
+def _content_classes(d: np.ndarray, lay: Layout) -> np.ndarray:
+    """``(P, m)`` a class per slot: equal for byte-identical descriptors, ``-1`` for padding."""
+    real = np.flatnonzero(lay.image_of_row >= 0)
+    img = lay.image_of_row[real]
+    w = np.random.default_rng(0).standard_normal(d.shape[1])
+    key = np.empty(len(real))
+    for lo in range(0, len(real), _CHUNK):
+        key[lo : lo + _CHUNK] = np.einsum("ij,j->i", np.asarray(d[img[lo : lo + _CHUNK]], dtype=np.float64), w)
+    order = np.argsort(key, kind="stable")
+    new = np.r_[True, key[order][1:] != key[order][:-1]]
+    run = np.cumsum(new) - 1
+    # equal keys: confirm byte equality with the run's first row
+    first = order[np.flatnonzero(new)][run]
+    clash = np.zeros(len(order), dtype=bool)
+    for lo in range(0, len(order), _CHUNK):
+        a = np.ascontiguousarray(d[img[order[lo : lo + _CHUNK]]])
+        b = np.ascontiguousarray(d[img[first[lo : lo + _CHUNK]]])
+        clash[lo : lo + _CHUNK] = np.any(a.view(np.uint8) != b.view(np.uint8), axis=1)
+    sorted_cls = run.copy()
+    fresh = int(run.max()) + 1
+    for k in np.unique(run[clash]):  # a key shared by different descriptors (vanishingly rare)
+        members = np.flatnonzero(run == k)
+        rows = np.ascontiguousarray(d[img[order[members]]])
+        _, sub = np.unique(rows.view(np.uint8).reshape(len(rows), -1), axis=0, return_inverse=True)
+        sorted_cls[members] = fresh + sub.ravel()
+        fresh += int(sub.max()) + 1
+    cls = np.empty(len(real), dtype=np.int64)
+    cls[order] = sorted_cls
+    content = np.full((len(lay.places), lay.slots), -1, dtype=np.int64)
+    content[lay.place_of_row[real], lay.slot_of_row[real]] = cls
+    return content
+
+
+def _twins(content: np.ndarray, held: np.ndarray) -> np.ndarray:
+    """``(P,)`` for each place, the first place whose training images are the same, in order.
+
+    Args:
+        content: ``(P, m)`` content class of each slot (``-1`` for padding).
+        held: ``(P,)`` held-out slot of each place in this split.
+    """
+    k = np.arange(content.shape[1] - 1)[None, :]
+    seq = np.where(k < held[:, None], content[:, :-1], content[:, 1:])  # the training slots, in order
+    _, first, inverse = np.unique(seq, axis=0, return_index=True, return_inverse=True)
+    return first[inverse.ravel()]
+
+
+def _share_twins(theta: np.ndarray, lay: Layout, twins: np.ndarray) -> np.ndarray:
+    """θ of places with identical training images, made bit-identical as in the reference.
+
+    The straightforward computation gives such places the very same θ (same inputs, same
+    operations), so their margins tie exactly and the tie goes to the lower place id; the
+    float32 rounding in the downdated σ would break that tie.
+    """
+    out = theta.copy()
+    out[lay.places] = theta[lay.places[twins]]
+    return out
+
+
+def _split_thresholds(r: int, sp: Split, lay: Layout, sums: _FullSums, pas: _PassResult, held: np.ndarray,
+                      n_places: int, auto: float, user_theta: float | None, content: np.ndarray) -> _SplitData:
+    """θ simple and weighted of one split from the downdated moments (module doc, step 1)."""
+    rows = lay.row_of_image[sp.train]
+    mu, n_neg = _split_mu(r, rows, lay, sums, held)
+    second = (sums.a_centred[rows] - pas.v[rows, r]) / n_neg  # E[(s − c)²] over the negatives
+    sigma = np.sqrt(np.clip(second - (mu - sums.centre) ** 2, 0.0, None))
+    labels = lay.places[lay.place_of_row[rows]].astype(np.int64)
+    stats = NegativeStats(mu=mu, sigma=sigma, n_neg=n_neg.astype(np.int64), labels=labels, n_places=n_places)
+    twins = _twins(content, held)
+    th: dict[str, np.ndarray | float] = {
+        ThresholdMethod.SIMPLE.value: _share_twins(place_thresholds(stats, ThresholdMethod.SIMPLE), lay, twins),
+        ThresholdMethod.WEIGHTED.value: _share_twins(place_thresholds(stats, ThresholdMethod.WEIGHTED), lay, twins),
+        "auto": auto,
+    }
+    if user_theta is not None:
+        th["user"] = float(user_theta)
+    # positive means Σ_{i≠j∈train_p} dᵢ·dⱼ / (n(n−1)), from the within-place grams
+    gram, ar = sums.gram, np.arange(len(lay.places))
+    g_hh = gram[ar, held, held]
+    pair_sum = gram.sum(axis=(1, 2)) - 2 * gram[ar, held].sum(axis=1) + g_hh
+    diag = np.einsum("pkk->p", gram) - g_hh
+    n = (lay.sizes - 1).astype(np.float64)
+    pos = np.full(n_places, np.nan)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        pos[lay.places] = np.where(n > 1, (pair_sum - diag) / (n * (n - 1)), np.nan)
+    neg_mean, spread = mixture_moments(stats)
+    return _SplitData(sp, held, rows, stats, pas.v[rows, r], twins, th, mixture_spread(stats),
+                      adaptive_k(pos, neg_mean, spread))
+
+
+# --------------------------------------------------------------------------- near ties
+
+
+#: The per-place error bound of the weighted θ is this many times the largest error seen
+#: in a sample of exactly recomputed images (errors are sums of many roundings: their
+#: extremes over a whole run exceed a sample's by a small factor, not by 20).
+_SAFETY = 20.0
+_SAMPLE = 256
+
+
+def _exact_v(d: np.ndarray, lay: Layout, sums: _FullSums, split: Split, rows: np.ndarray) -> np.ndarray:
+    """V of training rows in float64 from the original descriptors: Σ_{q∈Q_r, other place} (dᵢ·d_q − c)²."""
+    q = np.asarray(d[split.queries], dtype=np.float64)  # ordered by place index
+    out = np.empty(len(rows))
+    for lo in range(0, len(rows), 512):
+        rr = rows[lo : lo + 512]
+        s = np.asarray(d[lay.image_of_row[rr]], dtype=np.float64) @ q.T - sums.centre
+        s[np.arange(len(rr)), lay.place_of_row[rr]] = 0.0  # the own place's query is no negative
+        out[lo : lo + 512] = np.einsum("ij,ij->i", s, s)
+    return out
+
+
+def _error_scale(d: np.ndarray, lay: Layout, sums: _FullSums, data: list[_SplitData], seed: int) -> float:
+    """κ: the largest |V − V_exact| / √V_exact over a seeded sample of training images."""
+    rng = np.random.default_rng(seed)
+    picks = rng.choice(len(data), size=min(len(data), 8), replace=False)
+    kappa = 0.0
+    for r in picks:
+        sd = data[r]
+        idx = rng.choice(len(sd.rows), size=min(len(sd.rows), _SAMPLE // len(picks)), replace=False)
+        exact = _exact_v(d, lay, sums, sd.split, sd.rows[idx])
+        kappa = max(kappa, float(np.max(np.abs(sd.v[idx] - exact) / np.sqrt(np.maximum(exact, 1e-300)))))
+    return kappa
+
+
+def _set_uncertainty(sd: _SplitData, lay: Layout, kappa: float) -> None:
+    """Per place: |δθ| ≤ Σᵢ (vᵢ/Σv)·|μᵢ − θ|·|δσᵢ²|/σᵢ² with |δσᵢ²| = |δVᵢ|/n⁻ᵢ ≤ safety·κ·√Vᵢ/n⁻ᵢ."""
+    st = sd.stats
+    theta = sd.thresholds["weighted"]
+    v = st.weights / np.maximum(st.sigma, SIGMA_FLOOR) ** 2
+    vsum = np.bincount(st.labels, weights=v, minlength=st.n_places)
+    rel = _SAFETY * kappa * np.sqrt(np.maximum(sd.v, 0.0)) / st.n_neg / np.maximum(st.sigma, SIGMA_FLOOR) ** 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        bound = np.bincount(st.labels, weights=v * np.abs(st.mu - theta[st.labels]) * rel, minlength=st.n_places) / vsum
+    unc = np.nan_to_num(bound[lay.places], nan=0.0) * 2 + 1e-15  # ×2: second-order terms
+    sd.uncertainty = unc if sd.uncertainty is None else np.where(sd.uncertainty == 0, 0.0, unc)
+
+
+def _make_exact(sd: _SplitData, places: np.ndarray, d: np.ndarray, lay: Layout, sums: _FullSums) -> None:
+    """Recompute σ (hence the weighted θ) of these places' training images in float64."""
+    places = np.setdiff1d(places, np.flatnonzero(sd.uncertainty == 0))
+    if len(places) == 0:
+        return
+    twins = np.flatnonzero(np.isin(sd.twins, sd.twins[places]))  # a twin's θ is its first twin's
+    sel = np.flatnonzero(np.isin(lay.place_of_row[sd.rows], twins))
+    v = sd.v.copy()
+    v[sel] = _exact_v(d, lay, sums, sd.split, sd.rows[sel])
+    st = sd.stats
+    second = (sums.a_centred[sd.rows[sel]] - v[sel]) / st.n_neg[sel]
+    sigma = st.sigma.copy()
+    sigma[sel] = np.sqrt(np.clip(second - (st.mu[sel] - sums.centre) ** 2, 0.0, None))
+    sd.v = v
+    sd.stats = NegativeStats(mu=st.mu, sigma=sigma, n_neg=st.n_neg, labels=st.labels, n_places=st.n_places)
+    sd.thresholds = {**sd.thresholds, ThresholdMethod.WEIGHTED.value: _share_twins(
+        place_thresholds(sd.stats, ThresholdMethod.WEIGHTED), lay, sd.twins)}
+    unc = sd.uncertainty.copy()
+    unc[twins] = 0.0
+    sd.uncertainty = unc
+
+
+def _first_argmax(score: np.ndarray, seg: np.ndarray, seg_of: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per segment: the largest score and the first element reaching it (−1 where all are −inf)."""
+    top = np.maximum.reduceat(score, seg)
+    idx = np.where(score == top[seg_of], np.arange(len(score)), len(score))
+    first = np.minimum.reduceat(idx, seg)
+    first[~np.isfinite(top)] = -1
+    return top, first
+
+
+_ORDER = ("image-baseline", "place-baseline", "margin-simple", "margin-weighted", "raw-simple", "raw-weighted")
+
+
+def _score_block(ent: dict[str, np.ndarray], blk: int, sd: _SplitData, lay: Layout, pas: _PassResult, cap: int,
+                 out: dict[str, dict[str, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """Every method for the split's queries of one row block (module doc, step 5).
+
+    Returns the queries' top raw score and the places whose weighted θ must be exact
+    before the outcome can be trusted (a near tie within the θs' error bounds), if any.
+    """
+    own = np.arange(lay.block_start[blk], lay.block_start[blk + 1])  # the block's places = its queries
+    qrow = lay.row_of(own, sd.held[own])
+    local = qrow - lay.rows(blk).start
+    b = pas.best_own[qrow].astype(np.float64)
+    finite = np.isfinite(b)
+    places = lay.places
+    th_s = np.asarray(sd.thresholds["simple"], dtype=np.float64)[places]
+    th_w = np.asarray(sd.thresholds["weighted"], dtype=np.float64)[places]
+    # the cutoff: below it a place reaches no method's rank and no answer
+    cut = np.where(finite, b, -np.inf)
+    for th in (th_s, th_w):
+        lowest = float(np.min(th))
+        kept_own = b >= th[own]
+        cut = np.minimum(cut, np.where(kept_own, lowest + (b - th[own]) - 1e-12, lowest - 1e-12))
+    cut32 = cut.astype(np.float32)
+    cut32 = np.where(cut32.astype(np.float64) > cut, np.nextafter(cut32, np.float32(-np.inf)), cut32)
+    start, count = ent["ptr"][local], ent["ptr"][local + 1] - ent["ptr"][local]
+    qi = np.repeat(np.arange(len(own)), count)
+    idx = np.arange(len(qi)) - np.repeat(np.cumsum(count) - count, count) + np.repeat(start, count)
+    keep = ent["t1"][idx] >= cut32[qi]
+    idx, qi = idx[keep], qi[keep]
+    seg = np.flatnonzero(np.r_[True, qi[1:] != qi[:-1]])
+    if len(seg) != len(own):  # pragma: no cover - the own place is always an entry above the cutoff
+        raise RuntimeError("internal error: a query without its own place among the candidates")
+    pc, t1c, t2c = ent["place"][idx].astype(np.int64), ent["t1"][idx], ent["t2"][idx]
+    a1c, a2c = ent["a1"][idx], ent["a2"][idx]
+    hc = sd.held[pc]
+    hit = a1c == hc  # the best image of that place is the one held out: its second counts
+    raw = np.where(hit, t2c, t1c).astype(np.float64)
+    img = lay.image_of_row[lay.row_of(pc, np.where(hit, a2c, a1c).astype(np.int64))]
+    is_own = pc == own[qi]
+    bq = b[qi]
+    inf = np.inf
+
+    def put(key, rank, first):
+        o = out[key]
+        o["rank"][own] = rank
+        o["place"][own] = np.where(first >= 0, places[pc[np.maximum(first, 0)]], -1)
+        o["image"][own] = np.where(first >= 0, img[np.maximum(first, 0)], -1)
+
+    # place level, no threshold
+    rank_base = np.where(finite, 1.0 + np.add.reduceat((raw >= bq) & ~is_own, seg), inf)
+    top, first = _first_argmax(raw, seg, qi)
+    put("place-baseline", rank_base, first)
+    # per-place thresholds, both rules
+    for name, th in (("simple", th_s), ("weighted", th_w)):
+        thc = th[pc]
+        kept = raw >= thc
+        kept_own = b >= th[own]
+        score = np.where(kept, raw, -inf)
+        _, f = _first_argmax(score, seg, qi)
+        put(f"raw-{name}", np.where(kept_own, 1.0 + np.add.reduceat((score >= bq) & ~is_own, seg), inf), f)
+        margin = np.where(kept, raw - thc, -inf)
+        _, f = _first_argmax(margin, seg, qi)
+        m_own = (b - th[own])[qi]
+        put(f"margin-{name}", np.where(kept_own, 1.0 + np.add.reduceat((margin >= m_own) & ~is_own, seg), inf), f)
+    # near ties under the weighted θ: comparisons its error bound could overturn
+    unc = sd.uncertainty[pc]
+    u_own = sd.uncertainty[own]
+    m_all = raw - th_w[pc]
+    m_own = (b - th_w[own])[qi]
+    top_w, f_w = _first_argmax(np.where(raw >= th_w[pc], m_all, -inf), seg, qi)
+    u_top = np.where(f_w >= 0, unc[np.maximum(f_w, 0)], 0.0)[qi]
+    with np.errstate(invalid="ignore"):  # −inf − −inf: NaN, never near
+        near = (np.abs(m_all) <= unc) & (unc > 0)  # kept or not
+        near |= (np.abs(m_all - m_own) <= unc + u_own[qi]) & (unc + u_own[qi] > 0) & ~is_own
+        near |= ((np.abs(m_all - top_w[qi]) <= unc + u_top) & (unc + u_top > 0)
+                 & (np.arange(len(pc)) != f_w[qi]) & np.isfinite(top_w[qi]))
+        flagged = (np.add.reduceat(near, seg) > 0) | ((np.abs(b - th_w[own]) <= u_own) & (u_own > 0))
+    if flagged.any():  # every place in a doubtful comparison: the candidate, the own place, the top answer
+        top_place = np.where(f_w >= 0, pc[np.maximum(f_w, 0)], own)
+        fix = np.unique(np.concatenate([pc[near & flagged[qi]], own[flagged], top_place[flagged]]))
+    else:
+        fix = np.empty(0, np.int64)
+    # image level: the top image is the lowest-index image of the places tied at the top;
+    # the rank counts the wrong training images reaching b
+    tied = (raw == top[qi]) & np.isfinite(top[qi])
+    img_top = np.minimum.reduceat(np.where(tied, img, np.iinfo(np.int64).max), seg)
+    img_top[~np.isfinite(top)] = -1
+    above = (t1c >= bq) & ~is_own & finite[qi]
+    contrib = np.where(above & (t2c < bq), (~hit).astype(np.int64), 0)  # one image reaches b: unless held out
+    multi = np.flatnonzero(above & (t2c >= bq))
+    beyond = np.zeros(len(own), dtype=bool)
+    if len(multi):
+        rec = pas.records
+        mrow = qrow[qi[multi]]
+        over = rec.n[mrow] >= cap
+        match = rec.place[mrow] == pc[multi][:, None]
+        found = match.any(axis=1)
+        bits = rec.bits[mrow, np.argmax(match, axis=1)]
+        ge = np.unpackbits(bits, axis=1, bitorder="little")[:, : lay.slots].astype(bool)
+        contrib[multi] = np.where(found, ge.sum(axis=1) - ge[np.arange(len(multi)), hc[multi]], 1)
+        beyond[qi[multi][over]] = True
+        if not (found | over).all():  # pragma: no cover
+            raise RuntimeError("internal error: a multi-image record is missing")
+    resolved = np.minimum(1.0 + np.add.reduceat(contrib, seg), cap + 1)
+    rank_img = np.where(finite, np.where(beyond, cap + 1, resolved), inf)
+    out["image-baseline"]["rank"][own] = rank_img
+    out["image-baseline"]["image"][own] = img_top
+    out["own"]["rank"][own] = b  # the query's best correct score, for the global thresholds
+    out["own"]["place"][own] = out["place-baseline"]["place"][own]
+    out["own"]["image"][own] = out["place-baseline"]["image"][own]
+    return top, fix
+
+
+def _assemble(sd: _SplitData, out: dict, top: np.ndarray, image_place: np.ndarray, image_traversal: np.ndarray,
+              n_places: int) -> SplitScores:
+    """The split's outcomes in the reference's order, answers as positions in the training set."""
+    sp = sd.split
+    n_q = len(sp.queries)
+    known = np.ones(n_q, dtype=bool)
+
+    def outcome(key: str, rank, place, image) -> Outcome:
+        pos = np.where(image >= 0, np.searchsorted(sp.train, np.maximum(image, 0)), -1)
+        return Outcome(METHODS_BY_KEY[key], rank, place, pos, np.full(n_q, -1))
+
+    img = out["image-baseline"]
+    img["place"] = np.where(img["image"] >= 0, image_place[np.maximum(img["image"], 0)], -1)
+    outcomes = {k: outcome(k, out[k]["rank"], out[k]["place"], out[k]["image"]) for k in _ORDER}
+    own, rank_base = out["own"], out["place-baseline"]["rank"]
+    th = dict(sd.thresholds)
+
+    def global_outcome(key: str, theta: float) -> Outcome:
+        # the raw rule with one θ: the own place stays iff b ≥ θ, and then so does every
+        # place above it, so the rank is the baseline's; the top answer stays iff it is ≥ θ
+        rank = np.where(own["rank"] >= theta, rank_base, np.inf)
+        acc = top >= theta
+        return outcome(key, rank, np.where(acc, own["place"], -1), np.where(acc, own["image"], -1))
+
+    outcomes["global-auto"] = global_outcome("global-auto", th["auto"])
+    if "user" in th:
+        outcomes["global-user"] = global_outcome("global-user", th["user"])
+    th["oracle"] = oracle_global_threshold(top, outcomes["place-baseline"].rank == 1, known)
+    outcomes["global-oracle"] = global_outcome("global-oracle", th["oracle"])
+    empty = np.empty((0, n_places))
+    return SplitScores(
+        outcomes=outcomes, raw=empty, best=empty.astype(np.int64), correct=empty.astype(bool), known=known,
+        query_traversal=image_traversal[sp.queries], train_traversal=image_traversal[sp.train],
+        thresholds=th, spread=sd.spread, k_adaptive=sd.k_adaptive,
+    )
+
+
+# --------------------------------------------------------------------------- public
+
+
+def scale_splits(
+    descriptors: np.ndarray,
+    image_place: np.ndarray,
+    image_traversal: np.ndarray,
+    n_places: int,
+    splits: list[Split],
+    *,
+    cross_condition: bool = False,
+    user_theta: float | None = None,
+    seed: int = 0,
+    max_k: int = max(KS),
+    block: int = BLOCK_ROWS,
+    table_memory: int = TABLE_MEMORY,
+    spill_dir: str | os.PathLike | None = None,
+    threads: int | None = None,
+    progress: Progress | None = None,
+) -> list[SplitScores]:
+    """The paper protocol's splits scored through one blocked pass (see the module doc).
+
+    Args:
+        descriptors: ``(n_images, D)`` L2-normalised, any float dtype; read in row chunks,
+            so a float16 memory-mapped array works and is never copied whole.
+        image_place, image_traversal: ``(n_images,)`` labels (place ``-1``: a skipped frame).
+        splits: from ``evaluation.draw_splits`` without unknown places.
+        seed: the protocol's seed (split r's automatic threshold samples with seed + r).
+        max_k: image-level ranks beyond it are reported as ``max_k + 1``.
+        block, table_memory, spill_dir, threads: see ``fast_paper_protocol``.
+    Returns:
+        One ``SplitScores`` per split, with the reference's outcomes and thresholds. Its
+        per-query matrices ``raw``/``best``/``correct`` are empty ``(0, n_places)`` (they
+        are what this path avoids holding) and every ``Outcome.n_kept`` is ``-1``.
+    """
+    d = descriptors
+    threads = min(os.cpu_count() or 1, 8) if threads is None else max(1, int(threads))
+    if any(sp.unknown.any() for sp in splits):
+        raise VPRInputError("scale_splits: splits with unknown places (the open set) are not supported; "
+                            "use evaluation.open_set_protocol")
+    lay = make_layout(image_place, n_places, block)
+    runs, n_p = len(splits), len(lay.places)
+    query_rows = np.stack([lay.row_of_image[sp.queries] for sp in splits])
+    held = lay.slot_of_row[query_rows]
+    sums = _full_sums(d, lay, query_rows)
+    # every θ_p is a convex combination of its place's μᵢ: all lie in [min μ, max μ]
+    mu_lo, mu_hi = np.inf, -np.inf
+    for r, sp in enumerate(splits):
+        mu = _split_mu(r, lay.row_of_image[sp.train], lay, sums, held[r])[0]
+        mu_lo, mu_hi = min(mu_lo, float(mu.min())), max(mu_hi, float(mu.max()))
+    is_query = np.zeros(lay.n_rows, dtype=bool)
+    is_query[query_rows.ravel()] = True
+    # automatic θ: the reference's exact branch as is, its sampled branch mirrored
+    autos: dict[int, float] = {}
+    plans: dict[int, _PairPlan] = {}
+    sampled = []
+    for r, sp in enumerate(splits):
+        n = len(sp.train)
+        if n * (n - 1) // 2 <= AUTO_MAX_PAIRS:
+            autos[r] = auto_global_threshold(training_pair_scores(d[sp.train], seed=seed + r))
+        else:
+            sampled.append(r)
+    with ThreadPoolExecutor(threads) as pool:  # numpy frees the GIL: splits side by side
+        plans = dict(zip(sampled, pool.map(lambda r: _pair_plan(splits[r].train, lay, seed + r, AUTO_MAX_PAIRS),
+                                           sampled)))
+    row_traversal = None
+    if cross_condition:
+        _, codes = np.unique(np.asarray(image_traversal), return_inverse=True)
+        row_traversal = np.full(lay.n_rows, -1, dtype=np.int64)
+        real = lay.image_of_row >= 0
+        row_traversal[real] = codes.ravel()[lay.image_of_row[real]]
+    entries = _Entries(lay, table_memory, spill_dir)
+    n_pairs = lay.n_blocks * (lay.n_blocks + 1) // 2
+    steps = n_pairs + lay.n_blocks  # progress: one count over the pass's block pairs, then the scoring
+    try:
+        x = _as_layout32(d, lay)
+        pas = _blocked_pass(x, lay, query_rows, row_traversal, entries, plans, max_k, (mu_lo, mu_hi), is_query,
+                            sums.centre, threads, progress and (lambda k, _, what: progress(k, steps, what)))
+        del x
+        if plans:
+            eps = _score_bound(d, lay)
+            with ThreadPoolExecutor(threads) as pool:
+                autos.update(zip(sampled, pool.map(lambda r: _auto_threshold_from_plan(plans.pop(r), d, lay, eps),
+                                                   sampled)))
+        content = _content_classes(d, lay)
+        data = [_split_thresholds(r, sp, lay, sums, pas, held[r], n_places, autos[r], user_theta, content)
+                for r, sp in enumerate(splits)]
+        kappa = _error_scale(d, lay, sums, data, seed)
+        for sd in data:
+            _set_uncertainty(sd, lay, kappa)
+        outs = [{k: {"rank": np.empty(n_p), "place": np.empty(n_p, np.int64), "image": np.empty(n_p, np.int64)}
+                 for k in (*_ORDER, "own")} for _ in splits]
+        tops = [np.empty(n_p) for _ in splits]
+        todo = {(blk, r) for blk in range(lay.n_blocks) for r in range(runs)}
+        scored = False
+        while True:  # near ties: make the places involved exact, score those queries again
+            fixes: dict[int, list] = {}
+            for blk in sorted({blk for blk, _ in todo}):
+                ent = entries.get(blk)
+                for r in sorted(r for b, r in todo if b == blk):
+                    tops[r][lay.cols(blk)], fix = _score_block(ent, blk, data[r], lay, pas, max_k, outs[r])
+                    if len(fix):
+                        fixes.setdefault(r, []).append((blk, fix))
+                if progress and not scored:
+                    progress(n_pairs + blk + 1, steps, f"scoring block {blk + 1}/{lay.n_blocks}")
+            scored = True
+            if not fixes:
+                break
+            todo, progressed = set(), False
+            for r, items in fixes.items():
+                before = int(np.count_nonzero(data[r].uncertainty == 0))
+                _make_exact(data[r], np.unique(np.concatenate([f for _, f in items])), d, lay, sums)
+                progressed |= int(np.count_nonzero(data[r].uncertainty == 0)) > before
+                todo |= {(blk, r) for blk, _ in items}
+            if not progressed:  # pragma: no cover - a doubtful comparison always involves an inexact place
+                raise RuntimeError("internal error: near ties did not resolve")
+    finally:
+        entries.close()
+    image_place, image_traversal = np.asarray(image_place), np.asarray(image_traversal)
+    return [_assemble(sd, outs[r], tops[r], image_place, image_traversal, n_places) for r, sd in enumerate(data)]
+
+
+def fast_paper_protocol(
+    descriptors: np.ndarray,
+    image_place: np.ndarray,
+    image_traversal: np.ndarray,
+    n_places: int,
+    *,
+    runs: int = 50,
+    seed: int = 0,
+    cross_condition: bool = False,
+    user_theta: float | None = None,
+    ks: tuple[int, ...] = KS,
+    progress: Progress | None = None,
+    settings: dict | None = None,
+    block: int = BLOCK_ROWS,
+    table_memory: int = TABLE_MEMORY,
+    spill_dir: str | os.PathLike | None = None,
+    threads: int | None = None,
+) -> Evaluation:
+    """``evaluation.paper_protocol`` through one blocked pass: the same ``Evaluation``.
+
+    Same arguments and meaning as ``paper_protocol`` (``runs`` seeded splits, one query image
+    per place, thresholds from each split's training images, ``cross_condition``,
+    ``user_theta``, ``ks``), plus:
+
+    Args:
+        block: rows per block of the pass; memory for block buffers is about 8·block² bytes.
+        table_memory: bytes of top-2 table entries kept in RAM before spilling to a file.
+        spill_dir: folder for that temporary file (default: the system's temporary folder).
+        threads: threads for the elementwise work of the pass (default: CPU count, at most 8).
+    """
+    t0 = time.perf_counter()
+    d, image_place, image_traversal, ks = _check_common(descriptors, image_place, image_traversal, runs, ks)
+    if cross_condition and len(np.unique(image_traversal[image_place >= 0])) < 2:
+        raise VPRInputError("cross_condition needs at least 2 traversals")
+    splits = draw_splits(image_place, n_places, runs=runs, seed=seed)
+    scored = scale_splits(
+        d, image_place, image_traversal, n_places, splits, cross_condition=cross_condition, user_theta=user_theta,
+        seed=seed, max_k=max(ks), block=block, table_memory=table_memory, spill_dir=spill_dir, threads=threads,
+        progress=progress,
+    )
+    notes = []
+    if not cross_condition:
+        notes.append("queries are matched against all traversals, their own included: see the own-traversal "
+                     "share, and the cross-condition variant")
+    return Evaluation(
+        protocol=Protocol.PAPER,
+        settings={**(settings or {}), "runs": runs, "seed": seed, "cross_condition": cross_condition,
+                  "queries_per_run": len(scored[0].known)},
+        ks=ks, rows=_summarise(scored, ks, own_traversal=True), notes=tuple(notes),
+        seconds=time.perf_counter() - t0,
+    )
