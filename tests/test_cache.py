@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from images import write_random_png
 from PIL import Image
 
 from vpr_explorer.descriptors import DescriptorCache, DescriptorCacheWarning, extract_descriptors
@@ -39,10 +41,7 @@ class CountingExtractor(PixelsExtractor):
 
 
 def write_image(path: Path, seed: int, size: tuple[int, int] = (96, 48)) -> Path:
-    """A random RGB PNG (lossless, so its pixels are exactly known)."""
-    rng = np.random.default_rng(seed)
-    Image.fromarray(rng.integers(0, 256, (size[1], size[0], 3), dtype=np.uint8)).save(path)
-    return path
+    return write_random_png(path, seed, size)
 
 
 @pytest.fixture

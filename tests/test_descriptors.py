@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from images import write_random_png
 import torch
 from PIL import Image
 
@@ -32,9 +34,7 @@ from vpr_explorer.errors import VPRInputError
 
 
 def write_rgb(path: Path, seed: int, size: tuple[int, int] = (120, 80)) -> Path:
-    rng = np.random.default_rng(seed)
-    Image.fromarray(rng.integers(0, 256, (size[1], size[0], 3), dtype=np.uint8)).save(path)
-    return path
+    return write_random_png(path, seed, size)
 
 
 @pytest.fixture

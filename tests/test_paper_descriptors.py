@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from images import write_random_png
 import torch
 import torch.nn.functional as F
 import torchvision
@@ -48,9 +50,7 @@ def no_weights_anywhere(monkeypatch, tmp_path):
 
 
 def write_rgb(path: Path, seed: int, size: tuple[int, int] = (120, 80)) -> Path:
-    rng = np.random.default_rng(seed)
-    Image.fromarray(rng.integers(0, 256, (size[1], size[0], 3), dtype=np.uint8)).save(path)
-    return path
+    return write_random_png(path, seed, size)
 
 
 @pytest.fixture

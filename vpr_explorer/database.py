@@ -163,7 +163,7 @@ def decide_traversal(
         raw, best = place_scores(sims, model.places, model.n_places)
         parts_raw.append(raw)
         parts_best.append(best)
-        parts_out.append(score_queries(sims, model.places, model.n_places, th, truth[lo:lo + block]))
+        parts_out.append(score_queries(sims, model.places, model.n_places, th, truth[lo:lo + block], raw_best=(raw, best)))
     outcomes = {
         key: Outcome(
             method=parts_out[0][key].method,

@@ -234,11 +234,12 @@ def run_split(
     if cross_condition:
         sims[trav_query[:, None] == trav_train[None, :]] = -np.inf
     known = correct.any(axis=1)
-    outcomes = score_queries(sims, lab_train, n_places, th, correct)
     raw, best = place_scores(sims, lab_train, n_places)
+    outcomes = score_queries(sims, lab_train, n_places, th, correct, raw_best=(raw, best))
     base = outcomes["place-baseline"]
     th["oracle"] = oracle_global_threshold(raw.max(axis=1), base.rank == 1, known)
-    outcomes.update(score_queries(sims, lab_train, n_places, th, correct, (METHODS_BY_KEY["global-oracle"],)))
+    outcomes.update(score_queries(sims, lab_train, n_places, th, correct, (METHODS_BY_KEY["global-oracle"],),
+                                  raw_best=(raw, best)))
     return SplitScores(outcomes, raw, best, correct, known, trav_query, trav_train, th, spread, k_ad)
 
 

@@ -184,6 +184,7 @@ def score_queries(
     thresholds: dict[str, np.ndarray | float],
     correct: np.ndarray,
     methods: tuple[Method, ...] | None = None,
+    raw_best: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> dict[str, Outcome]:
     """Run every method on a batch of queries.
 
@@ -196,9 +197,10 @@ def score_queries(
         correct: ``(n_queries, n_places)`` bool, the right places of each query (none for an
             unknown-place query).
         methods: which methods; default every method whose threshold is given.
+        raw_best: ``place_scores(sims, db_places, n_places)`` when the caller has it already.
     """
     methods = methods_for(thresholds) if methods is None else methods
-    raw, best = place_scores(sims, db_places, n_places)
+    raw, best = place_scores(sims, db_places, n_places) if raw_best is None else raw_best
     rows = np.arange(len(raw))
     out: dict[str, Outcome] = {}
     for m in methods:
@@ -338,8 +340,8 @@ def decide(
     correct = np.zeros((1, n_places), dtype=bool)
     correct[0, true] = True
     methods = methods_for(thresholds) if methods is None else methods
-    outcomes = score_queries(sims, db_places, n_places, thresholds, correct, methods)
     raw, best = place_scores(sims, db_places, n_places)
+    outcomes = score_queries(sims, db_places, n_places, thresholds, correct, methods, (raw, best))
     full = {k: np.broadcast_to(np.asarray(v, dtype=np.float64), (n_places,)) for k, v in thresholds.items()}
     scores = {
         m.key: sims[0] if m.level == "image" else ranking_scores(raw, None if m.threshold is None else full[m.threshold], m.rule)[0]
