@@ -1,12 +1,12 @@
 """Query inspector: one query, its candidate places under every method, and the answer in words."""
 
 import pandas  # noqa: F401  # before plotly: plotly.py#2433
-import numpy as np
 import streamlit as st
 
 from vpr_explorer import plots
 from vpr_explorer.retrieval import METHODS_BY_KEY
-from vpr_explorer.views import LIVE_METHODS, top_candidates
+from vpr_explorer.errors import VPRInputError
+from vpr_explorer.views import FIND_KINDS, LIVE_METHODS, top_candidates
 
 from ui import cache, state
 from ui.controls import threshold_controls
@@ -23,11 +23,10 @@ BEST_IMAGES = 4
 st.title("Query inspector")
 with stop_on_input_error():
     cur = current()
-    r = cache.regrouped(cur.data, cur.spec, cur.query)
+    r = cache.fitted(cur.data, cur.spec, cur.query)
 ds, model = cur.data.dataset, r.model
 v = state.view()
-first_scored = int(np.flatnonzero(r.scored)[0])
-frame = v.frame if v.frame is not None and 0 <= v.frame < ds.n_frames else first_scored
+frame = v.frame if v.frame is not None and 0 <= v.frame < ds.n_frames else r.first_scored_frame()
 
 top = st.columns([2, 3, 2])
 top[0].selectbox("Query traversal (database: every other one)", list(ds.traversals),
@@ -38,26 +37,34 @@ with top[2]:
 
 methods = [*LIVE_METHODS, *(["global-user"] if user_theta is not None else [])]
 finder = st.columns([2, 2, 1, 3])
-kind = finder[0].selectbox("Find queries that were", ["rejected", "answered wrong"], key="w_find_kind")
+kind = finder[0].selectbox("Find queries that were", list(FIND_KINDS), key="w_find_kind")
 under = finder[1].selectbox("under", methods, index=methods.index("margin-weighted"), key="w_find_method",
                             format_func=lambda key: METHODS_BY_KEY[key].label)
 
 
 def jump() -> None:
     """Move to the next query frame (after the current one, wrapping) that ``under`` rejected / got wrong."""
-    o = cache.decisions(cur.data, cur.spec, cur.query, k=k, user_theta=user_theta).outcomes[under]
-    bad = np.flatnonzero(~o.accepted if kind == "rejected" else (r.scored & ~o.right))
-    if not len(bad):
-        st.session_state["find_none"] = f"no query frame was {kind} under {METHODS_BY_KEY[under].label}"
+    try:
+        found, last = cache.find(cur.data, cur.spec, cur.query, after=frame, kind=kind, method=under, k=k,
+                                 user_theta=user_theta)
+    except VPRInputError as exc:
+        st.session_state["find_none"] = str(exc)
         return
-    nxt = next((f for f in bad if f > frame), bad[0])
-    state.update(frame=int(nxt))
+    label = METHODS_BY_KEY[under].label
+    if found is not None:
+        state.update(frame=found)
+    elif last == frame:
+        st.session_state["find_none"] = f"no query frame was {kind} under {label}; try raising k or another method"
+    else:  # the search budget ran out: move on, so that the next press searches on
+        state.update(frame=last)
+        st.session_state["find_none"] = (f"no query frame {kind} under {label} from frame {(frame + 1) % ds.n_frames} "
+                                         f"to {last}; moved to frame {last}, press next again to search on")
 
 
 finder[2].button("next ▶", key="w_find_next", on_click=jump, help="Jump to the next such query frame")
 note = st.session_state.pop("find_none", None)
 if note:
-    finder[3].info(f"{note}; try raising k or another method.")
+    finder[3].info(note)
 
 image = ds.image_index(cur.query, frame)
 with stop_on_input_error():

@@ -67,9 +67,12 @@ with stop_on_input_error(hint="Change group or step."):
     r, seconds = cache.regrouped_timed(cur.data, spec, cur.query)
 
 st.subheader("Live consequences")
+decided = (f"a seeded random sample of **{len(r.frames):,} of the {r.n_frames:,} frames** of **{r.query}** is decided "
+           f"(deciding all would take {r.n_frames:,} × {len(r.model.images):,} similarities; the Query inspector "
+           "decides any frame you pick)" if r.sampled else f"every frame of **{r.query}** is a query")
 st.caption(
-    f"Database/traversal model: thresholds from **{' + '.join(r.database)}** only; every frame of **{r.query}** is a "
-    f"query ({r.n_scored} fall in a place and are scored; frames between places are left out). "
+    f"Database/traversal model: thresholds from **{' + '.join(r.database)}** only; {decided} "
+    f"({r.n_scored:,} fall in a place and are scored; frames between places are left out). "
     f"Recomputed in {1000 * seconds:.0f} ms for this group/step (then cached), descriptors untouched."
 )
 m = st.columns(5)

@@ -18,7 +18,7 @@ ensure_routed(__file__)
 st.title("Thresholds: where θ_p sits")
 with stop_on_input_error():
     cur = current()
-    r = cache.regrouped(cur.data, cur.spec, cur.query)
+    r = cache.fitted(cur.data, cur.spec, cur.query)
 ds, model = cur.data.dataset, r.model
 theta_w = model.theta["weighted"]
 order = np.argsort(theta_w, kind="stable")

@@ -404,6 +404,61 @@ def test_evaluation_similarity_matrix_is_the_library_grid(app, demo, demo_pixels
     np.testing.assert_array_equal(pairs[:, 0], grid.query_image.ravel())
 
 
+# --------------------------------------------------------------------------- big datasets
+#
+# The budgets that make a 110k-image dataset interactive (benchmarks/bench_app_scale.py)
+# lowered so that the demo's 60 frames cross them.
+
+
+def test_places_over_the_pair_budget_decides_a_sample_and_says_so(app, demo, demo_pixels, monkeypatch):
+    from vpr_explorer import views
+
+    monkeypatch.setattr(views, "PAIR_BUDGET", 1000)
+    at = page(app.run(), "places")
+    assert_clean(at)
+    r = regroup(demo_pixels, demo, DEMO_SPEC, pair_budget=1000)
+    assert r.sampled
+    assert any(f"seeded random sample of **{len(r.frames)} of the 60 frames**" in c.value for c in at.caption)
+    assert metric(at, "place-level R@1") == f"{r.recall1['place-baseline']:.0%}"
+    bars = trace(figure(at, "recall_live"), "recall1")
+    np.testing.assert_allclose(bars["y"], [r.recall1[k] for k in bars["customdata"]])
+
+
+def test_inspector_search_over_the_budget_moves_on_and_says_to_press_again(app, monkeypatch):
+    from vpr_explorer import views
+
+    at = page(app.run(), "inspector")
+    at.selectbox(key="w_find_method").set_value("place-baseline").run()  # never rejects: searches everything
+    frame = at.slider(key="w_frame").value
+    n_db = 12 * 3 * 2  # 12 places x 3 frames x 2 database traversals
+    monkeypatch.setattr(views, "PAIR_BUDGET", 5 * n_db)  # five frames per press
+    at.button(key="w_find_next").click().run()
+    assert_clean(at)
+    assert at.slider(key="w_frame").value == frame + 5
+    assert any("press next again to search on" in i.value for i in at.info)
+
+
+def test_evaluation_over_the_auto_run_size_waits_for_run(app, demo, demo_pixels, monkeypatch):
+    from vpr_explorer import views
+
+    monkeypatch.setattr(views, "AUTO_RUN_PAIRS", 100)
+    monkeypatch.setattr(views, "PAIR_BUDGET", 1000)
+    at = page(app.run(), "evaluation")
+    assert_clean(at)
+    assert any("does not start by itself" in i.value for i in at.info)
+    assert not at.dataframe  # nothing ran
+    assert any("each row is one query frame" in c.value for c in at.caption)
+    grid = views.similarity_grid(demo_pixels, demo, ("day", "night"), "snow")
+    assert grid.sampled
+    np.testing.assert_allclose(trace(figure(at, "simgrid"), "similarity")["z"], grid.z, rtol=1e-6)
+    at.slider(key="w_runs").set_value(2)
+    at.button[0].click()  # the form's submit button
+    at = at.run()
+    assert_clean(at)
+    ev = run_protocol(Protocol.PAPER, demo, make_places(demo, DEMO_SPEC), demo_pixels, runs=2, seed=0)
+    np.testing.assert_allclose(at.dataframe[0].value["R@1"], [100 * r.recall[1][0] for r in ev.rows])
+
+
 # --------------------------------------------------------------------------- URL
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import threading
+import tracemalloc
 import warnings
 from pathlib import Path
 
@@ -14,7 +15,8 @@ import pytest
 from images import write_random_png
 from PIL import Image
 
-from vpr_explorer.descriptors import DescriptorCache, DescriptorCacheWarning, extract_descriptors
+from vpr_explorer.descriptors import DescriptorCache, DescriptorCacheWarning, Extractor, extract_descriptors
+from vpr_explorer.descriptors.extract import renormalise_in_place
 from vpr_explorer.descriptors.pixels import PixelsExtractor
 from vpr_explorer.errors import VPRInputError
 
@@ -292,9 +294,200 @@ def test_float16_storage_is_close_and_unit_norm(images, tmp_path):
     np.testing.assert_allclose(np.linalg.norm(b, axis=1), 1.0, atol=1e-6)
 
 
+def fake_hashes(n: int, salt: str = "") -> list[str]:
+    """Valid sha256 hex digests standing for ``n`` images."""
+    return [hashlib.sha256(f"{salt}{i}".encode()).hexdigest() for i in range(n)]
+
+
+def unit_rows(n: int, dim: int, seed: int = 0) -> np.ndarray:
+    v = np.random.default_rng(seed).standard_normal((n, dim), dtype=np.float32)
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def test_lookup_as_float16_from_a_float16_shard_is_the_stored_values(tmp_path):
+    cache = DescriptorCache(tmp_path / "c16", dtype="float16")
+    vectors = unit_rows(6, 40)
+    hashes = fake_hashes(6)
+    cache.store("k-1", hashes, vectors)
+    stored = np.load(only_shard(cache, "k-1").with_suffix(".npy"))
+    assert stored.dtype == np.float16
+    index, found = cache.lookup("k-1", hashes, 40, dtype="float16")
+    np.testing.assert_array_equal(index, np.arange(6))
+    assert found.dtype == np.float16 and found.shape == (6, 40)
+    np.testing.assert_array_equal(found, stored)
+    # the float32 default gives the same values, widened exactly
+    index, wide = cache.lookup("k-1", hashes, 40)
+    assert wide.dtype == np.float32
+    np.testing.assert_array_equal(wide, stored.astype(np.float32))
+
+
+def test_lookup_as_float16_from_a_float32_shard_rounds_the_stored_values(cache):
+    vectors = unit_rows(6, 40)
+    hashes = fake_hashes(6)
+    cache.store("k-1", hashes, vectors)
+    index, found = cache.lookup("k-1", hashes[::-1], 40, dtype=np.float16)
+    np.testing.assert_array_equal(index, np.arange(6))
+    assert found.dtype == np.float16
+    np.testing.assert_array_equal(found, vectors[::-1].astype(np.float16))
+    assert not np.array_equal(found.astype(np.float32), vectors[::-1])  # really rounded
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float16"])
+def test_lookup_across_shards_with_misses_and_repeats(tmp_path, monkeypatch, dtype):
+    # One-row gathers: every slice boundary of the gather and of the compaction is crossed.
+    import vpr_explorer.descriptors.cache as cache_module
+
+    monkeypatch.setattr(cache_module, "GATHER_BYTES", 1)
+    cache = DescriptorCache(tmp_path / "c", dtype="float16")
+    truth = {}
+    for s in range(3):
+        hashes, vectors = fake_hashes(5, f"shard{s}-"), unit_rows(5, 8, seed=s)
+        cache.store("k-1", hashes, vectors)
+        truth.update(zip(hashes, vectors.astype(np.float16)))
+    cached = list(truth)
+    missing = fake_hashes(4, "missing-")
+    asked = [missing[0], cached[7], cached[0], missing[1], cached[14], cached[7], missing[2], cached[3],
+             missing[3], cached[11]]
+    index, found = cache.lookup("k-1", asked, 8, dtype=dtype)
+    np.testing.assert_array_equal(index, [1, 2, 4, 5, 7, 9])
+    assert found.dtype == dtype and found.shape == (6, 8) and found.flags.owndata
+    np.testing.assert_array_equal(found, np.stack([truth[asked[i]] for i in index]).astype(dtype))
+    index, found = cache.lookup("k-1", missing, 8, dtype=dtype)
+    assert len(index) == 0 and found.shape == (0, 8) and found.dtype == dtype
+
+
+def check_float16_result(got: np.ndarray, reference: np.ndarray) -> None:
+    """A float16 result: right dtype and shape, close to the float32 reference, unit rows to float16 precision."""
+    assert got.dtype == np.float16 and got.shape == reference.shape
+    assert not got.flags.writeable
+    np.testing.assert_allclose(got.astype(np.float32), reference, atol=1e-3, rtol=0)
+    np.testing.assert_allclose(np.linalg.norm(got.astype(np.float32), axis=1), 1.0, atol=2e-3)
+
+
+@pytest.mark.parametrize("storage", ["float16", "float32"])
+def test_float16_results_cold_warm_and_partly_warm(images, tmp_path, storage):
+    reference = fresh(images)
+    cache = DescriptorCache(tmp_path / storage, dtype=storage)
+    # Partly warm: four images cached first, the other six computed into the float16 result.
+    extract_descriptors(images[:4], CountingExtractor(), cache=cache)
+    counting = CountingExtractor()
+    partly = extract_descriptors(images, counting, cache=cache, dtype="float16")
+    assert counting.forwarded == 6
+    check_float16_result(partly, reference)
+    for shard in (cache.root / CountingExtractor().cache_key).glob("*.npy"):
+        assert np.load(shard).dtype == storage  # the cache's storage dtype decides, not the result's
+
+    cold = extract_descriptors(images, CountingExtractor(), cache=DescriptorCache(tmp_path / "other", dtype=storage),
+                               dtype="float16")
+    check_float16_result(cold, reference)
+    np.testing.assert_array_equal(cold, reference.astype(np.float16))
+    np.testing.assert_array_equal(partly, cold)
+
+    warm_counting = CountingExtractor()
+    warm = extract_descriptors([*images, images[3]], warm_counting, cache=cache, dtype="float16")
+    assert warm_counting.forwarded == 0 and warm_counting.loaded == []
+    check_float16_result(warm[:-1], reference)
+    np.testing.assert_array_equal(warm[:-1], cold)  # a cached float16 run equals the run that filled it
+    np.testing.assert_array_equal(warm[-1], cold[3])
+
+    warm32 = extract_descriptors(images, CountingExtractor(), cache=cache)
+    assert warm32.dtype == np.float32
+    if storage == "float32":
+        np.testing.assert_array_equal(warm32, reference)  # still bit-identical
+    else:
+        np.testing.assert_allclose(warm32, reference, atol=1e-3)
+        np.testing.assert_allclose(np.linalg.norm(warm32, axis=1), 1.0, atol=1e-6)
+
+
+def test_bad_result_dtype_is_named_before_any_work(images, cache):
+    counting = CountingExtractor()
+    named = r"dtype='float64' is not a descriptor dtype: choose one of float32, float16"
+    with pytest.raises(VPRInputError, match=named):
+        extract_descriptors(images, counting, cache=cache, dtype="float64")
+    assert counting.loaded == [] and cache.stats()["shards"] == 0
+
+
+def traced_peak(work) -> tuple[int, object]:
+    """Peak bytes traced (numpy reports its buffers to tracemalloc) while ``work()`` runs, and its result."""
+    tracemalloc.start()
+    try:
+        result = work()
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    return peak, result
+
+
+def test_float16_lookup_holds_no_float32_copy(tmp_path):
+    n, dim = 8192, 1280  # two shards of 1280-d vectors (the size of EfficientNet-Lite0's)
+    cache = DescriptorCache(tmp_path / "c", dtype="float16")
+    hashes = fake_hashes(n)
+    vectors = unit_rows(n, dim)
+    for lo in range(0, n, 4096):  # extract_descriptors' SHARD_SIZE
+        cache.store("k-1", hashes[lo : lo + 4096], vectors[lo : lo + 4096])
+    del vectors
+    result_bytes = n * dim * 2
+
+    def half() -> np.ndarray:
+        return cache.lookup("k-1", hashes, dim, dtype="float16").vectors  # extract_descriptors does no more
+
+    def single() -> np.ndarray:
+        found = cache.lookup("k-1", hashes, dim).vectors
+        renormalise_in_place(found)  # what extract_descriptors does to float32 hits
+        return found
+
+    peak16, got16 = traced_peak(half)
+    assert got16.dtype == np.float16 and got16.shape == (n, dim)
+    assert peak16 < 1.3 * result_bytes, f"peak {peak16 / 1e6:.1f} MB for a {result_bytes / 1e6:.1f} MB result"
+    del got16
+    peak32, got32 = traced_peak(single)
+    np.testing.assert_allclose(np.linalg.norm(got32, axis=1), 1.0, atol=1e-6)  # renormalised
+    assert peak32 < 1.3 * 2 * result_bytes  # the float32 result, no full-size temporaries
+    assert 1.6 < peak32 / peak16 < 2.4
+
+
+class NeverComputes(Extractor):
+    """A wide descriptor that is only ever read from the cache."""
+
+    name, version, dim = "wide", "test", 4096
+
+    def load(self, path: Path) -> np.ndarray:
+        raise AssertionError(f"{path} was decoded although it is cached")
+
+    def forward(self, batch: np.ndarray) -> np.ndarray:
+        raise AssertionError("a batch was forwarded although every image is cached")
+
+
+def test_warm_float16_extraction_holds_no_float32_copy(tmp_path):
+    n = 2000
+    folder = tmp_path / "files"
+    folder.mkdir()
+    paths = []
+    for i in range(n):  # never decoded: only their bytes (hash) matter
+        path = folder / f"{i:05d}.png"
+        path.write_bytes(str(i).encode())
+        paths.append(path)
+    cache = DescriptorCache(tmp_path / "c", dtype="float16")
+    extractor = NeverComputes()
+    cache.store(extractor.cache_key, [hashlib.sha256(str(i).encode()).hexdigest() for i in range(n)],
+                unit_rows(n, extractor.dim))
+    result_bytes = n * extractor.dim * 2
+
+    peak16, got16 = traced_peak(lambda: extract_descriptors(paths, extractor, cache=cache, dtype="float16"))
+    assert got16.dtype == np.float16 and got16.shape == (n, extractor.dim)
+    assert peak16 < 1.3 * result_bytes, f"peak {peak16 / 1e6:.1f} MB for a {result_bytes / 1e6:.1f} MB result"
+    peak32, got32 = traced_peak(lambda: extract_descriptors(paths, extractor, cache=cache))
+    np.testing.assert_allclose(got32, got16.astype(np.float32), atol=1e-3)
+    assert 1.6 < peak32 / peak16 < 2.4
+
+
 def test_bad_arguments_raise_input_errors(cache, tmp_path):
     with pytest.raises(VPRInputError, match="dtype="):
         DescriptorCache(tmp_path, dtype="int8")
+    for bad in ("int8", "float64", "half-precision"):
+        named = rf"dtype={bad!r} is not a descriptor dtype: choose one of float32, float16"
+        with pytest.raises(VPRInputError, match=named):
+            cache.lookup("k-1", [], dtype=bad)
     with pytest.raises(VPRInputError, match="cache_key="):
         cache.lookup("../escape", [])
     h = hashlib.sha256(b"x").hexdigest()
@@ -374,3 +567,18 @@ def test_concurrent_readers_never_see_a_partial_shard(cache):
     assert failures == []
     index, found = cache.lookup("race-1", all_hashes, dim)
     assert len(index) == len(all_hashes)
+
+
+def test_an_exact_cache_never_serves_float16_vectors_a_float16_cache_reads_both(tmp_path):
+    """After a float16 run, a float32 cache counts those images as misses (recomputed, exact)."""
+    rng = np.random.default_rng(5)
+    vectors = rng.standard_normal((4, 16)).astype(np.float32)
+    hashes = [hashlib.sha256(str(i).encode()).hexdigest() for i in range(4)]
+    DescriptorCache(tmp_path, dtype="float16").store("k", hashes[:2], vectors[:2])
+    DescriptorCache(tmp_path, dtype="float32").store("k", hashes[2:], vectors[2:])
+    exact = DescriptorCache(tmp_path, dtype="float32").lookup("k", hashes, 16)
+    np.testing.assert_array_equal(exact.index, [2, 3])
+    np.testing.assert_array_equal(exact.vectors, vectors[2:])
+    half = DescriptorCache(tmp_path, dtype="float16").lookup("k", hashes, 16, dtype="float16")
+    np.testing.assert_array_equal(half.index, [0, 1, 2, 3])
+    np.testing.assert_array_equal(half.vectors, vectors.astype(np.float16))

@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 
@@ -69,3 +70,49 @@ def test_unwritable_json_path(tmp_path):
     r = run("evaluate", "--dataset", "demo", "--descriptor", "pixels", "--group", "2", "--step", "4", "--runs", "1",
             "--json", str(tmp_path / "missing" / "x.json"))
     assert r.returncode == 2 and "--json" in r.stderr and "cannot write" in r.stderr
+
+
+def test_evaluate_float16_descriptors(tmp_path):
+    # Its own cache folder: float16 shards in the session cache would serve other tests' float32 runs.
+    common = ("evaluate", "--dataset", "demo", "--descriptor", "pixels", "--group", "2", "--step", "4", "--runs", "3")
+    half = run(*common, "--dtype", "float16", "--cache-dir", str(tmp_path / "c16"), "--json", str(tmp_path / "16.json"))
+    assert half.returncode == 0, half.stderr
+    for label in ("image-level baseline", "place-level baseline", "margin, weighted θ", "global θ, oracle"):
+        assert label in half.stdout
+    shards = list((tmp_path / "c16").rglob("*.npy"))
+    assert shards and all(np.load(p).dtype == np.float16 for p in shards)
+    single = run(*common, "--cache-dir", str(tmp_path / "c32"), "--json", str(tmp_path / "32.json"))
+    assert single.returncode == 0, single.stderr
+    r1 = [{m["key"]: m["recall"]["1"]["mean"] for m in json.loads((tmp_path / f"{bits}.json").read_text())["methods"]}
+          for bits in (16, 32)]
+    assert r1[0].keys() == r1[1].keys()
+    for key in r1[1]:  # ~1e-3 relative error in the scores moves a recall by a few ties at most
+        assert abs(r1[0][key] - r1[1][key]) <= 0.02, key
+
+
+def test_record_float16_descriptors(tmp_path):
+    out = tmp_path / "run.rrd"
+    r = run("record", "--dataset", "demo", "--database", "day", "--queries", "night", "--descriptor", "pixels",
+            "--group", "2", "--step", "4", "--dtype", "float16", "--cache-dir", str(tmp_path / "c16"),
+            "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    assert f"wrote {out}" in r.stdout and out.stat().st_size > 0
+    shards = list((tmp_path / "c16").rglob("*.npy"))
+    assert shards and all(np.load(p).dtype == np.float16 for p in shards)
+
+
+@pytest.mark.parametrize("command", ["evaluate", "record"])
+def test_bad_dtype_is_refused_by_argparse(command, tmp_path):
+    r = run(command, "--dataset", "demo", "--dtype", "float64", "--database", "day", "--queries", "night",
+            "--out", str(tmp_path / "x.rrd"))
+    assert r.returncode == 2
+    assert "argument --dtype: invalid choice: 'float64'" in r.stderr and "float16" in r.stderr
+    assert r.stdout == "" and not (tmp_path / "x.rrd").exists()
+
+
+def test_dtype_help_names_the_tradeoff():
+    r = run("evaluate", "--help")
+    assert r.returncode == 0
+    text = " ".join(r.stdout.split())
+    assert "--dtype {float32,float16}" in text
+    assert "float16 halves the descriptor memory and disk, at about 1e-3 relative error in scores" in text

@@ -190,6 +190,23 @@ def test_bad_extraction_arguments(images):
         extract_descriptors(images, PixelsExtractor(), batch_size=0)
     with pytest.raises(VPRInputError, match="workers=0"):
         extract_descriptors(images, PixelsExtractor(), workers=0)
+    for bad in ("int8", "float64", np.float64, "complex64", None):
+        with pytest.raises(VPRInputError, match=r"dtype=.* is not a descriptor dtype: choose one of float32, float16"):
+            extract_descriptors(images, PixelsExtractor(), dtype=bad)
+
+
+@pytest.mark.parametrize("name", ["pixels", "efficientnet-lite0"])
+def test_float16_descriptors_are_the_float32_ones_rounded(images, name):
+    extractor = get_extractor(name)
+    single = extract_descriptors(images, extractor)
+    half = extract_descriptors(images, extractor, dtype="float16")
+    assert half.dtype == np.float16 and half.shape == (len(images), extractor.dim)
+    assert not half.flags.writeable
+    # normalised in float32, then rounded: exactly the float32 result's rounding
+    np.testing.assert_array_equal(half, single.astype(np.float16))
+    np.testing.assert_allclose(half.astype(np.float32), single, atol=1e-3, rtol=0)
+    np.testing.assert_allclose(np.linalg.norm(half.astype(np.float32), axis=1), 1.0, atol=2e-3)
+    assert extract_descriptors(images, extractor, dtype=np.float16).dtype == np.float16  # numpy dtypes too
 
 
 def test_unreadable_image_is_named(tmp_path, images):
@@ -317,6 +334,56 @@ def recall_at_1(queries: np.ndarray, database: np.ndarray, tolerance: int = 2) -
     """Share of queries whose nearest database frame is within ``tolerance`` frames of its own index."""
     nearest = np.argmax(queries @ database.T, axis=1)  # (n_queries, n_database) similarity
     return float(np.mean(np.abs(nearest - np.arange(len(queries))) <= tolerance))
+
+
+@pytest.mark.realdata
+def test_gardens_point_float16_through_the_cache(gardens_point, gardens_point_descriptors, tmp_path):
+    from vpr_explorer.pipeline import dataset_descriptors
+
+    database, queries = gardens_point_descriptors("pixels")
+    single = np.concatenate([database, queries])
+    root = tmp_path / "cache"
+    cold = dataset_descriptors(gardens_point, "pixels", cache_root=root, dtype="float16")
+    warm = dataset_descriptors(gardens_point, "pixels", cache_root=root, dtype="float16")
+    shards = list(root.rglob("*.npy"))
+    assert shards and all(np.load(p).dtype == np.float16 for p in shards)  # storage defaults to dtype
+    for half in (cold, warm):
+        assert half.dtype == np.float16 and half.shape == single.shape
+        np.testing.assert_allclose(half.astype(np.float32), single, atol=1e-3, rtol=0)
+        np.testing.assert_allclose(np.linalg.norm(half.astype(np.float32), axis=1), 1.0, atol=2e-3)
+    np.testing.assert_array_equal(warm, cold)
+    n = gardens_point.n_frames
+    r1_single = recall_at_1(queries, database)
+    r1_half = recall_at_1(warm[n:].astype(np.float32), warm[:n].astype(np.float32))
+    print(f"GardensPoint night_right -> day_right, pixels: R@1 float32 {r1_single:.3f}, float16 {r1_half:.3f}")
+    assert abs(r1_half - r1_single) <= 0.01
+
+    # float16 in memory, float32 on disk: the shards are exact, the result still float16
+    exact_root = tmp_path / "exact"
+    half = dataset_descriptors(gardens_point, "pixels", cache_root=exact_root, dtype="float16", storage="float32")
+    assert all(np.load(p).dtype == np.float32 for p in exact_root.rglob("*.npy"))
+    np.testing.assert_array_equal(half, cold)
+    again = dataset_descriptors(gardens_point, "pixels", cache_root=exact_root)  # float32 from those shards
+    np.testing.assert_array_equal(again, single)
+
+
+def test_dataset_descriptors_names_a_bad_dtype_or_storage(tmp_path):
+    from vpr_explorer.pipeline import dataset_descriptors
+
+    for traversal in ("day", "night"):
+        (tmp_path / "route" / traversal).mkdir(parents=True)
+        for i in range(3):
+            write_rgb(tmp_path / "route" / traversal / f"{i:03d}.png", seed=i)
+    dataset = load_dataset(tmp_path / "route")
+    cache = tmp_path / "cache"
+    with pytest.raises(VPRInputError, match=r"dtype='float64' is not a descriptor dtype"):
+        dataset_descriptors(dataset, "pixels", cache_root=cache, dtype="float64")
+    with pytest.raises(VPRInputError, match=r"storage='int8' is not a cache storage type"):
+        dataset_descriptors(dataset, "pixels", cache_root=cache, dtype="float16", storage="int8")
+    assert not cache.exists()  # refused before anything was computed or cached
+    half = dataset_descriptors(dataset, "pixels", cache_root=cache, dtype="float16", storage="float32")
+    assert half.dtype == np.float16 and half.shape == (6, 2048)
+    assert [np.load(p).dtype for p in cache.rglob("*.npy")] == [np.float32]
 
 
 @pytest.mark.realdata

@@ -110,9 +110,24 @@ def test_top_candidates_keeps_the_right_place(demo, demo_pixels, regrouped):
     assert set(dec.true_places) <= set(cands)
 
 
+def _frame_max_reference(d, dataset, database, query, rows):
+    """Plain loops: max over database traversals of s(query frame r, database frame c)."""
+    n = dataset.n_frames
+    out = np.full((len(rows), n), -np.inf)
+    for a, r in enumerate(rows):
+        q = d[dataset.image_index(query, r)]
+        for c in range(n):
+            for t in database:
+                out[a, c] = max(out[a, c], float(q @ d[dataset.image_index(t, c)]))
+    return out
+
+
 def test_similarity_grid_pools_block_maxima_and_keeps_their_pair(demo, demo_pixels):
     full = similarity_grid(demo_pixels, demo, ("day", "night"), "snow")
-    assert full.block == 1 and full.z.shape == (60, 60)
+    assert full.block == 1 and full.z.shape == (60, 60) and not full.sampled
+    reference = _frame_max_reference(np.asarray(demo_pixels, dtype=np.float64), demo, ("day", "night"), "snow",
+                                     range(60))
+    np.testing.assert_allclose(full.z, reference, atol=1e-5)
     pooled = similarity_grid(demo_pixels, demo, ("day", "night"), "snow", max_side=25)
     assert pooled.block == 3 and pooled.z.shape == (20, 20)
     for r in range(20):
@@ -126,6 +141,29 @@ def test_similarity_grid_pools_block_maxima_and_keeps_their_pair(demo, demo_pixe
         np.testing.assert_allclose(s, grid.z, atol=1e-5)
         assert set(demo.image_traversal[grid.query_image.ravel()]) == {2}
         assert set(demo.image_traversal[grid.db_image.ravel()]) <= {0, 1}
+
+
+def test_similarity_grid_over_the_pair_budget_samples_rows_and_keeps_exact_column_maxima(demo, demo_pixels):
+    """Above the budget each row is one query frame (its block's centre) against every database frame."""
+    grid = similarity_grid(demo_pixels, demo, ("day", "night"), "snow", max_side=25, pair_budget=1000)
+    assert grid.sampled and grid.block == 3 and grid.z.shape == (20, 20)
+    np.testing.assert_array_equal(grid.row_frames, np.arange(20) * 3 + 1)
+    np.testing.assert_array_equal(demo.image_frame[grid.query_image], np.repeat(grid.row_frames[:, None], 20, 1))
+    reference = _frame_max_reference(np.asarray(demo_pixels, dtype=np.float64), demo, ("day", "night"), "snow",
+                                     grid.row_frames)
+    np.testing.assert_allclose(grid.z, reference.reshape(20, 20, 3).max(axis=2), atol=1e-5)
+    d = np.asarray(demo_pixels)
+    np.testing.assert_allclose(np.einsum("ijk,ijk->ij", d[grid.query_image], d[grid.db_image]), grid.z, atol=1e-5)
+
+
+def test_similarity_grid_handles_a_last_block_that_is_not_full(demo, demo_pixels):
+    grid = similarity_grid(demo_pixels, demo, ("day",), "snow", max_side=7)  # 60 frames in blocks of 9: 6 + 6 left
+    assert grid.block == 9 and grid.z.shape == (7, 7)
+    reference = _frame_max_reference(np.asarray(demo_pixels, dtype=np.float64), demo, ("day",), "snow", range(60))
+    padded = np.full((63, 63), -np.inf)
+    padded[:60, :60] = reference
+    np.testing.assert_allclose(grid.z, padded.reshape(7, 9, 7, 9).max(axis=(1, 3)), atol=1e-5)
+    assert grid.query_image.max() < demo.n_images and grid.db_image.max() < demo.n_images
 
 
 # --------------------------------------------------------------------------- figures
@@ -190,7 +228,13 @@ def test_mixture_figure_curves_and_lines_are_the_library_values(demo, demo_pixel
     assert vline_x(fig, "θ_p(k)") == pytest.approx(model.thresholds(1.0)["simple"][p])
     assert vline_x(fig, "global θ, automatic") == pytest.approx(model.auto)
     assert vline_x(fig, "global θ, user value") == pytest.approx(0.45)
-    np.testing.assert_allclose(by_meta(fig, "negatives").x, d.negatives)
+    # The negative scores are binned on the server (10⁶ of them at 100k images): the bars
+    # are numpy's density histogram of every negative score, and integrate to 1.
+    bars = by_meta(fig, "negatives")
+    density, edges = np.histogram(d.negatives, bins=plots.NEGATIVE_BINS, density=True)
+    np.testing.assert_allclose(bars.y, density)
+    np.testing.assert_allclose(bars.x, (edges[:-1] + edges[1:]) / 2)
+    assert np.sum(np.asarray(bars.y) * np.asarray(bars.width)) == pytest.approx(1.0)
     np.testing.assert_allclose(by_meta(fig, "positives").x, d.positives)
     np.testing.assert_allclose(by_meta(fig, "query_raw").x, d.query_raw)
 

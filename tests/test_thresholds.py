@@ -103,7 +103,9 @@ def test_pair_sample_memory_is_bounded_by_the_block():
 
     rng = np.random.default_rng(4)
     d = unit_rows(rng, 3000, 512).astype(np.float32)
-    whole = training_pair_scores(d, max_pairs=200_000, seed=1, block=200_000)
+    whole = training_pair_scores(d, max_pairs=200_000, seed=1, block=200_000, workers=1)
+    # Threads score blocks in any order, each pair the same dot product.
+    np.testing.assert_array_equal(training_pair_scores(d, max_pairs=200_000, seed=1, block=777, workers=3), whole)
     tracemalloc.start()
     blocked = training_pair_scores(d, max_pairs=200_000, seed=1, block=1_000)
     peak = tracemalloc.get_traced_memory()[1]

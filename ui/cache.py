@@ -1,8 +1,10 @@
 """Every Streamlit cache of the app, in one place, chained like the data flow.
 
-dataset (listing) -> descriptors (extraction, on-disk cache) -> regrouped (places,
-database thresholds, query decisions) -> place detail / query decision / similarity grid
-/ evaluation.
+dataset (listing) -> descriptors (extraction, on-disk cache) -> fitted (places, database
+thresholds) -> place detail / query decision / next rejected frame, and -> regrouped (the
+query frames decided: the overview, sampled on big datasets) / similarity grid / evaluation.
+Pages that show one place or one query only need ``fitted``: they never compute query ×
+database pairs beyond their own row.
 
 Keys: Streamlit samples large arrays when it hashes them, so functions never hash the
 descriptors; they take them as an underscore argument (unhashed) beside ``data.key``,
@@ -29,7 +31,7 @@ import streamlit as st
 from PIL import Image
 
 from vpr_explorer import settings
-from vpr_explorer.database import QueryDecision, TraversalDecisions, decide_traversal, explain_query
+from vpr_explorer.database import QueryDecision, explain_query
 from vpr_explorer.datasets import Dataset
 from vpr_explorer.descriptors import fingerprint
 from vpr_explorer.descriptors.base import open_image
@@ -37,7 +39,17 @@ from vpr_explorer.errors import VPRInputError
 from vpr_explorer.evaluation import Evaluation
 from vpr_explorer.pipeline import DEMO, dataset_descriptors, resolve_dataset, run_protocol
 from vpr_explorer.places import PlaceSpec
-from vpr_explorer.views import PlaceDetail, Regrouped, SimilarityGrid, place_detail, regroup, similarity_grid
+from vpr_explorer.views import (
+    Fitted,
+    PlaceDetail,
+    Regrouped,
+    SimilarityGrid,
+    find_frame,
+    fit,
+    place_detail,
+    regroup,
+    similarity_grid,
+)
 
 from ui.feedback import progress_reporter
 
@@ -163,8 +175,10 @@ def load(source: str, descriptor: str) -> Loaded:
 
     def compute(progress):
         d = dataset_descriptors(ds, descriptor, progress=progress)
-        d = np.array(d, dtype=np.float32)
-        d.setflags(write=False)
+        d = np.asarray(d, dtype=np.float32)  # already float32 and read-only: no copy
+        if d.flags.writeable:
+            d = d.copy()
+            d.setflags(write=False)
         return Loaded(ds, descriptor, d, f"{files[:16]}-{fingerprint(d)[:24]}")
 
     return _memoised(("descriptors", descriptor, files), f"Computing {descriptor} descriptors of "
@@ -182,66 +196,78 @@ def loaded_in_memory(source: str, descriptor: str) -> bool:
 # --------------------------------------------------------------------------- derived results
 
 
-@st.cache_resource(show_spinner=False, max_entries=32)
+def _spec(group, step, reading) -> PlaceSpec | None:
+    return None if group is None else PlaceSpec(group, step, reading)
+
+
+def _spec_key(spec: PlaceSpec | None) -> tuple:
+    return (None, None, "stride") if spec is None else (spec.group, spec.step, spec.reading.value)
+
+
+@st.cache_resource(show_spinner="Fitting the database thresholds for this group/step…", max_entries=32)
+def _fitted(key: str, group: int | None, step: int | None, reading: str, query: str, _data: Loaded) -> Fitted:
+    return fit(_data.descriptors, _data.dataset, _spec(group, step, reading), query)
+
+
+def fitted(data: Loaded, spec: PlaceSpec | None, query: str) -> Fitted:
+    """Places and database thresholds for one group/step: what one-place and one-query pages need."""
+    return _fitted(data.key, *_spec_key(spec), query, data)
+
+
+@st.cache_resource(show_spinner="Deciding the query frames…", max_entries=32)
 def _regrouped(key: str, group: int | None, step: int | None, reading: str, query: str,
                _data: Loaded) -> tuple[Regrouped, float]:
-    spec = None if group is None else PlaceSpec(group, step, reading)
     start = time.perf_counter()
-    r = regroup(_data.descriptors, _data.dataset, spec, query)
+    f = _fitted(key, group, step, reading, query, _data)
+    r = regroup(_data.descriptors, _data.dataset, _spec(group, step, reading), query, fitted=f)
     return r, time.perf_counter() - start
 
 
 def regrouped_timed(data: Loaded, spec: PlaceSpec | None, query: str) -> tuple[Regrouped, float]:
     """``regrouped`` and the seconds its computation took (when first asked for; cached after)."""
-    if spec is None:
-        return _regrouped(data.key, None, None, "stride", query, data)
-    return _regrouped(data.key, spec.group, spec.step, spec.reading.value, query, data)
+    return _regrouped(data.key, *_spec_key(spec), query, data)
 
 
 def regrouped(data: Loaded, spec: PlaceSpec | None, query: str) -> Regrouped:
-    """Places, database thresholds and every query frame decided, for one group/step (no re-extraction)."""
+    """Places, thresholds and the query frames decided (a sample on big datasets), for one group/step."""
     return regrouped_timed(data, spec, query)[0]
 
 
 @st.cache_data(show_spinner=False, max_entries=64)
 def _place_detail(key: str, group, step, reading, query: str, place: int, _data: Loaded) -> PlaceDetail:
-    spec = None if group is None else PlaceSpec(group, step, reading)
-    r = regrouped(_data, spec, query)
-    return place_detail(r.model, _data.descriptors, _data.dataset, r.places, place, query)
+    f = _fitted(key, group, step, reading, query, _data)
+    return place_detail(f.model, _data.descriptors, _data.dataset, f.places, place, query)
 
 
 def detail(data: Loaded, spec: PlaceSpec | None, query: str, place: int) -> PlaceDetail:
     """One place's mixture, scores and thresholds."""
-    g, s, rd = (None, None, "stride") if spec is None else (spec.group, spec.step, spec.reading.value)
-    return _place_detail(data.key, g, s, rd, query, place, data)
+    return _place_detail(data.key, *_spec_key(spec), query, place, data)
 
 
 @st.cache_data(show_spinner=False, max_entries=256)
 def _decision(key: str, group, step, reading, query: str, image: int, k: float, user_theta, _data: Loaded) -> QueryDecision:
-    spec = None if group is None else PlaceSpec(group, step, reading)
-    r = regrouped(_data, spec, query)
-    return explain_query(r.model, _data.descriptors, _data.dataset, r.places, image, k=k, user_theta=user_theta)
+    f = _fitted(key, group, step, reading, query, _data)
+    return explain_query(f.model, _data.descriptors, _data.dataset, f.places, image, k=k, user_theta=user_theta)
 
 
 def decision(data: Loaded, spec: PlaceSpec | None, query: str, image: int, *, k: float = 0.0,
              user_theta: float | None = None) -> QueryDecision:
     """The decision record of one query image under every method."""
-    g, s, rd = (None, None, "stride") if spec is None else (spec.group, spec.step, spec.reading.value)
-    return _decision(data.key, g, s, rd, query, image, float(k), user_theta, data)
+    return _decision(data.key, *_spec_key(spec), query, image, float(k), user_theta, data)
 
 
-@st.cache_resource(show_spinner=False, max_entries=16)
-def _decisions(key: str, group, step, reading, query: str, k: float, user_theta, _data: Loaded) -> TraversalDecisions:
-    spec = None if group is None else PlaceSpec(group, step, reading)
-    r = regrouped(_data, spec, query)
-    return decide_traversal(r.model, _data.descriptors, _data.dataset, r.places, query, k=k, user_theta=user_theta)
+@st.cache_data(show_spinner=False, max_entries=256)
+def _found(key: str, group, step, reading, query: str, after: int, kind: str, method: str, k: float, user_theta,
+           _data: Loaded) -> tuple[int | None, int]:
+    f = _fitted(key, group, step, reading, query, _data)
+    return find_frame(f, _data.descriptors, _data.dataset, after=after, kind=kind, method=method, k=k,
+                      user_theta=user_theta)
 
 
-def decisions(data: Loaded, spec: PlaceSpec | None, query: str, *, k: float = 0.0,
-              user_theta: float | None = None) -> TraversalDecisions:
-    """Every frame of the query traversal decided at θ_p(k) (and the user's θ)."""
-    g, s, rd = (None, None, "stride") if spec is None else (spec.group, spec.step, spec.reading.value)
-    return _decisions(data.key, g, s, rd, query, float(k), user_theta, data)
+def find(data: Loaded, spec: PlaceSpec | None, query: str, *, after: int, kind: str, method: str, k: float = 0.0,
+         user_theta: float | None = None) -> tuple[int | None, int]:
+    """``views.find_frame``: the next query frame after ``after`` that ``method`` rejected or got wrong."""
+    return _found(data.key, *_spec_key(spec), query, int(after), kind, method, float(k), user_theta, data)
 
 
 @st.cache_resource(show_spinner="Computing the similarity matrix…", max_entries=8)

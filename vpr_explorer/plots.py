@@ -61,12 +61,17 @@ def place_colours(place_ids: np.ndarray) -> list[str]:
 # --------------------------------------------------------------------------- places
 
 
+#: Frames a route strip shows at most (the first ones): enough to see group and step.
+ROUTE_FRAMES_SHOWN = 600
+
+
 def route_figure(
     frame_place: np.ndarray,
     traversals: Sequence[str],
     positions: np.ndarray | None = None,
     *,
     title: str = "",
+    max_frames: int = ROUTE_FRAMES_SHOWN,
 ) -> go.Figure:
     """Each traversal as a strip of frames: place frames coloured by place, skipped frames grey.
 
@@ -74,8 +79,19 @@ def route_figure(
         frame_place: ``(n_frames,)`` place of each frame, ``-1`` where skipped.
         traversals: traversal names (one strip each; frame ``f`` is the same spot in all).
         positions: optional ``(n_frames, 2)`` route map; drawn beside the strips.
+        max_frames: longer routes show their first ``max_frames`` frames (enough to see
+            group and step) and say so in the title; the map is thinned to as many points.
     """
     frame_place = np.asarray(frame_place)
+    n_frames = len(frame_place)
+    if n_frames > max_frames:
+        title = f"{title + ': ' if title else ''}frames 0–{max_frames - 1} of {n_frames:,} shown"
+        if positions is not None:
+            keep = np.unique(np.linspace(0, n_frames - 1, max_frames).round().astype(np.int64))
+            positions, map_place, map_frames = np.asarray(positions)[keep], frame_place[keep], keep
+        frame_place = frame_place[:max_frames]
+    elif positions is not None:
+        map_place, map_frames = frame_place, np.arange(n_frames)
     frames = np.arange(len(frame_place))
     inside = frame_place >= 0
     has_map = positions is not None
@@ -101,10 +117,11 @@ def route_figure(
         xy = np.asarray(positions)
         fig.add_trace(go.Scatter(x=xy[:, 0], y=xy[:, 1], mode="lines", line=dict(color=SKIPPED, width=6),
                                  name="route", showlegend=False, hoverinfo="skip", meta="route"), row=1, col=2)
+        on = map_place >= 0
         fig.add_trace(go.Scatter(
-            x=xy[inside, 0], y=xy[inside, 1], mode="markers", name="place frames (map)", showlegend=False,
-            customdata=np.stack([frames[inside], frame_place[inside]], axis=1),
-            marker=dict(size=7, color=place_colours(frame_place[inside])),
+            x=xy[on, 0], y=xy[on, 1], mode="markers", name="place frames (map)", showlegend=False,
+            customdata=np.stack([map_frames[on], map_place[on]], axis=1),
+            marker=dict(size=7, color=place_colours(map_place[on])),
             hovertemplate="frame %{customdata[0]}: place %{customdata[1]}<extra></extra>", meta="map places",
         ), row=1, col=2)
         fig.update_xaxes(showticklabels=False, row=1, col=2)
@@ -192,6 +209,10 @@ def mixture_grid(detail: PlaceDetail, n: int = 400) -> np.ndarray:
     return np.linspace(lo - pad, hi + pad, n)
 
 
+#: Bins of the negative-score histogram behind the mixture.
+NEGATIVE_BINS = 60
+
+
 def mixture_figure(
     detail: PlaceDetail,
     *,
@@ -211,12 +232,17 @@ def mixture_figure(
     x = mixture_grid(detail, n)
     mixture = mixture_pdf(x, detail.mu, detail.sigma, detail.weight)
     fig = go.Figure()
+    density = None
     if detail.negatives.size:
-        fig.add_trace(go.Histogram(x=detail.negatives, histnorm="probability density",
-                                   xbins=dict(start=float(detail.negatives.min()), end=float(detail.negatives.max()),
-                                              size=float(np.ptp(detail.negatives)) / 60 or 0.01),
-                                   marker_color=NEGATIVE, opacity=0.35, name="negative scores s(i, j), j another place",
-                                   meta="negatives"))
+        # Binned here, not in the browser: a place of a 100k-image database has ~10⁶ negative scores.
+        lo, hi = float(detail.negatives.min()), float(detail.negatives.max())
+        density, edges = np.histogram(detail.negatives, bins=NEGATIVE_BINS, range=(lo, hi if hi > lo else lo + 0.01),
+                                      density=True)
+        fig.add_trace(go.Bar(x=(edges[:-1] + edges[1:]) / 2, y=density, width=np.diff(edges),
+                             customdata=np.stack([edges[:-1], edges[1:]], axis=1),
+                             marker=dict(color=NEGATIVE, line=dict(width=0)), opacity=0.35,
+                             name="negative scores s(i, j), j another place", meta="negatives",
+                             hovertemplate="%{customdata[0]:.3f}–%{customdata[1]:.3f}: density %{y:.2f}<extra></extra>"))
     for i, (m, s, w) in enumerate(zip(detail.mu, detail.sigma, detail.weight)):
         fig.add_trace(go.Scatter(
             x=x, y=mixture_pdf(x, m[None], s[None], w[None]), mode="lines", line=dict(width=1, color="#5c6bc0"),
@@ -227,8 +253,8 @@ def mixture_figure(
     fig.add_trace(go.Scatter(x=x, y=mixture, mode="lines", line=dict(width=4, color="#1a237e"),
                              name="mixture M(p)", meta="mixture"))
     peak = float(mixture.max())
-    if detail.negatives.size:
-        peak = max(peak, float(np.histogram(detail.negatives, bins=60, density=True)[0].max()))
+    if density is not None:
+        peak = max(peak, float(density.max()))
     top = max(peak, 1e-9) * 1.15
     rug_y = -0.06 * top
     if detail.positives.size:

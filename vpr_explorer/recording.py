@@ -680,10 +680,12 @@ def record_dataset(
     cache_root: Path | None = None,
     extract_progress: Progress | None = None,
     progress: Progress | None = None,
+    dtype: str = "float32",
 ) -> Playback:
     """Everything from a dataset path (or ``"demo"``) to a recorded ``.rrd`` (``record_playback``).
 
-    The output path is checked first, before any descriptor is computed.
+    The output path is checked first, before any descriptor is computed. ``dtype`` is the
+    descriptors' precision (``pipeline.dataset_descriptors``).
     """
     rid = recording_id or uuid.uuid4().hex
     out = check_output(out if out is not None else playback_dir() / f"{rid}.rrd")
@@ -691,6 +693,7 @@ def record_dataset(
 
     from vpr_explorer.pipeline import dataset_descriptors
 
-    descriptors = dataset_descriptors(dataset, descriptor, cache_root=cache_root, progress=extract_progress)
+    descriptors = dataset_descriptors(dataset, descriptor, cache_root=cache_root, progress=extract_progress,
+                                      dtype=dtype)
     return record_playback(dataset, descriptors, spec, database=database, queries=queries, out=out, serve=serve, k=k,
                            tolerance=tolerance, descriptor=descriptor, recording_id=rid, progress=progress)

@@ -11,6 +11,8 @@
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from enum import StrEnum
 
 import numpy as np
@@ -23,6 +25,10 @@ from vpr_explorer.stats import SIGMA_FLOOR, NegativeStats, mixture_moments
 AUTO_Z = float(norm.ppf(1 - 1e-6))
 #: Pairs used for the automatic global threshold when the training set has more.
 AUTO_MAX_PAIRS = 2_000_000
+# Sampled pairs scored per task, and threads (110k-image app benchmark, 24,831 x 2048
+# database: 13.5 s in one thread with 65,536-pair blocks, 7.8 s with two).
+PAIR_BLOCK = 4096
+PAIR_WORKERS = min(4, os.cpu_count() or 1)
 
 
 class ThresholdMethod(StrEnum):
@@ -91,12 +97,15 @@ def adaptive_k(positive_mean: np.ndarray, negative_mean: np.ndarray, negative_st
 
 
 def training_pair_scores(
-    descriptors: np.ndarray, *, max_pairs: int = AUTO_MAX_PAIRS, seed: int = 0, block: int = 65_536
+    descriptors: np.ndarray, *, max_pairs: int = AUTO_MAX_PAIRS, seed: int = 0, block: int = PAIR_BLOCK,
+    workers: int = PAIR_WORKERS,
 ) -> np.ndarray:
     """Similarities of distinct training pairs i < j: all of them, or a seeded sample of ``max_pairs``.
 
-    Sampled pairs are scored ``block`` at a time, so memory stays at ``2·block·D`` floats
-    whatever ``max_pairs`` is.
+    Sampled pairs are scored ``block`` at a time by ``workers`` threads (gathering the
+    rows is memory-bound and numpy releases the GIL for it), so memory stays at
+    ``2·workers·block·D`` floats whatever ``max_pairs`` is. Each pair's score is the same
+    float32 dot product whatever the block size or thread count.
     """
     d = np.asarray(descriptors, dtype=np.float32)
     n = len(d)
@@ -111,9 +120,13 @@ def training_pair_scores(
     j = rng.integers(0, n - 1, size=max_pairs)
     j = j + (j >= i)  # uniform over j != i
     out = np.empty(max_pairs, dtype=np.float32)
-    for lo in range(0, max_pairs, block):
+
+    def score(lo: int) -> None:
         hi = lo + block
         out[lo:hi] = np.einsum("ij,ij->i", d[i[lo:hi]], d[j[lo:hi]])
+
+    with ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="vpr-pairs") as pool:
+        list(pool.map(score, range(0, max_pairs, block)))
     return out
 
 

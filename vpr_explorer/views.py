@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vpr_explorer.database import DatabaseModel, TraversalDecisions, decide_traversal, fit_database
+from vpr_explorer.database import DatabaseModel, TraversalDecisions, database_rows, decide_traversal, fit_database
 from vpr_explorer.datasets import Dataset
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.evaluation import Evaluation
@@ -48,6 +48,51 @@ def split_traversals(dataset: Dataset, query: str | int | None = None) -> tuple[
     return database, dataset.traversals[q]
 
 
+#: Query × database similarities an overview computes at most; above it the query frames
+#: it decides are a seeded random sample (the pages say so). 3·10⁷ keeps GardensPoint
+#: (8·10⁴) and Nordland 64x32 (1.3·10⁷) exact, and a slider move on 110k images at a few
+#: hundred sampled query frames (``benchmarks/bench_app_scale.py``).
+PAIR_BUDGET = 30_000_000
+OVERVIEW_SEED = 0
+
+
+def overview_frames(n_frames: int, n_database: int, budget: int = PAIR_BUDGET) -> np.ndarray:
+    """Query frames an overview decides: all of them, or a seeded sample with frames × database ≤ ``budget``.
+
+    A random sample rather than every s-th frame: a stride can beat with group/step and
+    land every sampled frame between places (or on the same offset inside each place).
+    """
+    if n_frames * max(1, n_database) <= budget:
+        return np.arange(n_frames)
+    size = max(1, min(n_frames, budget // max(1, n_database)))
+    return np.sort(np.random.default_rng(OVERVIEW_SEED).choice(n_frames, size=size, replace=False))
+
+
+@dataclass(frozen=True, eq=False)
+class Fitted:
+    """Places and database thresholds for one group/step and query traversal: no query decided yet.
+
+    What the pages that show one place or one query need; cost O(n_database · D), never
+    query × database pairs.
+    """
+
+    places: Places
+    model: DatabaseModel
+    database: tuple[str, ...]
+    query: str
+
+    def first_scored_frame(self) -> int:
+        """The first query frame that falls in a place."""
+        return int(np.flatnonzero(self.places.frame_place >= 0)[0])
+
+
+def fit(descriptors: np.ndarray, dataset: Dataset, spec: PlaceSpec | None, query: str | int | None = None) -> Fitted:
+    """Relabel images with ``spec`` and fit the database thresholds (database: every traversal but ``query``)."""
+    places = make_places(dataset, spec)
+    database, query_name = split_traversals(dataset, query)
+    return Fitted(places, fit_database(descriptors, dataset, places, database), database, query_name)
+
+
 @dataclass(frozen=True, eq=False)
 class Regrouped:
     """Everything a group/step move changes, for the database/traversal model.
@@ -55,12 +100,15 @@ class Regrouped:
     Attributes:
         places: the places of the new group/step.
         model: database statistics and thresholds (database images only).
-        decisions: every query-traversal frame decided under every method.
+        decisions: the decided query-traversal frames (``frames``) under every method.
         database, query: traversal names.
-        scored: ``(n_frames,)`` bool, query frames that fall in a place (the others have
+        frames: ``(n_decided,)`` ascending query frame numbers decided: every frame, or a
+            seeded sample when frames × database images exceed the pair budget.
+        n_frames: query frames in the traversal.
+        scored: ``(n_decided,)`` bool, decided frames that fall in a place (the others have
             no right answer and are left out of Recall@1).
-        recall1: method key -> Recall@1 over the scored query frames.
-        rejected: method key -> share of scored query frames rejected.
+        recall1: method key -> Recall@1 over the scored decided frames.
+        rejected: method key -> share of scored decided frames rejected.
     """
 
     places: Places
@@ -68,6 +116,8 @@ class Regrouped:
     decisions: TraversalDecisions
     database: tuple[str, ...]
     query: str
+    frames: np.ndarray
+    n_frames: int
     scored: np.ndarray
     recall1: dict[str, float]
     rejected: dict[str, float]
@@ -76,14 +126,19 @@ class Regrouped:
     def n_scored(self) -> int:
         return int(self.scored.sum())
 
+    @property
+    def sampled(self) -> bool:
+        """True when only a sample of the query frames was decided."""
+        return len(self.frames) < self.n_frames
+
     def rejected_frames(self, key: str) -> np.ndarray:
-        """Query frames (scored or not) that ``key`` rejected."""
-        return np.flatnonzero(self.decisions.outcomes[key].answer_place < 0)
+        """Decided query frames (scored or not) that ``key`` rejected."""
+        return self.frames[self.decisions.outcomes[key].answer_place < 0]
 
     def wrong_frames(self, key: str) -> np.ndarray:
-        """Scored query frames that ``key`` did not answer right at rank 1."""
+        """Scored decided query frames that ``key`` did not answer right at rank 1."""
         right = self.decisions.outcomes[key].right
-        return np.flatnonzero(self.scored & ~right)
+        return self.frames[self.scored & ~right]
 
 
 def regroup(
@@ -94,24 +149,80 @@ def regroup(
     *,
     k: float = 0.0,
     user_theta: float | None = None,
+    pair_budget: int | None = None,
+    fitted: Fitted | None = None,
 ) -> Regrouped:
-    """Relabel images with ``spec``, refit the database thresholds, decide every query frame.
+    """Relabel images with ``spec``, refit the database thresholds, decide the query frames.
 
     This is the whole recomputation a group/step slider move triggers; the descriptors
-    ``(n_images, D)`` are only read.
+    ``(n_images, D)`` are only read. Every query frame is decided while frames × database
+    images stay within ``pair_budget``; above it a seeded sample of frames is (``overview_frames``).
+
+    Args:
+        pair_budget: default ``PAIR_BUDGET`` (read at call time).
+        fitted: ``fit(descriptors, dataset, spec, query)`` when the caller already has it.
     """
-    places = make_places(dataset, spec)
-    database, query_name = split_traversals(dataset, query)
-    model = fit_database(descriptors, dataset, places, database)
-    decisions = decide_traversal(model, descriptors, dataset, places, query_name, k=k, user_theta=user_theta)
+    f = fitted if fitted is not None else fit(descriptors, dataset, spec, query)
+    budget = PAIR_BUDGET if pair_budget is None else pair_budget
+    frames = overview_frames(dataset.n_frames, len(f.model.images), budget)
+    decisions = decide_traversal(f.model, descriptors, dataset, f.places, f.query, k=k, user_theta=user_theta,
+                                 frames=frames)
     scored = decisions.truth.any(axis=1)
     if not scored.any():
-        raise VPRInputError(f"{places.describe()}: no query frame falls in a place; lower step")
+        raise VPRInputError(f"{f.places.describe()}: no query frame falls in a place; lower step")
     recall1, rejected = {}, {}
     for key, o in decisions.outcomes.items():
         recall1[key] = float((o.rank[scored] == 1).mean())
         rejected[key] = float((~o.accepted[scored]).mean())
-    return Regrouped(places, model, decisions, database, query_name, scored, recall1, rejected)
+    return Regrouped(f.places, f.model, decisions, f.database, f.query, frames, dataset.n_frames, scored,
+                     recall1, rejected)
+
+
+#: Kinds of query frames ``find_frame`` looks for.
+FIND_KINDS = ("rejected", "answered wrong")
+
+
+def find_frame(
+    fitted: Fitted,
+    descriptors: np.ndarray,
+    dataset: Dataset,
+    *,
+    after: int,
+    kind: str,
+    method: str,
+    k: float = 0.0,
+    user_theta: float | None = None,
+    pair_budget: int | None = None,
+    first_chunk: int = 64,
+) -> tuple[int | None, int]:
+    """The next query frame after ``after`` (wrapping round) that ``method`` rejected or answered wrong.
+
+    Frames are decided in growing chunks from ``after + 1`` on, and the search stops at
+    the first match or once ``pair_budget`` query × database similarities are spent, so
+    a press of "next" on a 100k-image dataset never decides the whole traversal.
+
+    Returns:
+        ``(frame, last)``: the frame found (``None`` if none) and the last frame searched;
+        ``last == after`` means every frame was searched.
+    """
+    if kind not in FIND_KINDS:
+        raise VPRInputError(f"kind={kind!r}: choose one of {', '.join(FIND_KINDS)}")
+    n = dataset.n_frames
+    order = (after + 1 + np.arange(n)) % n  # after+1, ..., n-1, 0, ..., after
+    n_db = max(1, len(fitted.model.images))
+    limit = max(1, (PAIR_BUDGET if pair_budget is None else pair_budget) // n_db)
+    lo, chunk = 0, first_chunk
+    while lo < n and lo < limit:
+        frames = order[lo:lo + min(chunk, limit - lo)]
+        dec = decide_traversal(fitted.model, descriptors, dataset, fitted.places, fitted.query, k=k,
+                               user_theta=user_theta, frames=frames)
+        o = dec.outcomes[method]
+        hit = ~o.accepted if kind == "rejected" else (dec.truth.any(axis=1) & ~o.right)
+        if hit.any():
+            return int(frames[np.argmax(hit)]), int(frames[np.argmax(hit)])
+        lo += len(frames)
+        chunk *= 2
+    return None, int(order[lo - 1])
 
 
 @dataclass(frozen=True, eq=False)
@@ -171,10 +282,13 @@ def place_detail(
         raise VPRInputError(f"place {place} is out of range: choose 0..{model.n_places - 1}")
     d = np.asarray(descriptors)
     mine = model.places == place
-    own, other = model.images[mine], model.images[~mine]
+    own = model.images[mine]
     mu, sigma, weight = model.stats.components(place)
-    negatives = similarity(d[own], d[other]).ravel().astype(np.float64)
-    same = similarity(d[own], d[own])
+    # One row per image of the place against the whole database (a view, not a copy, when
+    # the database is whole traversals): O(n_p · n_database), never all pairs.
+    sims = similarity(d[own], database_rows(d, model.images))
+    negatives = sims[:, ~mine].ravel().astype(np.float64)
+    same = sims[:, mine]
     positives = same[np.triu_indices(len(own), k=1)].astype(np.float64)
     q = dataset.traversal_index(query)
     query_images = np.array([dataset.image_index(q, f) for f in places.frames_of(place)], dtype=np.int64)
@@ -203,13 +317,18 @@ class SimilarityGrid:
 
     Cell ``(r, c)`` holds the highest s(q, i) over the query frames of row block ``r``
     and the database images (any database traversal) of column block ``c``; the pair
-    attaining it is kept so that a click can open exactly that pair.
+    attaining it is kept so that a click can open exactly that pair. When the blocks
+    would hold more than the pair budget, each row is one sampled query frame (the
+    centre frame of its block) against every database frame: columns stay exact
+    maxima, rows are a sample (``sampled``).
 
     Attributes:
         z: ``(R, C)`` similarities (rows: query frames, columns: database frames).
         query_image, db_image: ``(R, C)`` dataset image indices of the pair behind each cell.
-        row_frames, col_frames: ``(R,)``, ``(C,)`` first frame of each block.
+        row_frames, col_frames: ``(R,)``, ``(C,)`` first frame of each block (the sampled
+            frame of each row when ``sampled``).
         block: frames per block along each axis (1 when not pooled).
+        sampled: rows are single sampled query frames, not block maxima.
     """
 
     z: np.ndarray
@@ -218,34 +337,91 @@ class SimilarityGrid:
     row_frames: np.ndarray
     col_frames: np.ndarray
     block: int
+    sampled: bool = False
 
 
 def similarity_grid(
-    descriptors: np.ndarray, dataset: Dataset, database: Sequence[str], query: str, *, max_side: int = 200
+    descriptors: np.ndarray,
+    dataset: Dataset,
+    database: Sequence[str],
+    query: str,
+    *,
+    max_side: int = 200,
+    pair_budget: int | None = None,
 ) -> SimilarityGrid:
-    """The query traversal against the database traversals, one cell per frame pair (pooled above ``max_side``)."""
+    """The query traversal against the database traversals, one cell per frame pair (pooled above ``max_side``).
+
+    Similarities are computed a band of rows at a time (``decide_traversal``'s block
+    size), so memory stays at one band whatever the route length.
+    """
+    from vpr_explorer.database import PAIRS_PER_BLOCK
+
     d = np.asarray(descriptors)
     q = dataset.traversal_index(query)
-    db_t = [dataset.traversal_index(t) for t in database]
+    db_t = np.array([dataset.traversal_index(t) for t in database], dtype=np.int64)
+    if not len(db_t):
+        raise VPRInputError("database: choose at least one database traversal")
     n = dataset.n_frames
-    qi = np.array([dataset.image_index(q, f) for f in range(n)])
-    dbi = np.array([[dataset.image_index(t, f) for f in range(n)] for t in db_t])  # (T, n)
-    sims = np.stack([similarity(d[qi], d[row]) for row in dbi])  # (T, n, n)
-    best_t = sims.argmax(axis=0)
-    frame_max = np.take_along_axis(sims, best_t[None], axis=0)[0]  # (n, n)
-    frame_db = dbi[best_t, np.arange(n)[None, :]]  # (n, n) db image of each frame pair
     block = max(1, math.ceil(n / max_side))
-    m = math.ceil(n / block) * block
-    # Pad to whole blocks with -inf (never the max), then pool each block x block tile.
-    padded = np.full((m, m), -np.inf)
-    padded[:n, :n] = frame_max
-    tiles = padded.reshape(m // block, block, m // block, block).transpose(0, 2, 1, 3).reshape(m // block, m // block, -1)
-    arg = tiles.argmax(axis=2)
-    z = np.take_along_axis(tiles, arg[..., None], axis=2)[..., 0]
+    n_blocks = math.ceil(n / block)
+    m = n_blocks * block
+    sampled = n * n * len(db_t) > (PAIR_BUDGET if pair_budget is None else pair_budget)
+    if sampled:  # one query frame per row: the centre of each row block
+        row_frames = np.minimum(np.arange(n_blocks) * block + block // 2, n - 1)
+        row_block = 1
+    else:
+        row_frames = np.arange(n)
+        row_block = block
+    rows_needed = n_blocks * row_block
+    db_matrix = [d[t * n:(t + 1) * n] for t in db_t]  # each traversal's frames are one run: views
+    z = np.empty((n_blocks, n_blocks))
+    q_img = np.empty((n_blocks, n_blocks), dtype=np.int64)
+    db_img = np.empty((n_blocks, n_blocks), dtype=np.int64)
+    band = max(1, PAIRS_PER_BLOCK // (row_block * n * len(db_t)))  # row blocks per band
+    for b0 in range(0, n_blocks, band):
+        b1 = min(n_blocks, b0 + band)
+        rows = np.arange(b0 * row_block, b1 * row_block)  # positions in row_frames (padded past the end)
+        frames = row_frames[np.minimum(rows, len(row_frames) - 1)]
+        sims = np.stack([similarity(d[q * n + frames], x) for x in db_matrix])  # (T, r, n)
+        best_t = sims.argmax(axis=0)
+        frame_max = np.take_along_axis(sims, best_t[None], axis=0)[0].astype(np.float64)
+        frame_max[rows >= rows_needed if sampled else rows >= n] = -np.inf  # padding rows never win
+        # Pad columns to whole blocks with -inf, then pool each row_block x block tile.
+        padded = np.full((len(rows), m), -np.inf)
+        padded[:, :n] = frame_max
+        tiles = (padded.reshape(b1 - b0, row_block, n_blocks, block).transpose(0, 2, 1, 3)
+                 .reshape(b1 - b0, n_blocks, row_block * block))
+        arg = tiles.argmax(axis=2)
+        z[b0:b1] = np.take_along_axis(tiles, arg[..., None], axis=2)[..., 0]
+        r_local = (np.arange(b1 - b0)[:, None] * row_block + arg // block)  # row within the band
+        cols = np.arange(n_blocks)[None, :] * block + arg % block
+        q_img[b0:b1] = q * n + frames[r_local]
+        db_img[b0:b1] = db_t[best_t[r_local, np.minimum(cols, n - 1)]] * n + cols
     starts = np.arange(0, m, block)
-    rows = starts[:, None] + arg // block
-    cols = starts[None, :] + arg % block
-    return SimilarityGrid(z, qi[rows], frame_db[rows, cols], starts, starts.copy(), block)
+    return SimilarityGrid(z, q_img, db_img, row_frames if sampled else starts, starts.copy(), block, sampled)
+
+
+#: The Evaluation page runs its default protocol on arrival only below this many image
+#: pairs (GardensPoint: 3.6·10⁵, Nordland 64x32 g3s3: 5·10⁷); above, it waits for "Run".
+AUTO_RUN_PAIRS = 100_000_000
+
+
+def protocol_pairs(protocol: str, places: Places, dataset: Dataset, *, runs: int = 50, database=None, queries=None,
+                   unknown_share: float = 0.3, **_) -> int:
+    """Image pairs a protocol run scores: its cost, to say before running it.
+
+    Paper: one pass over all pairs of place images (``scale.fast_paper_protocol``).
+    Open set: per split, each query against the training images. Traversal: each query
+    frame against the database images.
+    """
+    n = int((places.image_place >= 0).sum())
+    if protocol == "traversal":
+        n_db = max(1, dataset.n_traversals - 1) if database is None else len(database)
+        return dataset.n_frames * n_db * dataset.n_frames
+    if protocol == "open-set":
+        known = places.n_places - int(round(unknown_share * places.n_places))
+        return int(runs) * places.n_places * max(0, n - known)
+    return n * n
 
 
 def evaluation_rows(ev: Evaluation) -> list[dict[str, object]]:

@@ -46,6 +46,9 @@ FORMAT = 1
 DTYPES = ("float32", "float16")
 _KEY = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._+-]*$")
 _HASH = re.compile(r"^[0-9a-f]{64}$")
+# Rows are copied out of a shard this many bytes at a time, so a lookup's only large
+# allocation is its result (no temporary the size of a shard, let alone of the result).
+GATHER_BYTES = 1 << 20
 
 
 class DescriptorCacheWarning(UserWarning):
@@ -57,7 +60,8 @@ class CacheHits(NamedTuple):
 
     Attributes:
         index: ``(n_hits,)`` int64, ascending positions into the hashes asked for.
-        vectors: ``(n_hits, D)`` float32, row ``k`` belongs to ``hashes[index[k]]``.
+        vectors: ``(n_hits, D)`` in the dtype the lookup asked for (float32 by default,
+            or float16), row ``k`` belongs to ``hashes[index[k]]``; writable, owns its data.
     """
 
     index: np.ndarray
@@ -66,6 +70,28 @@ class CacheHits(NamedTuple):
 
 class _Damaged(Exception):
     """A shard failed a check; the message says which."""
+
+
+def check_dtype(dtype, name: str = "dtype", what: str = "descriptor dtype") -> str:
+    """``dtype``'s name when it is one of :data:`DTYPES`.
+
+    Args:
+        dtype: anything ``np.dtype`` takes: ``"float16"``, ``np.float32``, ...
+        name, what: the parameter and what it is, for the error message.
+
+    Raises:
+        VPRInputError: naming ``name`` for anything else.
+    """
+    try:
+        dtype_name = str(np.dtype(dtype))
+    except (TypeError, ValueError):
+        dtype_name = ""
+    if dtype_name not in DTYPES:
+        raise VPRInputError(
+            f"{name}={dtype!r} is not a {what}: choose one of {', '.join(DTYPES)} "
+            "(float16 halves memory and disk, at ~1e-3 relative error)"
+        )
+    return dtype_name
 
 
 def hash_file(path: Path) -> str:
@@ -113,19 +139,16 @@ class DescriptorCache:
     Args:
         root: cache folder; default ``settings.cache_root() / "descriptors"``, created
             on first write.
-        dtype: storage dtype, ``"float32"`` (exact) or ``"float16"`` (half the disk
-            and memory, ~1e-3 relative error). Vectors always come back as float32.
+        dtype: storage dtype of the shards this cache writes, ``"float32"`` (exact) or
+            ``"float16"`` (half the disk, ~1e-3 relative error). It does not decide what
+            :meth:`lookup` returns (its own ``dtype``, float32 by default). A float16 cache
+            reads shards of either dtype; a float32 cache only float32 ones, so exact
+            vectors are never replaced by rounded ones.
     """
 
     def __init__(self, root: Path | None = None, *, dtype: str = "float32") -> None:
-        try:
-            dtype_name = str(np.dtype(dtype))
-        except TypeError:
-            dtype_name = ""
-        if dtype_name not in DTYPES:
-            raise VPRInputError(f"dtype={dtype!r} is not a cache storage type: choose one of {', '.join(DTYPES)}")
+        self.dtype = check_dtype(dtype, "dtype", "cache storage type")
         self.root = Path(root).expanduser() if root is not None else settings.cache_root() / "descriptors"
-        self.dtype = dtype_name
 
     def __repr__(self) -> str:
         return f"DescriptorCache(root={str(self.root)!r}, dtype={self.dtype!r})"
@@ -179,29 +202,53 @@ class DescriptorCache:
 
     # ---------------------------------------------------------------- reading
 
-    def lookup(self, cache_key: str, hashes: Sequence[str], dim: int | None = None) -> CacheHits:
+    def lookup(
+        self, cache_key: str, hashes: Sequence[str], dim: int | None = None, *, dtype: str = "float32"
+    ) -> CacheHits:
         """Cached vectors for those of ``hashes`` that are cached.
 
+        The result is allocated once, in ``dtype``, and filled shard by shard a
+        ``GATHER_BYTES`` slice at a time, so a float16 lookup of float16 shards never
+        holds a float32 copy of anything, and a lookup never holds two copies of its
+        result.
+
         Args:
-            hashes: content hashes (``hash_file``); repeats are allowed.
+            hashes: content hashes (``hash_file``); repeats are allowed (each gets its row).
             dim: expected descriptor length; shards of another length count as damaged.
+                Default: the length of the first shard read.
+            dtype: ``"float32"`` or ``"float16"``, the dtype of the vectors returned.
+                Which shards are read depends on the cache's own storage ``dtype``: a
+                float32 cache reads float32 shards only (its vectors are exact; float16
+                shards count as misses), a float16 cache reads both. float16 shards'
+                values come back exactly in either dtype; float32 shards' are rounded to
+                float16 when ``dtype`` is float16.
 
         Returns:
-            :class:`CacheHits` (``index`` into ``hashes``, ``(n_hits, D)`` float32).
+            :class:`CacheHits` (``index`` into ``hashes``, ``(n_hits, D)`` in ``dtype``).
+
+        Raises:
+            VPRInputError: a bad ``cache_key`` or ``dtype``.
         """
+        out_dtype = check_dtype(dtype)
         folder = self._folder(cache_key)
         wanted: dict[str, list[int]] = {}
         for i, h in enumerate(hashes):
             wanted.setdefault(h, []).append(i)
-        index_parts: list[np.ndarray] = []
-        vector_parts: list[np.ndarray] = []
+        n_asked = len(hashes)
+        width = dim
+        # One row per hash asked for, filled where found; compacted to the hits at the end.
+        # Only the rows written are touched, so misses cost address space, not memory.
+        vectors: np.ndarray | None = None
+        found = np.zeros(n_asked, dtype=bool)
         for manifest_path in self._manifests(folder):
             if not wanted:
                 break
             try:
                 manifest = self._read_manifest(manifest_path)
-                if dim is not None and manifest["shape"][1] != dim:
-                    raise _Damaged(f"its vectors are {manifest['shape'][1]}-d, expected {dim}-d")
+                if width is not None and manifest["shape"][1] != width:
+                    raise _Damaged(f"its vectors are {manifest['shape'][1]}-d, expected {width}-d")
+                if self.dtype == "float32" and manifest["dtype"] != "float32":
+                    continue  # an exact (float32) cache never serves float16-rounded vectors
                 rows = [row for row, h in enumerate(manifest["hashes"]) if h in wanted]
                 if not rows:
                     continue  # nothing asked for here: no need to read (or verify) its vectors
@@ -213,18 +260,33 @@ class DescriptorCache:
             positions: list[int] = []
             repeated_rows: list[int] = []
             for row in rows:
-                found = wanted.pop(manifest["hashes"][row], None)
-                if found is not None:  # None: a repeat within this shard, already taken
-                    positions.extend(found)
-                    repeated_rows.extend([row] * len(found))
-            index_parts.append(np.asarray(positions, dtype=np.int64))
-            vector_parts.append(np.asarray(matrix[np.asarray(repeated_rows)], dtype=np.float32))
-        if not index_parts:
-            width = dim if dim is not None else 0
-            return CacheHits(np.zeros(0, dtype=np.int64), np.zeros((0, width), dtype=np.float32))
-        index = np.concatenate(index_parts)
-        order = np.argsort(index, kind="stable")
-        return CacheHits(index[order], np.concatenate(vector_parts)[order])
+                found_at = wanted.pop(manifest["hashes"][row], None)
+                if found_at is not None:  # None: a repeat within this shard, already taken
+                    positions.extend(found_at)
+                    repeated_rows.extend([row] * len(found_at))
+            if vectors is None:
+                width = manifest["shape"][1]
+                vectors = np.empty((n_asked, width), dtype=out_dtype)
+            dest = np.asarray(positions, dtype=np.int64)
+            source = np.asarray(repeated_rows, dtype=np.int64)
+            step = max(1, GATHER_BYTES // (width * matrix.dtype.itemsize))
+            for lo in range(0, len(dest), step):
+                # Reads only these rows of the memory-mapped shard; casts on assignment.
+                vectors[dest[lo : lo + step]] = matrix[source[lo : lo + step]]
+            found[dest] = True
+            del matrix  # unmaps the shard before the next one is read
+        if vectors is None:
+            return CacheHits(np.zeros(0, dtype=np.int64), np.zeros((0, width or 0), dtype=out_dtype))
+        index = np.flatnonzero(found)
+        if len(index) < n_asked:
+            # Move the hits to the front, in place: index[k] >= k, so a slice never reads a
+            # row that an earlier slice has overwritten.
+            step = max(1, GATHER_BYTES // (width * vectors.dtype.itemsize))
+            for lo in range(0, len(index), step):
+                part = index[lo : lo + step]
+                vectors[lo : lo + len(part)] = vectors[part]
+            vectors.resize((len(index), width), refcheck=False)  # no view of it exists
+        return CacheHits(index, vectors)
 
     # ---------------------------------------------------------------- housekeeping
 

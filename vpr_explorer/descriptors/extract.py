@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from vpr_explorer.descriptors.base import Extractor
-from vpr_explorer.descriptors.cache import DescriptorCache, hash_file
+from vpr_explorer.descriptors.cache import DescriptorCache, check_dtype, hash_file
 from vpr_explorer.errors import VPRInputError
 
 # Batches decoded ahead of the one in the model. When the model runs on the CPU it
@@ -30,7 +30,11 @@ SHARD_SIZE = 4096
 # small CPU they share the cores with the model; beside a GPU they are what feeds it.
 MAX_DEFAULT_WORKERS = 8
 MIN_NORM = 1e-12
+# Cache hits are brought back to unit length this many bytes of float32 at a time: the
+# temporaries stay ~1 MiB (~200 rows at 1280-d) however many hits there are.
+RENORMALISE_BYTES = 1 << 20
 NAMED_IN_ERRORS = 3
+HASH_CHUNK = 256
 
 
 def fingerprint(descriptors: np.ndarray) -> str:
@@ -85,6 +89,26 @@ def _normalise_rows(raw: np.ndarray, paths: Sequence[Path], extractor: Extractor
     return (raw / norms[:, None]).astype(np.float32)
 
 
+def renormalise_in_place(vectors: np.ndarray) -> None:
+    """Divide the rows of ``vectors`` that are off unit length by more than 1e-6 by their norm.
+
+    For cache hits: float16 shards come back a little off unit length; rows within 1e-6
+    (every row of a float32 shard) are left bit-exact, so a cached run equals the run
+    that filled the cache. Norms and divisions are float32, ``RENORMALISE_BYTES`` of
+    rows at a time, so no temporary the size of ``vectors`` is made.
+
+    Args:
+        vectors: ``(N, D)`` float32 or float16, writable; changed in place.
+    """
+    step = max(1, RENORMALISE_BYTES // (4 * max(vectors.shape[1], 1)))
+    for lo in range(0, len(vectors), step):
+        chunk = np.asarray(vectors[lo : lo + step], dtype=np.float32)  # a view when float32
+        norms = np.linalg.norm(chunk, axis=1)
+        off = np.flatnonzero(np.abs(norms - 1) > 1e-6)
+        if len(off):
+            vectors[lo + off] = chunk[off] / norms[off, None]
+
+
 def _forward(images: list[np.ndarray], extractor: Extractor) -> np.ndarray:
     """``extractor.forward`` on loaded images, one call per distinct image shape.
 
@@ -113,6 +137,7 @@ def extract_descriptors(
     batch_size: int = 32,
     workers: int | None = None,
     progress: Callable[[int, int], None] | None = None,
+    dtype: str = "float32",
 ) -> np.ndarray:
     """Descriptors of ``paths``, one L2-normalised row per image.
 
@@ -125,29 +150,46 @@ def extract_descriptors(
     New vectors reach the cache only after every batch passed the checks, in shards of
     ``SHARD_SIZE``; a failing run writes nothing.
 
+    New vectors are normalised in float32 and then stored in the result as ``dtype``;
+    what reaches the cache is the float32 vectors (the cache's own ``dtype`` decides how
+    they are stored). Cache hits are read straight into the result in ``dtype``: when
+    every image is a hit the lookup's array is the result, so a float16 run never holds
+    a float32 copy of it. float32 hits from float16 shards are brought back to unit
+    length (:func:`renormalise_in_place`). float16 hits are not: rounded back to float16,
+    renormalised rows come out as they went in (~1e-5 off unit length either way), and
+    leaving them keeps a cached float16 run equal to the run that filled the cache,
+    whatever the cache's storage dtype.
+
     Args:
         paths: image files; repeats allowed.
         workers: decoding threads; default :func:`default_workers` (2 on a 2-core machine).
         progress: ``progress(done, total)`` in images; cache hits count as done at once.
+        dtype: ``"float32"`` (default) or ``"float16"``: the result's dtype. float16
+            halves its memory, at ~1e-3 relative error in the entries.
 
     Returns:
-        ``(len(paths), extractor.dim)`` float32, read-only, unit rows.
+        ``(len(paths), extractor.dim)`` in ``dtype``, read-only, unit rows (to float16
+        precision for float16).
 
     Raises:
-        VPRInputError: no paths, a bad option, an unreadable image (named), or images
-            whose descriptor is zero or not finite (named).
+        VPRInputError: no paths, a bad option (named, ``dtype`` included), an unreadable
+            image (named), or images whose descriptor is zero or not finite (named).
     """
     if isinstance(paths, (str, Path)):
         raise VPRInputError(f"paths={str(paths)!r}: give a list of image files, not a single path")
     paths = [Path(p) for p in paths]
     workers = default_workers() if workers is None else workers
     _check_options(paths, batch_size, workers)
+    dtype = check_dtype(dtype)
     total = len(paths)
-    out = np.empty((total, extractor.dim), dtype=np.float32)
+    out: np.ndarray | None = None
 
     with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="vpr-decode") as pool:
         if cache is not None:
-            hashes = list(pool.map(hash_file, paths))
+            # Files are hashed HASH_CHUNK per task: one task per file costs more in thread
+            # hand-offs than hashing a small image (110k Nordland-size PNGs: 10 s -> ~2 s).
+            chunks = [paths[lo : lo + HASH_CHUNK] for lo in range(0, len(paths), HASH_CHUNK)]
+            hashes = [h for part in pool.map(lambda chunk: [hash_file(p) for p in chunk], chunks) for h in part]
         else:
             # Without a cache there is nothing to key, so skip reading every file twice;
             # the path stands in for the content.
@@ -156,21 +198,27 @@ def extract_descriptors(
         groups: dict[str, list[int]] = {}
         for i, h in enumerate(hashes):
             groups.setdefault(h, []).append(i)
-        unique = list(groups)
 
         done = 0
         if cache is not None:
-            hits = cache.lookup(extractor.cache_key, unique, extractor.dim)
-            if len(hits.index):
-                vectors = hits.vectors
-                # float16 shards come back a little off unit length; float32 ones are left
-                # bit-exact so a cached run equals the run that filled the cache.
-                norms = np.linalg.norm(vectors, axis=1, keepdims=True)
-                vectors = np.where(np.abs(norms - 1) > 1e-6, vectors / norms, vectors).astype(np.float32)
-                for k, u in enumerate(hits.index):
-                    rows = groups.pop(unique[u])
-                    out[rows] = vectors[k]
-                    done += len(rows)
+            # Every path, repeats included, so that when all are hits the lookup's array
+            # (in path order) is the result, with no second copy.
+            index, vectors = cache.lookup(extractor.cache_key, hashes, extractor.dim, dtype=dtype)
+            if len(index):
+                if dtype == "float32":
+                    renormalise_in_place(vectors)
+                if len(index) == total:
+                    out = vectors
+                else:
+                    out = np.empty((total, extractor.dim), dtype=dtype)
+                    out[index] = vectors
+                del vectors
+                # A hash's images are all hits or all misses.
+                for i in index.tolist():
+                    groups.pop(hashes[i], None)
+                done = len(index)
+        if out is None:
+            out = np.empty((total, extractor.dim), dtype=dtype)
         if progress is not None:
             progress(done, total)
 

@@ -1,0 +1,171 @@
+"""The app on a 110k-image dataset: every page's run time beside the all-pairs work it avoids (issue 6).
+
+    python benchmarks/bench_app_scale.py                         # 4 traversals x 27,591 frames = 110,364 images
+    python benchmarks/bench_app_scale.py --frames 3000           # a quicker look
+
+Writes a synthetic route of real PNG files (Nordland Mini's shape: 27,591 frames, 4
+traversals, 64x32 greyscale; a smooth procedural panorama the camera moves along, each
+traversal with its own lighting, noise and jitter) into ``--out`` (kept, so a second run
+reuses it), extracts the ``pixels`` descriptors through the real pipeline and cache, then
+drives the real app with Streamlit's AppTest (``app.py`` and its pages, in process) and
+times each page's script run and the main interactions: the Places page (overview: a
+sample of query frames decided), Thresholds (one place), Query inspector (one query, the
+"next rejected" search), Evaluation (no automatic protocol run; the similarity matrix
+from sampled rows), a group/step move.
+
+Side by side, in the same run: deciding every query frame against the database
+(``decide_traversal`` on all 27,591 frames, what a page that ignored the budget would
+compute), and the ratio of each page to it. Browser rendering is not included (AppTest
+runs the scripts, not a browser).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import shlex
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+from scipy.ndimage import gaussian_filter
+
+ROOT = Path(__file__).resolve().parents[1]
+TRAVERSALS = ("spring", "summer", "fall", "winter")
+WIDTH, HEIGHT, ADVANCE = 64, 32, 6  # image size; pixels the camera moves per frame
+
+
+def write_route(out: Path, frames: int, seed: int = 0) -> float:
+    """Write ``len(TRAVERSALS)`` folders of ``frames`` PNGs (skipped when complete); returns seconds spent."""
+    marker = out / f".complete-{frames}-{seed}"
+    if marker.exists():
+        return 0.0
+    start = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    width = frames * ADVANCE + WIDTH + 4
+    # A panorama of blobs at two scales: frames a place apart overlap, distant ones do not.
+    pano = gaussian_filter(rng.standard_normal((HEIGHT, width)), (3, 5)) * 3
+    pano += gaussian_filter(rng.standard_normal((HEIGHT, width)), (1.5, 2))
+    pano = (pano - pano.mean()) / pano.std()
+    looks = [(128, 40, 0.15), (140, 45, 0.2), (110, 35, 0.3), (170, 25, 0.35)]  # base, contrast, noise per traversal
+    for t, name in enumerate(TRAVERSALS):
+        folder = out / name
+        folder.mkdir(parents=True, exist_ok=True)
+        base, contrast, noise = looks[t]
+        for f in range(frames):
+            x0 = f * ADVANCE + 2 + int(rng.integers(-2, 3))
+            crop = pano[:, x0:x0 + WIDTH] + noise * rng.standard_normal((HEIGHT, WIDTH))
+            pixels = np.clip(base + contrast * crop, 0, 255).astype(np.uint8)
+            Image.fromarray(pixels, mode="L").save(folder / f"frame_{f:06d}.png", compress_level=1)
+    marker.touch()
+    return time.perf_counter() - start
+
+
+def peak_rss_gib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--frames", type=int, default=27_591, help="frames per traversal (default 27,591)")
+    parser.add_argument("--out", type=Path, default=Path(tempfile.gettempdir()) / "vpr_app_scale",
+                        help="where the route is written (default: a folder in the temp dir, reused)")
+    parser.add_argument("--cache", type=Path, default=None,
+                        help="descriptor cache (default: <out>-cache, kept so a second run skips extraction)")
+    args = parser.parse_args(argv)
+    print("$ python " + " ".join(shlex.quote(a) for a in [sys.argv[0], *(argv if argv is not None else sys.argv[1:])]))
+    print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+    route = args.out / f"route{args.frames}"
+    written = write_route(route, args.frames)
+    os.environ["VPR_EXPLORER_CACHE"] = str(args.cache or Path(f"{args.out}-cache"))
+
+    # Imported after the cache is set, as the app would be started with it.
+    import streamlit as st
+    from streamlit.testing.v1 import AppTest
+
+    from vpr_explorer.database import decide_traversal
+    from vpr_explorer.pipeline import dataset_descriptors, resolve_dataset
+    from vpr_explorer.views import fit
+
+    sys.path.insert(0, str(ROOT))
+    dataset = resolve_dataset(route)
+    print(f"route: {dataset.n_traversals} traversals x {dataset.n_frames:,} frames = {dataset.n_images:,} PNG files"
+          + (f", written in {written:.0f} s" if written else " (already written)"))
+    start = time.perf_counter()
+    descriptors = dataset_descriptors(dataset, "pixels")
+    print(f"pixels descriptors {descriptors.shape} through the cache: {time.perf_counter() - start:.1f} s")
+
+    # What a page ignoring the budget would compute: every query frame against the database.
+    f = fit(descriptors, dataset, None if dataset.prepared_places is not None else _default_spec(dataset))
+    start = time.perf_counter()
+    everything = decide_traversal(f.model, descriptors, dataset, f.places, f.query)
+    all_pairs = time.perf_counter() - start
+    n_pairs = dataset.n_frames * len(f.model.images)
+    print(f"all query frames decided (decide_traversal, {dataset.n_frames:,} x {len(f.model.images):,} = "
+          f"{n_pairs:.2e} pairs): {all_pairs:.1f} s")
+    del everything
+
+    _route_all_pages_through_app()
+    st.cache_data.clear()
+    st.cache_resource.clear()
+    at = AppTest.from_file(str(ROOT / "app.py"), default_timeout=600)
+    at.query_params.update({"source": str(route), "descriptor": "pixels"})
+    rows: list[tuple[str, float]] = []
+
+    def timed(label: str, action) -> AppTest:
+        start = time.perf_counter()
+        result = action()
+        seconds = time.perf_counter() - start
+        assert not result.exception, [e.value for e in result.exception]
+        errors = [e.value for e in result.error]
+        assert not errors, errors
+        rows.append((label, seconds))
+        print(f"  {label:<58} {seconds:7.2f} s   {seconds / all_pairs:6.3f}x", flush=True)
+        return result
+
+    print(f"  {'page run (AppTest, server side)':<58} {'seconds':>9}   ratio to deciding all frames")
+    at = timed("Dataset page, first open (descriptors from the disk cache)", at.run)
+    at = timed("Dataset page, again", at.run)
+    at = timed("Places: overview (sampled query frames)", lambda: at.switch_page("pages/places.py").run())
+    at = timed("Places: again (cached)", at.run)
+    at = timed("Places: group 3 -> 4 (refit + new sample)", lambda: at.slider(key="w_group").set_value(4).run())
+    at = timed("Places: back to group 3 (cached)", lambda: at.slider(key="w_group").set_value(3).run())
+    at = timed("Thresholds: one place", lambda: at.switch_page("pages/thresholds.py").run())
+    places = at.selectbox(key="w_place")
+    at = timed("Thresholds: another place", lambda: places.set_value(int(len(places.options) * 0.9)).run())
+    at = timed("Inspector: one query", lambda: at.switch_page("pages/inspector.py").run())
+    at = timed("Inspector: another frame", lambda: at.slider(key="w_frame").set_value(dataset.n_frames // 2).run())
+    at = timed("Inspector: next rejected (margin, weighted θ)", lambda: at.button(key="w_find_next").click().run())
+    at = timed("Evaluation: page (no automatic run; similarity matrix)", lambda: at.switch_page("pages/evaluation.py").run())
+    print(f"peak resident memory of this process: {peak_rss_gib():.2f} GiB")
+    slowest = max(rows[2:], key=lambda r: r[1])
+    print(f"slowest page run after the first load: {slowest[0]}, {slowest[1]:.2f} s = {slowest[1] / all_pairs:.3f}x "
+          "deciding every query frame")
+
+
+def _default_spec(dataset):
+    from ui.current import effective_spec
+    from ui.state import View
+
+    return effective_spec(View(), dataset.n_frames, False)
+
+
+def _route_all_pages_through_app() -> None:
+    """As tests/test_app.py: leave Streamlit's pages-folder mode, so that every run goes through ``app.py``."""
+    from streamlit.runtime.pages_manager import PagesManager
+
+    init = PagesManager.__init__
+
+    def init_after_navigation(self, *a, **kw):
+        init(self, *a, **kw)
+        PagesManager.uses_pages_directory = False
+
+    PagesManager.__init__ = init_after_navigation
+
+
+if __name__ == "__main__":
+    main()
