@@ -4,8 +4,8 @@ import pandas  # noqa: F401  # before plotly: plotly.py#2433
 import streamlit as st
 
 from vpr_explorer import plots
-from vpr_explorer.retrieval import METHODS_BY_KEY
 from vpr_explorer.errors import VPRInputError
+from vpr_explorer.retrieval import METHODS_BY_KEY
 from vpr_explorer.views import FIND_KINDS, LIVE_METHODS, top_candidates
 
 from ui import cache, state
