@@ -1,4 +1,4 @@
-"""Shared fixtures: the real datasets (through VPR_EXPLORER_DATA) and an isolated cache.
+"""Shared fixtures: the real datasets (through VPR_EXPLORER_DATA), the demo route and an isolated cache.
 
 Real-data tests skip with a clear reason when ``VPR_EXPLORER_DATA`` is unset; ``.ci/run``
 sets it, and passes ``--require-data`` so that such a skip fails CI instead.
@@ -75,3 +75,19 @@ def gp_effnet(gardens_point):
     from vpr_explorer.pipeline import dataset_descriptors
 
     return dataset_descriptors(gardens_point, "efficientnet-lite0")
+
+
+@pytest.fixture(scope="session")
+def demo():
+    """The built-in procedural route: 3 traversals (day, night, snow) x 60 frames."""
+    from vpr_explorer.pipeline import resolve_dataset
+
+    return resolve_dataset("demo")
+
+
+@pytest.fixture(scope="session")
+def demo_pixels(demo):
+    """``(180, 2048)`` pixel descriptors of the demo route."""
+    from vpr_explorer.pipeline import dataset_descriptors
+
+    return dataset_descriptors(demo, "pixels")

@@ -20,7 +20,7 @@ from streamlit.testing.v1 import AppTest
 
 from vpr_explorer.database import explain_query
 from vpr_explorer.evaluation import Protocol
-from vpr_explorer.pipeline import dataset_descriptors, resolve_dataset, run_protocol
+from vpr_explorer.pipeline import run_protocol
 from vpr_explorer.places import PlaceSpec, make_places
 from vpr_explorer.report import method_csv
 from vpr_explorer.views import place_detail, regroup, top_candidates
@@ -106,16 +106,6 @@ def trace(spec: dict, meta: str) -> dict:
 
 def metric(at: AppTest, label: str) -> str:
     return next(m.value for m in at.metric if m.label == label)
-
-
-@pytest.fixture(scope="module")
-def demo():
-    return resolve_dataset("demo")
-
-
-@pytest.fixture(scope="module")
-def demo_pixels(demo):
-    return dataset_descriptors(demo, "pixels")
 
 
 DEMO_SPEC = PlaceSpec(3, 5)  # the app's default on a 60-frame route

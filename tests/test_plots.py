@@ -15,7 +15,7 @@ import pytest
 from vpr_explorer import plots
 from vpr_explorer.database import explain_query, fit_database
 from vpr_explorer.evaluation import Protocol
-from vpr_explorer.pipeline import dataset_descriptors, resolve_dataset, run_protocol
+from vpr_explorer.pipeline import run_protocol
 from vpr_explorer.places import PlaceSpec, make_places
 from vpr_explorer.retrieval import similarity
 from vpr_explorer.stats import mixture_pdf
@@ -29,16 +29,6 @@ from vpr_explorer.views import (
 )
 
 SPEC = PlaceSpec(3, 5)
-
-
-@pytest.fixture(scope="module")
-def demo():
-    return resolve_dataset("demo")
-
-
-@pytest.fixture(scope="module")
-def demo_pixels(demo):
-    return dataset_descriptors(demo, "pixels")
 
 
 @pytest.fixture(scope="module")

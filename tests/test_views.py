@@ -12,22 +12,11 @@ import pytest
 from vpr_explorer import database, plots, views
 from vpr_explorer.database import decide_traversal, explain_query
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.pipeline import dataset_descriptors, resolve_dataset
 from vpr_explorer.places import PlaceSpec
 from vpr_explorer.views import FIND_KINDS, find_frame, fit, overview_frames, place_detail, regroup
 
 SPEC = PlaceSpec(3, 5)
 BUDGET = 1000  # query x database similarities; the demo's 60 frames x 72 database images are 4,320
-
-
-@pytest.fixture(scope="module")
-def demo():
-    return resolve_dataset("demo")
-
-
-@pytest.fixture(scope="module")
-def demo_pixels(demo):
-    return dataset_descriptors(demo, "pixels")
 
 
 @pytest.fixture(scope="module")
