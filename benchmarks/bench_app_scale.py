@@ -15,8 +15,10 @@ from sampled rows), a group/step move.
 
 Side by side, in the same run: deciding every query frame against the database
 (``decide_traversal`` on all 27,591 frames, what a page that ignored the budget would
-compute), and the ratio of each page to it. Browser rendering is not included (AppTest
-runs the scripts, not a browser).
+compute), and the ratio of each page to it. AppTest runs the scripts, not a browser;
+``--browser`` then also starts a real ``streamlit run`` server and walks the same pages in
+Debian's Chromium (Playwright), timing each from the click to the last Plotly chart drawn,
+and saves a screenshot of each page next to the route.
 """
 
 from __future__ import annotations
@@ -76,6 +78,8 @@ def main(argv: list[str] | None = None) -> None:
                         help="where the route is written (default: a folder in the temp dir, reused)")
     parser.add_argument("--cache", type=Path, default=None,
                         help="descriptor cache (default: <out>-cache, kept so a second run skips extraction)")
+    parser.add_argument("--browser", action="store_true",
+                        help="also time the pages in Chromium against a real streamlit server")
     args = parser.parse_args(argv)
     print("$ python " + " ".join(shlex.quote(a) for a in [sys.argv[0], *(argv if argv is not None else sys.argv[1:])]))
     print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
@@ -140,11 +144,69 @@ def main(argv: list[str] | None = None) -> None:
     at = timed("Inspector: one query", lambda: at.switch_page("pages/inspector.py").run())
     at = timed("Inspector: another frame", lambda: at.slider(key="w_frame").set_value(dataset.n_frames // 2).run())
     at = timed("Inspector: next rejected (margin, weighted θ)", lambda: at.button(key="w_find_next").click().run())
-    at = timed("Evaluation: page (no automatic run; similarity matrix)", lambda: at.switch_page("pages/evaluation.py").run())
+    at = timed("Evaluation: page (similarity matrix; protocol waits for Run)", lambda: at.switch_page("pages/evaluation.py").run())
     print(f"peak resident memory of this process: {peak_rss_gib():.2f} GiB")
     slowest = max(rows[2:], key=lambda r: r[1])
     print(f"slowest page run after the first load: {slowest[0]}, {slowest[1]:.2f} s = {slowest[1] / all_pairs:.3f}x "
           "deciding every query frame")
+    if args.browser:
+        browser_walk(route, args.out, all_pairs)
+
+
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+
+
+def browser_walk(route: Path, out: Path, all_pairs: float) -> None:
+    """The pages in Chromium against ``streamlit run``: seconds from the click to the last chart drawn."""
+    from urllib.parse import quote
+
+    from playwright.sync_api import sync_playwright
+
+    sys.path.insert(0, str(ROOT / "tests"))
+    from streamlit_server import streamlit_server
+
+    def settle(page) -> None:
+        try:  # the rerun may not have started when the click returns
+            page.wait_for_selector('[data-testid="stApp"][data-test-script-state="running"]', timeout=1500)
+        except Exception:  # noqa: BLE001  (playwright's TimeoutError: the run was quicker than the poll)
+            pass
+        page.wait_for_selector('[data-testid="stApp"][data-test-script-state="notRunning"]', timeout=600_000)
+        page.wait_for_function(
+            """() => Array.from(document.querySelectorAll('[data-testid="stPlotlyChart"]'))
+                      .every(c => c.querySelector('.main-svg'))
+                  && document.querySelectorAll('[data-testid="stSkeleton"]').length === 0""",
+            timeout=120_000,
+        )
+        if page.locator('[data-testid="stException"]').count():
+            raise RuntimeError(page.locator('[data-testid="stException"]').first.inner_text()[:2000])
+
+    print(f"  {'in Chromium (click to last chart drawn)':<58} {'seconds':>9}")
+    with streamlit_server("app.py", cwd=ROOT, timeout=120) as url, sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path="/usr/bin/chromium", args=CHROMIUM_ARGS)
+        page = browser.new_page(viewport={"width": 1440, "height": 1000})
+
+        def timed(label: str, action, shot: str | None = None) -> None:
+            start = time.perf_counter()
+            action()
+            settle(page)
+            seconds = time.perf_counter() - start
+            print(f"  {label:<58} {seconds:7.2f} s   {seconds / all_pairs:6.3f}x", flush=True)
+            if shot:
+                page.screenshot(path=str(out / f"{shot}.png"), full_page=True)
+
+        def nav(title: str):
+            return lambda: page.locator('[data-testid="stSidebarNav"] a', has_text=title).first.click()
+
+        timed("Dataset page, first open (server just started)",
+              lambda: page.goto(f"{url}/?source={quote(str(route))}&descriptor=pixels"), "home")
+        timed("Places (group/step)", nav("Places (group/step)"), "places")
+        timed("Thresholds", nav("Thresholds"), "thresholds")
+        timed("Query inspector", nav("Query inspector"), "inspector")
+        timed("Evaluation", nav("Evaluation"), "evaluation")
+        timed("Places again (cached)", nav("Places (group/step)"))
+        browser.close()
+    print(f"screenshots: {out}/{{home,places,thresholds,inspector,evaluation}}.png")
 
 
 def _default_spec(dataset):
