@@ -216,11 +216,11 @@ def test_near_tie_repair_recomputes_exactly(monkeypatch):
     import vpr_explorer.scale as scale
 
     def unreliable(sd, lay, kappa):
-        sd.uncertainty = np.full(len(lay.places), np.inf)
+        return np.full(len(lay.places), np.inf)
 
     d, labels, trav = awkward(seed=3)
     _, ref_splits = reference_with_splits(monkeypatch, d, labels, trav, 260, runs=2, seed=0)
-    monkeypatch.setattr(scale, "_set_uncertainty", unreliable)
+    monkeypatch.setattr(scale, "_uncertainty", unreliable)
     fast = scale_splits(d, labels, trav, 260, draw_splits(labels, 260, runs=2, seed=0), block=600)
     assert_same_splits(ref_splits, fast, 10)
     for a, b in zip(ref_splits, fast):
@@ -287,3 +287,48 @@ def test_nordland_g3s3_pixels_equals_paper_protocol(monkeypatch, data_root):
     assert places.n_places == 1192 and desc.shape == (7152, 2048)
     ref, fast = check(monkeypatch, desc, places.image_place, dataset.image_traversal, places.n_places, runs=2)
     assert fast.seconds < ref.seconds
+
+
+# --------------------------------------------------------------------------- the candidate cutoff
+
+
+def places_that_matter(raw, b, own, th_s, th_w):
+    """``(n_queries, P)`` bool: the places that reach some method's rank or answer (brute force)."""
+    matter = raw >= b[:, None]  # place and image baselines, global θs: everything at or above b
+    for th in (th_s, th_w):
+        m_own = (b - th[own])[:, None]
+        kept_own = m_own >= 0
+        kept = raw >= th[None, :]
+        matter |= kept & ~kept_own  # own place dropped: any kept place may be the answer
+        matter |= kept & kept_own & (raw - th[None, :] >= m_own)  # margin rule: ranks and answer
+    return matter
+
+
+def test_candidate_cutoff_holds_for_every_weighted_threshold_within_its_bound():
+    # The scoring reads only table entries at or above the cutoff, and the near-tie check only
+    # sees those: a place below it must not matter under any weighted θ within the bounds.
+    from vpr_explorer.scale import _candidate_cutoff
+
+    # place 0's margin 0.2995 − 0.10 is just under the own place's 0.5 − 0.30; with θ_0 lower
+    # by its bound 1e-3 it ranks above the own place
+    th = np.array([0.10, 0.20, 0.30])
+    unc = np.full(3, 1e-3)
+    b, own = np.array([0.5]), np.array([2])
+    assert places_that_matter(np.array([[0.2995, 0.0, 0.5]]), b, own, th, th - unc * [1, 0, 0])[0, 0]
+    assert np.float32(0.2995) >= _candidate_cutoff(b, own, th, th, unc)[0]
+
+    rng = np.random.default_rng(0)
+    n_q, n_p = 400, 30
+    th_s = rng.uniform(0.1, 0.3, n_p)
+    th_w = th_s + rng.normal(0, 0.02, n_p)
+    unc = rng.uniform(0, 0.01, n_p) * (rng.random(n_p) < 0.7)  # 0: an exact place
+    own = rng.integers(0, n_p, n_q)
+    raw = rng.uniform(0.0, 0.6, (n_q, n_p)).astype(np.float32).astype(np.float64)
+    b = raw[np.arange(n_q), own]
+    b[:5] = -np.inf  # no image of the own place to match (cross-condition)
+    cut = _candidate_cutoff(b, own, th_s, th_w, unc)
+    assert (raw < cut[:, None]).mean() > 0.2  # the cutoff still leaves places out
+    for _ in range(50):  # weighted θs anywhere within their bounds, extremes included
+        exact = th_w + unc * rng.choice([-1.0, 1.0, 0.0, -0.5], n_p)
+        matter = places_that_matter(raw, b, own, th_s, exact)
+        assert not (matter & (raw < cut[:, None])).any()

@@ -9,6 +9,9 @@ similarity; this module does one pass over the image pairs for all splits.
 Algorithm
 ---------
 A split holds exactly one image of every place out (the query) and trains on the rest.
+``scale_splits`` runs the steps below as 1 (full-set sums), 4 (locating the sampled
+pairs), 2, 4 (their order statistics), 1 and 3 (per split), 6 (error bounds), then 5 and 6
+together; the functions doing each step are named at its end.
 
 1. **Negative statistics by downdating** (DESIGN.md §2). From the full-set sums T = Σⱼ dⱼ,
    T_p, C = Σⱼ dⱼdⱼᵀ and aᵢ = Σ_{j∉p(i)} (dᵢ·dⱼ − c)² (from dᵢᵀCdᵢ, float64, once; c is the
@@ -26,12 +29,15 @@ A split holds exactly one image of every place out (the query) and trains on the
    ~1e-11 (synthetic) to ~2e-9 (Nordland pixels). Step 6 keeps that from changing any
    outcome. Places whose training images are byte-identical get one θ, as in the
    reference (same inputs, same operations: their margins tie exactly).
-2. **One blocked pass** over the block pairs I ≤ J of a place-major layout. S = X_I X_Jᵀ is
-   the float32 sgemm the reference ranks with (syrk on the diagonal, as ``d @ d.T``). Each
-   block gives, for its rows and, by symmetry, its columns:
+   ``_full_sums``, ``_split_mu``, ``_sigma``; twins: ``_content_classes``, ``_twins``.
+2. **One blocked pass** over the block pairs I ≤ J of a place-major layout (``Layout``).
+   S = X_I X_Jᵀ is the float32 sgemm the reference ranks with (syrk on the diagonal, as
+   ``d @ d.T``; this relies on the BLAS summing over D in one order whatever the shapes,
+   as OpenBLAS does). Each block gives, for its rows and, by symmetry, its columns:
 
-   * V (above): (S∘S) @ M with M the (N × R) query indicator, float32 products over row
-     chunks of ``_W_CHUNK`` (a few dozen nonzero terms), summed in float64;
+   * V (above): ((S − c)∘(S − c)) @ M, same-place pairs zeroed, with M the (N × R) query
+     indicator: float32 products over chunks of ``_W_CHUNK`` rows of M (one nonzero term
+     per place in the chunk), summed in float64;
    * the **top-2 table**: per (image, place) the best and second-best score and the slots
      reaching them. In split r, raw_p of a query is p's best score unless p's held-out
      image is that best, then the second (on a tie the second equals the best). A query is
@@ -40,28 +46,38 @@ A split holds exactly one image of every place out (the query) and trains on the
    * for the image-level baseline, the places where two or more images reach b_q, with
      the slots that do (at most max(ks) per image: more, and the rank is beyond every K).
 
-   The table is kept only where it can matter: every θ_p is a convex combination of its
-   place's μᵢ, so all thresholds lie in [min μ, max μ] (known before the pass), and no
-   split's scoring (5) looks below the row's floor b − (max μ − min μ) (or min μ when the
-   own place can be dropped, −∞ when b is). Entries are (row, place, t1, a1, t2, a2),
-   18 bytes each, in RAM up to ``table_memory`` bytes, then in a temporary file.
+   The table is kept only where it can matter: for images that are a query in some split,
+   and above the row's floor. Every exact θ_p is a convex combination of its place's μᵢ,
+   so all lie in [min μ, max μ] (known before the pass), and no place below
+   b − (max μ − min μ) (or min μ when the own place can be dropped, −∞ when b is) reaches
+   any rank or answer. Entries are (row, place, t1, a1, t2, a2), 18 bytes each, in RAM up
+   to ``table_memory`` bytes, then in a temporary file.
+   ``_blocked_pass``, ``_floor``, ``_Entries``, ``_Records``.
 3. **Per split thresholds** from the downdated moments through the library's own
-   ``NegativeStats`` and ``place_thresholds``.
-4. **The automatic global θ** mirrors ``thresholds.training_pair_scores`` exactly: the same
-   seeded pairs; the pass supplies their sgemm scores, which differ from the reference's
-   einsum scores by at most ε = 2γ_D·max‖d‖² (γ_D = D·u/(1 − D·u), u = 2⁻²⁴: Higham's bound
-   for any summation order). Only pairs within 2ε of the median (and then of the MAD) are
-   recomputed with the reference's einsum, which fixes those order statistics exactly.
-5. **Per split scoring** reads each query's table entries above its cutoff — the lowest
-   score that can still reach its own place's rank or answer under any method of the
-   split — and runs every method on those candidates only (the cutoff is a bound, not a
-   heuristic: a place below it can change no rank and no answer).
+   ``NegativeStats`` and ``place_thresholds``. ``_split_thresholds``.
+4. **The automatic global θ** mirrors ``thresholds.training_pair_scores`` exactly: below
+   its pair limit it is called as is; above, the same seeded pairs are located in the
+   blocks before the pass (``_pair_plan``), which supplies their sgemm scores. Those differ
+   from the reference's einsum scores by at most ε = 2γ_D·max‖d‖² (γ_D = D·u/(1 − D·u),
+   u = 2⁻²⁴: Higham's bound for any summation order). Only pairs within 2ε of the median
+   (and then of the MAD) are recomputed with the reference's einsum, which fixes those
+   order statistics exactly. ``_auto_threshold_from_plan``, ``_order_stats``.
+5. **Per split scoring**, one row block of queries at a time, reads each query's table
+   entries at or above its cutoff — the lowest score that can still reach a rank or an
+   answer under any method of the split, with every weighted θ anywhere within its error
+   bound (6) — and runs every method on those candidates only (the cutoff is a bound, not
+   a heuristic). The global θs follow from b, the top raw score and the place baseline.
+   ``_score_block`` (``_candidates``, ``_candidate_cutoff``, ``_score_place_level``,
+   ``_score_image_level``), ``_assemble``.
 6. **Near ties.** Each weighted θ_p gets an error bound: first order in the σ errors,
    scaled by the largest error of V seen when a seeded sample of images is recomputed
-   exactly, times ``_SAFETY`` (observed errors stay under 3% of the bound). A query whose
-   outcome a change within those bounds could overturn (a margin, a kept test or the top
-   answer within the bounds) has the places involved recomputed in float64 — exactly the
-   closed form — and is scored again, until no such query is left.
+   exactly, times ``_SAFETY`` (observed errors stay under 3% of the bound), doubled for
+   the second-order terms. Where a comparison that a change within those bounds could
+   overturn decides a query's outcome (a keep test, a margin against the own place's or
+   the top answer's), the places involved get σ, hence θ, recomputed in float64 —
+   exactly the closed form — and that row block of that split is scored again, until no
+   such comparison is left. ``_error_scale``, ``_uncertainty``, ``_near_tie_places``,
+   ``_make_exact``, ``_score_splits``.
 
 Ranks, ties and answers follow ``retrieval``: ties count against the query, answers are
 the first best (lowest place id; lowest image index within a place; lowest image index
@@ -102,7 +118,6 @@ from vpr_explorer.thresholds import (
     ThresholdMethod,
     adaptive_k,
     auto_global_threshold,
-    mixture_spread,
     place_thresholds,
     training_pair_scores,
 )
@@ -111,13 +126,19 @@ from vpr_explorer.thresholds import (
 BLOCK_ROWS = 4096
 #: Bytes of top-2 table entries kept in RAM; beyond, entries go to a temporary file.
 TABLE_MEMORY = 2 * 1024**3
-#: Rows per float32 product of the second-moment downdate (about 1/12 of them are queries,
-#: so each float32 sum has a few hundred terms at most); the chunks are summed in float64.
+#: Rows of M per float32 product of the second-moment downdate: each float32 sum has one
+#: nonzero term per place among them (about 170 for Nordland's places of 12 images); the
+#: chunks are summed in float64.
 _W_CHUNK = 2048
+#: Unit roundoff of float32.
 _U32 = 2.0**-24
+#: Descriptor rows read (and converted) at a time outside the pass.
 _CHUNK = 8192
+#: One top-2 table entry: layout row, place index, best score and its slot, second best and its slot.
 _ENTRY = (("row", np.int32), ("place", np.int32), ("t1", np.float32), ("a1", np.uint8), ("t2", np.float32),
           ("a2", np.uint8))
+#: Most rows a block may have: flat indices into a block's scores are int32 (46,000² < 2³¹).
+_MAX_BLOCK_ROWS = 46_000
 
 
 # --------------------------------------------------------------------------- layout
@@ -164,17 +185,22 @@ class Layout:
         return self.slots * int(self.block_start[1] - self.block_start[0])
 
     def rows(self, b: int) -> slice:
+        """The layout rows of block b."""
         return slice(int(self.block_start[b]) * self.slots, int(self.block_start[b + 1]) * self.slots)
 
-    def cols(self, b: int) -> slice:
+    def place_range(self, b: int) -> slice:
         """The place indices of block b."""
         return slice(int(self.block_start[b]), int(self.block_start[b + 1]))
 
     def row_of(self, c: np.ndarray, slot: np.ndarray) -> np.ndarray:
         """Layout row of (place index, slot)."""
-        blk = np.searchsorted(self.block_start, c, side="right") - 1
-        first = self.block_start[blk]
-        return first * self.slots + slot * (self.block_start[blk + 1] - first) + (c - first)
+        return _row_of(self.block_start, self.slots, c, slot)
+
+
+def _row_of(block_start: np.ndarray, slots: int, c: np.ndarray, slot: np.ndarray) -> np.ndarray:
+    blk = np.searchsorted(block_start, c, side="right") - 1
+    first = block_start[blk]
+    return first * slots + slot * (block_start[blk + 1] - first) + (c - first)
 
 
 def make_layout(image_place: np.ndarray, n_places: int, block_rows: int = BLOCK_ROWS) -> Layout:
@@ -190,16 +216,15 @@ def make_layout(image_place: np.ndarray, n_places: int, block_rows: int = BLOCK_
     psize = sizes[places]
     m = int(psize.max())
     n_p = len(places)
-    n_blocks = max(1, -(-n_p * m // int(block_rows)))
-    per = -(-n_p // n_blocks)
-    block_start = np.r_[np.arange(0, n_p, per), n_p].astype(np.int64)
+    wanted = max(1, -(-n_p * m // int(block_rows)))  # blocks of about block_rows rows
+    per_block = -(-n_p // wanted)  # places per block; the last block may hold fewer
+    block_start = np.r_[np.arange(0, n_p, per_block), n_p].astype(np.int64)
     n_blocks = len(block_start) - 1
-    if m * per > 46_000:
-        raise VPRInputError(f"places of {m} images: a block would exceed 46,000 rows; lower block=")
-    pidx = np.repeat(np.arange(n_p), psize)
+    if m * per_block > _MAX_BLOCK_ROWS:
+        raise VPRInputError(f"places of {m} images: a block would exceed {_MAX_BLOCK_ROWS:,} rows; lower block=")
+    place_idx = np.repeat(np.arange(n_p), psize)
     slot = np.arange(len(order)) - np.repeat(starts[places], psize)
-    none = np.empty(0, np.int64)
-    rows = Layout(places, m, block_start, none, none, psize, none, none).row_of(pidx, slot)
+    rows = _row_of(block_start, m, place_idx, slot)
     image_of_row = np.full(n_p * m, -1, dtype=np.int64)
     image_of_row[rows] = order
     row_of_image = np.full(len(image_place), -1, dtype=np.int64)
@@ -286,7 +311,8 @@ class _Records:
 
     A record is kept where two or more images of a wrong place reach the row's own best
     score b; the packed slot mask says which. Such a place adds at least one wrong image
-    above b in any split, so ``cap`` records already put the rank beyond ``cap``.
+    above b in any split, so ``cap`` records already put the rank beyond ``cap``: ``n``
+    counts every such place of a row, kept or not.
     """
 
     def __init__(self, n_rows: int, slots: int, cap: int):
@@ -326,12 +352,12 @@ class _PairPlan:
     approx: np.ndarray
 
 
-def _pair_plan(train: np.ndarray, lay: Layout, seed: int, max_pairs: int) -> _PairPlan:
+def _pair_plan(train: np.ndarray, lay: Layout, seed: int) -> _PairPlan:
     """The pairs ``training_pair_scores(d[train], seed=seed)`` samples, located in the blocks."""
     n = len(train)
     rng = np.random.default_rng(seed)
-    i = rng.integers(0, n, size=max_pairs)
-    j = rng.integers(0, n - 1, size=max_pairs)
+    i = rng.integers(0, n, size=AUTO_MAX_PAIRS)
+    j = rng.integers(0, n - 1, size=AUTO_MAX_PAIRS)
     j += j >= i  # the reference's uniform j != i
     ra = lay.row_of_image[train[i]]
     rb = lay.row_of_image[train[j]]
@@ -344,7 +370,7 @@ def _pair_plan(train: np.ndarray, lay: Layout, seed: int, max_pairs: int) -> _Pa
     width = np.diff(lay.block_start)[bb] * lay.slots
     flat = ((ra - ba * full) * width + (rb - bb * full))[order].astype(np.int32)
     offsets = np.r_[0, np.cumsum(np.bincount(key, minlength=nb * nb))]
-    return _PairPlan(offsets, flat, np.empty(max_pairs, dtype=np.float32))
+    return _PairPlan(offsets, flat, np.empty(AUTO_MAX_PAIRS, dtype=np.float32))
 
 
 def _order_stats(approx: np.ndarray, eps: float, ks: list[int],
@@ -369,7 +395,11 @@ def _median_of(values: list[float]) -> float:
 
 
 def _auto_threshold_from_plan(plan: _PairPlan, d: np.ndarray, lay: Layout, eps: float) -> float:
-    """``auto_global_threshold(training_pair_scores(...))`` from the pass's approximations."""
+    """``auto_global_threshold(training_pair_scores(...))`` from the pass's approximations.
+
+    The median, then the median absolute deviation from it, each through ``_order_stats``
+    with the reference's einsum scores as the exact values (module doc, step 4).
+    """
     nb, full = lay.n_blocks, lay.full_rows
     width = np.diff(lay.block_start) * lay.slots
     m = len(plan.approx)
@@ -396,8 +426,7 @@ def _auto_threshold_from_plan(plan: _PairPlan, d: np.ndarray, lay: Layout, eps: 
     np.abs(approx, out=approx)
     eps_dev = eps * (1 + 1e-9) + 1e-12  # the float64 subtraction adds one rounding
     mad = _median_of(_order_stats(approx, eps_dev, mid, lambda idx: np.abs(exact_scores(idx) - med)))
-    med, mad = np.float64(med), np.float64(mad)
-    return float(med + AUTO_Z * mad / 0.675)
+    return med + AUTO_Z * mad / 0.675
 
 
 def _score_bound(d: np.ndarray, lay: Layout) -> float:
@@ -420,16 +449,15 @@ def _score_bound(d: np.ndarray, lay: Layout) -> float:
 class _FullSums:
     """Float64 sums over all labelled images, per layout row (zero on padding rows)."""
 
-    dot_total: np.ndarray  # (n_rows,) dᵢ·T
-    dot_place: np.ndarray  # (n_rows,) dᵢ·T_p(i)
-    a: np.ndarray  # (n_rows,) dᵢᵀCdᵢ − Σ_{j∈p(i)} (dᵢ·dⱼ)²
+    dot_other: np.ndarray  # (n_rows,) dᵢ·(T − T_p(i)): Σ_{j∉p(i)} dᵢ·dⱼ
     dot_queries: np.ndarray  # (n_rows, R) dᵢ·Σ_{q∈Q_r} d_q
-    gram: np.ndarray  # (P, m, m) within-place dᵢ·dⱼ
-    centre: float  # c: the mean score over all pairs, a float32 value
-    a_centred: np.ndarray  # (n_rows,) Σ_{j∉p(i)} (dᵢ·dⱼ − c)² = aᵢ − 2c·dᵢ·(T − T_p) + c²·n_other
+    gram: np.ndarray  # (P, m, m) within-place dᵢ·dⱼ (zero for padding slots)
+    centre: float  # c: the mean score over all pairs of distinct labelled images, a float32 value
+    a_centred: np.ndarray  # (n_rows,) aᵢ = Σ_{j∉p(i)} (dᵢ·dⱼ − c)²
 
 
 def _layout_rows64(d: np.ndarray, lay: Layout, rows: slice) -> np.ndarray:
+    """``(len(rows), D)`` float64 descriptors of these layout rows, zero rows for padding."""
     img = lay.image_of_row[rows]
     out = np.zeros((len(img), d.shape[1]), dtype=np.float64)
     real = img >= 0
@@ -438,7 +466,7 @@ def _layout_rows64(d: np.ndarray, lay: Layout, rows: slice) -> np.ndarray:
 
 
 def _full_sums(d: np.ndarray, lay: Layout, query_rows: np.ndarray) -> _FullSums:
-    """T, T_p, C and the quadratic forms, once (O(N·D²) float64), from the original values."""
+    """T, T_p, C and the quadratic forms, once (O(N·D²) float64), from the original values (step 1)."""
     n_rows, dim = lay.n_rows, d.shape[1]
     m, n_p = lay.slots, len(lay.places)
     total = np.zeros(dim)
@@ -449,30 +477,31 @@ def _full_sums(d: np.ndarray, lay: Layout, query_rows: np.ndarray) -> _FullSums:
         total += x.sum(axis=0)
         gram_all += x.T @ x
         x3 = x.reshape(m, -1, dim).transpose(1, 0, 2)  # (G, m, D): each place's images
-        gram[lay.cols(b)] = x3 @ x3.transpose(0, 2, 1)
+        gram[lay.place_range(b)] = x3 @ x3.transpose(0, 2, 1)
     queries = np.zeros((len(query_rows), dim))
     q_img = lay.image_of_row[query_rows]
     for r in range(len(query_rows)):
         for lo in range(0, q_img.shape[1], _CHUNK):
             queries[r] += np.asarray(d[q_img[r, lo : lo + _CHUNK]], dtype=np.float64).sum(axis=0)
-    dot_total, dot_place, a = np.zeros(n_rows), np.zeros(n_rows), np.zeros(n_rows)
+    dot_total, dot_place, sq = np.zeros(n_rows), np.zeros(n_rows), np.zeros(n_rows)
     dot_q = np.zeros((n_rows, len(query_rows)))
     for b in range(lay.n_blocks):
         rows = lay.rows(b)
         x = _layout_rows64(d, lay, rows)
-        gb = gram[lay.cols(b)]  # (G, m, m); row (k, g) of the block is gb[g, k]
+        gb = gram[lay.place_range(b)]  # (G, m, m); row (k, g) of the block is gb[g, k]
         dot_total[rows] = x @ total
         dot_q[rows] = x @ queries.T
         dot_place[rows] = gb.sum(axis=2).T.reshape(-1)
-        a[rows] = np.einsum("ij,ij->i", x @ gram_all, x) - (gb**2).sum(axis=2).T.reshape(-1)
+        sq[rows] = np.einsum("ij,ij->i", x @ gram_all, x) - (gb**2).sum(axis=2).T.reshape(-1)  # Σ_{j∉p} s²
     # scores are taken relative to c in the pass: (s − c)² sums carry float32 rounding in
     # proportion to |s − c|, not |s| (descriptors with a shared component score 0.7 everywhere)
     n_lab = int(lay.sizes.sum())
     norms = np.einsum("pkk->", gram)
     centre = float(np.float32((total @ total - norms) / max(n_lab * (n_lab - 1), 1)))
     n_other = n_lab - lay.sizes[lay.place_of_row]
-    a_centred = a - 2 * centre * (dot_total - dot_place) + centre**2 * n_other
-    return _FullSums(dot_total, dot_place, a, dot_q, gram, centre, a_centred)
+    dot_other = dot_total - dot_place
+    a_centred = sq - 2 * centre * dot_other + centre**2 * n_other
+    return _FullSums(dot_other, dot_q, gram, centre, a_centred)
 
 
 # --------------------------------------------------------------------------- the pass
@@ -480,6 +509,8 @@ def _full_sums(d: np.ndarray, lay: Layout, query_rows: np.ndarray) -> _FullSums:
 
 @dataclass(frozen=True, eq=False)
 class _PassResult:
+    """What the pass leaves besides the top-2 table (which it files in ``_Entries``)."""
+
     v: np.ndarray  # (n_rows, R) Σ_{q∈Q_r, other place} (s_iq − c)²
     best_own: np.ndarray  # (n_rows,) b: best score in the own place, the image itself left out
     records: _Records
@@ -495,8 +526,8 @@ def _as_layout32(d: np.ndarray, lay: Layout) -> np.ndarray:
     return x
 
 
-def _halves(pool: ThreadPoolExecutor | None, fn: Callable[[slice], object], n: int, parts: int) -> list:
-    """``fn`` on ``parts`` contiguous slices of ``range(n)`` in the pool's threads (numpy frees the GIL)."""
+def _in_slices(pool: ThreadPoolExecutor | None, fn: Callable[[slice], object], n: int, parts: int) -> list:
+    """``fn`` on ``parts`` contiguous slices of ``range(n)``, in the pool's threads (numpy frees the GIL)."""
     edges = np.linspace(0, n, parts + 1).astype(int)
     slices = [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
     if pool is None or len(slices) < 2:
@@ -504,10 +535,17 @@ def _halves(pool: ThreadPoolExecutor | None, fn: Callable[[slice], object], n: i
     return [f.result() for f in [pool.submit(fn, sl) for sl in slices]]
 
 
-def _floor(best: np.ndarray, mu_range: tuple[float, float], is_query: np.ndarray) -> np.ndarray:
-    """Per row: no split's candidate cutoff for this query lies below it (float32, rounded down).
+def _round_down32(x: np.ndarray) -> np.ndarray:
+    """The largest float32 values ≤ x (the scores are float32: compared with them, nothing is lost)."""
+    x32 = x.astype(np.float32)
+    return np.where(x32.astype(np.float64) > x, np.nextafter(x32, np.float32(-np.inf)), x32)
 
-    With b ≥ max μ ≥ θ_own the own place is kept in every split and the cutoff is at least
+
+def _floor(best: np.ndarray, mu_range: tuple[float, float], is_query: np.ndarray) -> np.ndarray:
+    """Per row: below it no place reaches a rank or an answer of this query, in any split
+    and under any θs in [min μ, max μ] = ``mu_range`` (float32, rounded down).
+
+    With b ≥ max μ ≥ θ_own the own place is kept in every split and a place must reach
     b − (max μ − min μ); otherwise the answer may be any kept place, and kept means
     raw ≥ θ ≥ min μ. Rows that are never a query get +∞.
     """
@@ -516,24 +554,22 @@ def _floor(best: np.ndarray, mu_range: tuple[float, float], is_query: np.ndarray
     with np.errstate(invalid="ignore"):
         f = np.where(b >= hi + 1e-9, b - (hi - lo), np.minimum(b - (hi - lo), lo)) - 1e-9
     f = np.where(np.isfinite(b), f, -np.inf)
-    f32 = f.astype(np.float32)
-    f32 = np.where(f32.astype(np.float64) > f, np.nextafter(f32, np.float32(-np.inf)), f32)
-    return np.where(is_query, f32, np.float32(np.inf))
+    return np.where(is_query, _round_down32(f), np.float32(np.inf))
 
 
-def _select(pool, s3: np.ndarray, floor: np.ndarray, *, axis: int, parts: int) -> dict[str, np.ndarray]:
-    """One side of a block's top-2 table, the entries whose best score reaches the row's floor.
+def _table_side(pool, s3: np.ndarray, floor: np.ndarray, *, axis: int, parts: int) -> dict[str, np.ndarray]:
+    """One side of a block's top-2 table: the entries whose best score reaches the row's floor.
 
     ``s3`` is ``(rows, m, places)`` (axis=1: the block's rows are the table's rows) or
     ``(m, places, cols)`` (axis=0: its columns are). Returns the entries' local row and
     place, t1/a1/t2/a2 and their ``(n, m)`` slot scores.
     """
     if axis == 1:
-        t1 = np.concatenate(_halves(pool, lambda sl: np.max(s3[sl], axis=1), s3.shape[0], parts), axis=0)
+        t1 = np.concatenate(_in_slices(pool, lambda sl: np.max(s3[sl], axis=1), s3.shape[0], parts), axis=0)
         r, c = np.nonzero(t1 >= floor[:, None])
         vals = s3[r, :, c]
     else:
-        t1 = np.concatenate(_halves(pool, lambda sl: np.max(s3[:, :, sl], axis=0), s3.shape[2], parts), axis=1)
+        t1 = np.concatenate(_in_slices(pool, lambda sl: np.max(s3[:, :, sl], axis=0), s3.shape[2], parts), axis=1)
         c, r = np.nonzero(t1 >= floor[None, :])
         vals = s3[:, c, r].T
     return {"row": r, "place": c, **_top2_rows(vals), "vals": vals}
@@ -548,21 +584,21 @@ def _blocked_pass(
     plans: dict[int, _PairPlan],
     cap: int,
     mu_range: tuple[float, float],
-    is_query: np.ndarray,
     centre: float,
     threads: int,
-    progress: Progress | None,
+    progress: Callable[[int, str], None] | None,
 ) -> _PassResult:
-    """Everything the splits need from the similarities, in one pass over block pairs I ≤ J.
+    """Everything the splits need from the similarities, in one pass over block pairs I ≤ J (step 2).
 
     Diagonal blocks come first: they hold each image's own place, hence b and the row's
-    floor, which the off-diagonal blocks need.
+    floor, which the off-diagonal blocks need. ``progress(pairs done, message)`` after each pair.
     """
     n_rows, m, nb = lay.n_rows, lay.slots, lay.n_blocks
     runs = query_rows.shape[0]
     centre = np.float32(centre)
-    indicator = np.zeros((n_rows, runs), dtype=np.float32)
+    indicator = np.zeros((n_rows, runs), dtype=np.float32)  # M: row i is a query of split r
     indicator[query_rows.T, np.arange(runs)[None, :]] = 1.0
+    is_query = indicator.any(axis=1)
     v = np.zeros((n_rows, runs))
     best_own = np.full(n_rows, -np.inf, dtype=np.float32)
     floor = np.full(n_rows, np.inf, dtype=np.float32)
@@ -572,14 +608,12 @@ def _blocked_pass(
     s_buf = np.empty(widest * widest, dtype=np.float32)
     q_buf = np.empty(widest * widest, dtype=np.float32)
     pairs = [(i, i) for i in range(nb)] + [(i, j) for i in range(nb) for j in range(i + 1, nb)]
-    parts = max(1, threads)
     pool = ThreadPoolExecutor(threads) if threads > 1 else None
     try:
         for step, (bi, bj) in enumerate(pairs):
             ri, rj = lay.rows(bi), lay.rows(bj)
-            gi = int(lay.block_start[bi + 1] - lay.block_start[bi])
-            gj = int(lay.block_start[bj + 1] - lay.block_start[bj])
-            ni, nj = m * gi, m * gj
+            ni, nj = ri.stop - ri.start, rj.stop - rj.start
+            gi, gj = ni // m, nj // m  # places in each block
             xi = x[ri]
             s = s_buf[: ni * nj].reshape(ni, nj)
             np.matmul(xi, xi.T if bi == bj else x[rj].T, out=s)  # A @ A.T: the syrk of the reference's d @ d.T
@@ -590,14 +624,15 @@ def _blocked_pass(
                     np.take(flat_s, plan.flat[lo:hi], out=plan.approx[lo:hi])
             # second moments: squared scores against each split's queries of other places
             q = q_buf[: ni * nj].reshape(ni, nj)
-            _halves(pool, lambda sl: np.square(np.subtract(s[sl], centre, out=q[sl]), out=q[sl]), ni, parts)
+            _in_slices(pool, lambda sl: np.square(np.subtract(s[sl], centre, out=q[sl]), out=q[sl]), ni, threads)
             if bi == bj:
                 np.putmask(q, lay.place_of_row[ri][:, None] == lay.place_of_row[rj][None, :], 0.0)
+            mi, mj = indicator[ri], indicator[rj]
             for c0 in range(0, nj, _W_CHUNK):
-                v[ri] += q[:, c0 : c0 + _W_CHUNK] @ indicator[rj.start + c0 : min(rj.start + c0 + _W_CHUNK, rj.stop)]
+                v[ri] += q[:, c0 : c0 + _W_CHUNK] @ mj[c0 : c0 + _W_CHUNK]
             if bi != bj:
                 for c0 in range(0, ni, _W_CHUNK):
-                    v[rj] += q[c0 : c0 + _W_CHUNK].T @ indicator[ri.start + c0 : min(ri.start + c0 + _W_CHUNK, ri.stop)]
+                    v[rj] += q[c0 : c0 + _W_CHUNK].T @ mi[c0 : c0 + _W_CHUNK]
             # what a query may match: never padding; in cross-condition, not its own traversal
             if pad[ri].any():
                 s[pad[ri]] = -np.inf
@@ -605,31 +640,35 @@ def _blocked_pass(
                 s[:, pad[rj]] = -np.inf
             if row_traversal is not None:
                 ti, tj = row_traversal[ri], row_traversal[rj]
-                _halves(pool, lambda sl: np.putmask(s[sl], ti[sl, None] == tj[None, :], -np.inf), ni, parts)
+                _in_slices(pool, lambda sl: np.putmask(s[sl], ti[sl, None] == tj[None, :], -np.inf), ni, threads)
             s3 = s.reshape(ni, m, gj)
             own = None
             if bi == bj:  # b: the best of the own place's other images
-                own = lay.place_of_row[ri] - lay.block_start[bi]
+                own = lay.place_of_row[ri] - lay.block_start[bi]  # each row's place, within the block
                 mine = s3[np.arange(ni), :, own]
                 mine[np.arange(ni), lay.slot_of_row[ri]] = -np.inf
                 best_own[ri] = mine.max(axis=1)
                 floor[ri] = _floor(best_own[ri], mu_range, is_query[ri])
-            side = _select(pool, s3, floor[ri], axis=1, parts=parts)
-            _file(entries, records, side, bi, ri.start, lay.block_start[bj], best_own[ri], own)
+            side = _table_side(pool, s3, floor[ri], axis=1, parts=threads)
+            _store_side(entries, records, side, bi, ri.start, lay.block_start[bj], best_own[ri], own)
             if bi != bj:
-                side = _select(pool, s.reshape(m, gi, nj), floor[rj], axis=0, parts=parts)
-                _file(entries, records, side, bj, rj.start, lay.block_start[bi], best_own[rj], None)
+                side = _table_side(pool, s.reshape(m, gi, nj), floor[rj], axis=0, parts=threads)
+                _store_side(entries, records, side, bj, rj.start, lay.block_start[bi], best_own[rj], None)
             if progress:
-                progress(step + 1, len(pairs), f"similarity block {step + 1}/{len(pairs)}")  # see scale_splits
+                progress(step + 1, f"similarity block {step + 1}/{len(pairs)}")
     finally:
         if pool is not None:
             pool.shutdown()
     return _PassResult(v, best_own, records)
 
 
-def _file(entries: _Entries, records: _Records, side: dict, row_block: int, row0: int, place0: int,
-          best: np.ndarray, own: np.ndarray | None) -> None:
-    """Store one side's entries; record the wrong places whose second best already reaches b."""
+def _store_side(entries: _Entries, records: _Records, side: dict, row_block: int, row0: int, place0: int,
+                best: np.ndarray, own: np.ndarray | None) -> None:
+    """File one side's entries; record the wrong places whose second best already reaches b.
+
+    ``row0`` and ``place0`` turn the side's local rows and places into layout rows and place
+    indices; ``best`` is b of the side's rows; ``own`` their own place (local), on a diagonal block.
+    """
     r = side["row"]
     entries.put(row_block, {**side, "place": place0 + side["place"]})
     b = best[r]
@@ -652,19 +691,18 @@ class _SplitData:
     rows: np.ndarray  # (n_train,) layout rows of the training images, in the reference's order
     stats: NegativeStats
     v: np.ndarray  # (n_train,) the downdate V of each training image
-    twins: np.ndarray  # (P,)
+    twins: np.ndarray  # (P,) the first place index with the same training images (``_twins``)
     thresholds: dict[str, np.ndarray | float]
-    spread: np.ndarray
-    k_adaptive: np.ndarray
-    uncertainty: np.ndarray | None = None  # (P,) bound on |θ_weighted error|; 0 where exact
+    spread: np.ndarray  # (n_places,) s_p
+    k_adaptive: np.ndarray  # (n_places,)
+    uncertainty: np.ndarray | None = None  # (P,) bound on |θ_weighted error|; 0 where exact (step 6)
 
 
 def _split_mu(r: int, train_rows: np.ndarray, lay: Layout, sums: _FullSums, held: np.ndarray):
     """μᵢ and n⁻ᵢ of split r's training rows: n⁻μ = d·(T − T_p) − d·Σ_q d_q + d·d_h (float64)."""
     cr, kr = lay.place_of_row[train_rows], lay.slot_of_row[train_rows]
     n_neg = len(train_rows) - (lay.sizes - 1)[cr]
-    sum_neg = (sums.dot_total[train_rows] - sums.dot_place[train_rows]
-               - (sums.dot_queries[train_rows, r] - sums.gram[cr, kr, held[cr]]))
+    sum_neg = sums.dot_other[train_rows] - (sums.dot_queries[train_rows, r] - sums.gram[cr, kr, held[cr]])
     return sum_neg / n_neg, n_neg
 
 
@@ -714,47 +752,53 @@ def _twins(content: np.ndarray, held: np.ndarray) -> np.ndarray:
     return first[inverse.ravel()]
 
 
-def _share_twins(theta: np.ndarray, lay: Layout, twins: np.ndarray) -> np.ndarray:
-    """θ of places with identical training images, made bit-identical as in the reference.
+def _sigma(sums: _FullSums, rows: np.ndarray, v: np.ndarray, mu: np.ndarray, n_neg: np.ndarray) -> np.ndarray:
+    """σᵢ of training rows from the downdate: E[(s − c)²] = (aᵢ − Vᵢ)/n⁻ᵢ, σ² = E[(s − c)²] − (μᵢ − c)²."""
+    second = (sums.a_centred[rows] - v) / n_neg
+    return np.sqrt(np.clip(second - (mu - sums.centre) ** 2, 0.0, None))
+
+
+def _place_thresholds(stats: NegativeStats, method: ThresholdMethod, lay: Layout, twins: np.ndarray) -> np.ndarray:
+    """``place_thresholds``, with places whose training images are identical given one θ.
 
     The straightforward computation gives such places the very same θ (same inputs, same
     operations), so their margins tie exactly and the tie goes to the lower place id; the
     float32 rounding in the downdated σ would break that tie.
     """
-    out = theta.copy()
-    out[lay.places] = theta[lay.places[twins]]
-    return out
+    theta = place_thresholds(stats, method)
+    theta[lay.places] = theta[lay.places[twins]]
+    return theta
 
 
 def _split_thresholds(r: int, sp: Split, lay: Layout, sums: _FullSums, pas: _PassResult, held: np.ndarray,
                       n_places: int, auto: float, user_theta: float | None, content: np.ndarray) -> _SplitData:
-    """θ simple and weighted of one split from the downdated moments (module doc, step 1)."""
+    """Split r's statistics and thresholds from the downdated moments (module doc, steps 1 and 3)."""
     rows = lay.row_of_image[sp.train]
     mu, n_neg = _split_mu(r, rows, lay, sums, held)
-    second = (sums.a_centred[rows] - pas.v[rows, r]) / n_neg  # E[(s − c)²] over the negatives
-    sigma = np.sqrt(np.clip(second - (mu - sums.centre) ** 2, 0.0, None))
+    v = pas.v[rows, r]
     labels = lay.places[lay.place_of_row[rows]].astype(np.int64)
-    stats = NegativeStats(mu=mu, sigma=sigma, n_neg=n_neg.astype(np.int64), labels=labels, n_places=n_places)
+    stats = NegativeStats(mu=mu, sigma=_sigma(sums, rows, v, mu, n_neg), n_neg=n_neg.astype(np.int64),
+                          labels=labels, n_places=n_places)
     twins = _twins(content, held)
     th: dict[str, np.ndarray | float] = {
-        ThresholdMethod.SIMPLE.value: _share_twins(place_thresholds(stats, ThresholdMethod.SIMPLE), lay, twins),
-        ThresholdMethod.WEIGHTED.value: _share_twins(place_thresholds(stats, ThresholdMethod.WEIGHTED), lay, twins),
+        ThresholdMethod.SIMPLE.value: _place_thresholds(stats, ThresholdMethod.SIMPLE, lay, twins),
+        ThresholdMethod.WEIGHTED.value: _place_thresholds(stats, ThresholdMethod.WEIGHTED, lay, twins),
         "auto": auto,
     }
     if user_theta is not None:
         th["user"] = float(user_theta)
-    # positive means Σ_{i≠j∈train_p} dᵢ·dⱼ / (n(n−1)), from the within-place grams
+    # for k_adaptive, the positive means Σ_{i≠j∈train_p} dᵢ·dⱼ / (n(n−1)) from the within-place
+    # grams (the reference's stats.positive_means, to rounding)
     gram, ar = sums.gram, np.arange(len(lay.places))
     g_hh = gram[ar, held, held]
     pair_sum = gram.sum(axis=(1, 2)) - 2 * gram[ar, held].sum(axis=1) + g_hh
     diag = np.einsum("pkk->p", gram) - g_hh
     n = (lay.sizes - 1).astype(np.float64)
-    pos = np.full(n_places, np.nan)
+    pos_mean = np.full(n_places, np.nan)
     with np.errstate(invalid="ignore", divide="ignore"):
-        pos[lay.places] = np.where(n > 1, (pair_sum - diag) / (n * (n - 1)), np.nan)
+        pos_mean[lay.places] = np.where(n > 1, (pair_sum - diag) / (n * (n - 1)), np.nan)
     neg_mean, spread = mixture_moments(stats)
-    return _SplitData(sp, held, rows, stats, pas.v[rows, r], twins, th, mixture_spread(stats),
-                      adaptive_k(pos, neg_mean, spread))
+    return _SplitData(sp, held, rows, stats, v, twins, th, spread, adaptive_k(pos_mean, neg_mean, spread))
 
 
 # --------------------------------------------------------------------------- near ties
@@ -764,6 +808,7 @@ def _split_thresholds(r: int, sp: Split, lay: Layout, sums: _FullSums, pas: _Pas
 #: in a sample of exactly recomputed images (errors are sums of many roundings: their
 #: extremes over a whole run exceed a sample's by a small factor, not by 20).
 _SAFETY = 20.0
+#: Training images recomputed exactly to measure that error (spread over up to 8 splits).
 _SAMPLE = 256
 
 
@@ -771,11 +816,12 @@ def _exact_v(d: np.ndarray, lay: Layout, sums: _FullSums, split: Split, rows: np
     """V of training rows in float64 from the original descriptors: Σ_{q∈Q_r, other place} (dᵢ·d_q − c)²."""
     q = np.asarray(d[split.queries], dtype=np.float64)  # ordered by place index
     out = np.empty(len(rows))
-    for lo in range(0, len(rows), 512):
-        rr = rows[lo : lo + 512]
+    step = 512
+    for lo in range(0, len(rows), step):
+        rr = rows[lo : lo + step]
         s = np.asarray(d[lay.image_of_row[rr]], dtype=np.float64) @ q.T - sums.centre
         s[np.arange(len(rr)), lay.place_of_row[rr]] = 0.0  # the own place's query is no negative
-        out[lo : lo + 512] = np.einsum("ij,ij->i", s, s)
+        out[lo : lo + step] = np.einsum("ij,ij->i", s, s)
     return out
 
 
@@ -792,39 +838,45 @@ def _error_scale(d: np.ndarray, lay: Layout, sums: _FullSums, data: list[_SplitD
     return kappa
 
 
-def _set_uncertainty(sd: _SplitData, lay: Layout, kappa: float) -> None:
-    """Per place: |δθ| ≤ Σᵢ (vᵢ/Σv)·|μᵢ − θ|·|δσᵢ²|/σᵢ² with |δσᵢ²| = |δVᵢ|/n⁻ᵢ ≤ safety·κ·√Vᵢ/n⁻ᵢ."""
+def _uncertainty(sd: _SplitData, lay: Layout, kappa: float) -> np.ndarray:
+    """``(P,)`` error bound of each weighted θ (step 6), from the V error scale κ.
+
+    θ = Σᵢ wᵢμᵢ/Σw with wᵢ ∝ 1/σᵢ², so |δθ| ≤ Σᵢ (wᵢ/Σw)·|μᵢ − θ|·|δσᵢ²|/σᵢ², and
+    |δσᵢ²| = |δVᵢ|/n⁻ᵢ ≤ safety·κ·√Vᵢ/n⁻ᵢ.
+    """
     st = sd.stats
     theta = sd.thresholds["weighted"]
-    v = st.weights / np.maximum(st.sigma, SIGMA_FLOOR) ** 2
-    vsum = np.bincount(st.labels, weights=v, minlength=st.n_places)
-    rel = _SAFETY * kappa * np.sqrt(np.maximum(sd.v, 0.0)) / st.n_neg / np.maximum(st.sigma, SIGMA_FLOOR) ** 2
+    var = np.maximum(st.sigma, SIGMA_FLOOR) ** 2
+    w = st.weights / var
+    wsum = np.bincount(st.labels, weights=w, minlength=st.n_places)
+    rel = _SAFETY * kappa * np.sqrt(np.maximum(sd.v, 0.0)) / st.n_neg / var
     with np.errstate(invalid="ignore", divide="ignore"):
-        bound = np.bincount(st.labels, weights=v * np.abs(st.mu - theta[st.labels]) * rel, minlength=st.n_places) / vsum
-    unc = np.nan_to_num(bound[lay.places], nan=0.0) * 2 + 1e-15  # ×2: second-order terms
-    sd.uncertainty = unc if sd.uncertainty is None else np.where(sd.uncertainty == 0, 0.0, unc)
+        bound = np.bincount(st.labels, weights=w * np.abs(st.mu - theta[st.labels]) * rel, minlength=st.n_places) / wsum
+    return np.nan_to_num(bound[lay.places], nan=0.0) * 2 + 1e-15  # ×2: second-order terms
 
 
-def _make_exact(sd: _SplitData, places: np.ndarray, d: np.ndarray, lay: Layout, sums: _FullSums) -> None:
-    """Recompute σ (hence the weighted θ) of these places' training images in float64."""
+def _make_exact(sd: _SplitData, places: np.ndarray, d: np.ndarray, lay: Layout, sums: _FullSums) -> bool:
+    """Recompute σ (hence the weighted θ) of these places' training images in float64.
+
+    Twins go together (a twin's θ is its first twin's). Returns whether any place was not
+    exact yet.
+    """
     places = np.setdiff1d(places, np.flatnonzero(sd.uncertainty == 0))
     if len(places) == 0:
-        return
-    twins = np.flatnonzero(np.isin(sd.twins, sd.twins[places]))  # a twin's θ is its first twin's
-    sel = np.flatnonzero(np.isin(lay.place_of_row[sd.rows], twins))
-    v = sd.v.copy()
-    v[sel] = _exact_v(d, lay, sums, sd.split, sd.rows[sel])
-    st = sd.stats
-    second = (sums.a_centred[sd.rows[sel]] - v[sel]) / st.n_neg[sel]
+        return False
+    group = np.flatnonzero(np.isin(sd.twins, sd.twins[places]))
+    sel = np.flatnonzero(np.isin(lay.place_of_row[sd.rows], group))
+    rows, st = sd.rows[sel], sd.stats
+    sd.v = sd.v.copy()
+    sd.v[sel] = _exact_v(d, lay, sums, sd.split, rows)
     sigma = st.sigma.copy()
-    sigma[sel] = np.sqrt(np.clip(second - (st.mu[sel] - sums.centre) ** 2, 0.0, None))
-    sd.v = v
+    sigma[sel] = _sigma(sums, rows, sd.v[sel], st.mu[sel], st.n_neg[sel])
     sd.stats = NegativeStats(mu=st.mu, sigma=sigma, n_neg=st.n_neg, labels=st.labels, n_places=st.n_places)
-    sd.thresholds = {**sd.thresholds, ThresholdMethod.WEIGHTED.value: _share_twins(
-        place_thresholds(sd.stats, ThresholdMethod.WEIGHTED), lay, sd.twins)}
-    unc = sd.uncertainty.copy()
-    unc[twins] = 0.0
-    sd.uncertainty = unc
+    sd.thresholds = {**sd.thresholds,
+                     ThresholdMethod.WEIGHTED.value: _place_thresholds(sd.stats, ThresholdMethod.WEIGHTED, lay, sd.twins)}
+    sd.uncertainty = sd.uncertainty.copy()
+    sd.uncertainty[group] = 0.0
+    return True
 
 
 def _first_argmax(score: np.ndarray, seg: np.ndarray, seg_of: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -836,32 +888,72 @@ def _first_argmax(score: np.ndarray, seg: np.ndarray, seg_of: np.ndarray) -> tup
     return top, first
 
 
+def _candidate_cutoff(b: np.ndarray, own: np.ndarray, th_s: np.ndarray, th_w: np.ndarray,
+                      unc_w: np.ndarray) -> np.ndarray:
+    """Per query, the lowest raw score that can reach any method's rank or answer (step 5).
+
+    Args:
+        b: ``(n,)`` each query's best correct score (``-inf``: none); own: its place index.
+        th_s, th_w: ``(P,)`` simple and weighted θ per place index; unc_w: the weighted θ's
+            error bounds (step 6).
+    Returns:
+        ``(n,)`` float32, rounded down. Places at or above b count for the baselines and the
+        global θs. Under a per-place θ, with the own place kept (b ≥ θ_own) a place counts
+        if its margin reaches the own one, raw ≥ θ_p + (b − θ_own); with it dropped, any kept
+        place may be the answer, raw ≥ θ_p. Both are at least min θ + max(b − θ_own, 0). The
+        weighted θs enter at their bounds' lowest θ_p and highest θ_own, so that a place
+        below the cutoff matters under no θ within the bounds, and the near-tie check sees
+        every place that might.
+    """
+    cut = b
+    for low, high in ((th_s, th_s), (th_w - unc_w, th_w + unc_w)):
+        cut = np.minimum(cut, float(np.min(low)) + np.maximum(b - high[own], 0.0) - 1e-12)
+    return _round_down32(cut)
+
+
+#: The methods scored per block, in the reference's order (the global θs follow in ``_assemble``).
 _ORDER = ("image-baseline", "place-baseline", "margin-simple", "margin-weighted", "raw-simple", "raw-weighted")
 
 
-def _score_block(ent: dict[str, np.ndarray], blk: int, sd: _SplitData, lay: Layout, pas: _PassResult, cap: int,
-                 out: dict[str, dict[str, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
-    """Every method for the split's queries of one row block (module doc, step 5).
+@dataclass(frozen=True, eq=False)
+class _Candidates:
+    """One split's queries of a row block and their candidate places, query by query (step 5).
 
-    Returns the queries' top raw score and the places whose weighted θ must be exact
-    before the outcome can be trusted (a near tie within the θs' error bounds), if any.
+    Per query ``(G,)``: ``own`` its place index (= its position among the split's queries),
+    ``row`` its layout row, ``b`` its best correct score (``-inf``: none).
+    Per candidate ``(n,)``, grouped by query and in place order within one (``start``: each
+    query's first): ``query`` (position in the block), ``place`` (place index), ``t1``/``t2``
+    the place's best and second-best score over all its images, ``held`` its held-out slot,
+    ``hit`` whether its best image is the held-out one, ``raw`` raw_p in this split (``t2`` on
+    a hit, else ``t1``) and ``image`` the training image reaching it.
     """
+
+    own: np.ndarray
+    row: np.ndarray
+    b: np.ndarray
+    query: np.ndarray
+    start: np.ndarray
+    place: np.ndarray
+    t1: np.ndarray
+    t2: np.ndarray
+    held: np.ndarray
+    hit: np.ndarray
+    raw: np.ndarray
+    image: np.ndarray
+
+    @property
+    def is_own(self) -> np.ndarray:
+        return self.place == self.own[self.query]
+
+
+def _candidates(ent: dict[str, np.ndarray], blk: int, sd: _SplitData, lay: Layout, b_all: np.ndarray,
+                th_s: np.ndarray, th_w: np.ndarray) -> _Candidates:
+    """The table entries of the block's queries at or above their cutoffs, with raw_p of the split."""
     own = np.arange(lay.block_start[blk], lay.block_start[blk + 1])  # the block's places = its queries
     qrow = lay.row_of(own, sd.held[own])
+    b = b_all[qrow].astype(np.float64)
+    cut32 = _candidate_cutoff(b, own, th_s, th_w, sd.uncertainty)
     local = qrow - lay.rows(blk).start
-    b = pas.best_own[qrow].astype(np.float64)
-    finite = np.isfinite(b)
-    places = lay.places
-    th_s = np.asarray(sd.thresholds["simple"], dtype=np.float64)[places]
-    th_w = np.asarray(sd.thresholds["weighted"], dtype=np.float64)[places]
-    # the cutoff: below it a place reaches no method's rank and no answer
-    cut = np.where(finite, b, -np.inf)
-    for th in (th_s, th_w):
-        lowest = float(np.min(th))
-        kept_own = b >= th[own]
-        cut = np.minimum(cut, np.where(kept_own, lowest + (b - th[own]) - 1e-12, lowest - 1e-12))
-    cut32 = cut.astype(np.float32)
-    cut32 = np.where(cut32.astype(np.float64) > cut, np.nextafter(cut32, np.float32(-np.inf)), cut32)
     start, count = ent["ptr"][local], ent["ptr"][local + 1] - ent["ptr"][local]
     qi = np.repeat(np.arange(len(own)), count)
     idx = np.arange(len(qi)) - np.repeat(np.cumsum(count) - count, count) + np.repeat(start, count)
@@ -870,90 +962,163 @@ def _score_block(ent: dict[str, np.ndarray], blk: int, sd: _SplitData, lay: Layo
     seg = np.flatnonzero(np.r_[True, qi[1:] != qi[:-1]])
     if len(seg) != len(own):  # pragma: no cover - the own place is always an entry above the cutoff
         raise RuntimeError("internal error: a query without its own place among the candidates")
-    pc, t1c, t2c = ent["place"][idx].astype(np.int64), ent["t1"][idx], ent["t2"][idx]
-    a1c, a2c = ent["a1"][idx], ent["a2"][idx]
-    hc = sd.held[pc]
-    hit = a1c == hc  # the best image of that place is the one held out: its second counts
-    raw = np.where(hit, t2c, t1c).astype(np.float64)
-    img = lay.image_of_row[lay.row_of(pc, np.where(hit, a2c, a1c).astype(np.int64))]
-    is_own = pc == own[qi]
-    bq = b[qi]
-    inf = np.inf
+    pc, t1, t2 = ent["place"][idx].astype(np.int64), ent["t1"][idx], ent["t2"][idx]
+    a1, a2 = ent["a1"][idx], ent["a2"][idx]
+    held = sd.held[pc]
+    hit = a1 == held  # the best image of that place is the one held out: its second counts
+    raw = np.where(hit, t2, t1).astype(np.float64)
+    image = lay.image_of_row[lay.row_of(pc, np.where(hit, a2, a1).astype(np.int64))]
+    return _Candidates(own, qrow, b, qi, seg, pc, t1, t2, held, hit, raw, image)
+
+
+def _score_place_level(c: _Candidates, th_s: np.ndarray, th_w: np.ndarray, places: np.ndarray,
+                       out: dict[str, dict[str, np.ndarray]]) -> np.ndarray:
+    """The place-level methods of ``_ORDER`` into ``out``; returns each query's top raw score."""
+    qi, seg, pc, raw, own = c.query, c.start, c.place, c.raw, c.own
+    is_own, bq = c.is_own, c.b[qi]
 
     def put(key, rank, first):
         o = out[key]
         o["rank"][own] = rank
         o["place"][own] = np.where(first >= 0, places[pc[np.maximum(first, 0)]], -1)
-        o["image"][own] = np.where(first >= 0, img[np.maximum(first, 0)], -1)
+        o["image"][own] = np.where(first >= 0, c.image[np.maximum(first, 0)], -1)
 
-    # place level, no threshold
-    rank_base = np.where(finite, 1.0 + np.add.reduceat((raw >= bq) & ~is_own, seg), inf)
+    rank_base = np.where(np.isfinite(c.b), 1.0 + np.add.reduceat((raw >= bq) & ~is_own, seg), np.inf)
     top, first = _first_argmax(raw, seg, qi)
     put("place-baseline", rank_base, first)
-    # per-place thresholds, both rules
     for name, th in (("simple", th_s), ("weighted", th_w)):
         thc = th[pc]
         kept = raw >= thc
-        kept_own = b >= th[own]
-        score = np.where(kept, raw, -inf)
+        kept_own = c.b >= th[own]
+        score = np.where(kept, raw, -np.inf)
         _, f = _first_argmax(score, seg, qi)
-        put(f"raw-{name}", np.where(kept_own, 1.0 + np.add.reduceat((score >= bq) & ~is_own, seg), inf), f)
-        margin = np.where(kept, raw - thc, -inf)
+        put(f"raw-{name}", np.where(kept_own, 1.0 + np.add.reduceat((score >= bq) & ~is_own, seg), np.inf), f)
+        margin = np.where(kept, raw - thc, -np.inf)
         _, f = _first_argmax(margin, seg, qi)
-        m_own = (b - th[own])[qi]
-        put(f"margin-{name}", np.where(kept_own, 1.0 + np.add.reduceat((margin >= m_own) & ~is_own, seg), inf), f)
-    # near ties under the weighted θ: comparisons its error bound could overturn
-    unc = sd.uncertainty[pc]
-    u_own = sd.uncertainty[own]
-    m_all = raw - th_w[pc]
-    m_own = (b - th_w[own])[qi]
-    top_w, f_w = _first_argmax(np.where(raw >= th_w[pc], m_all, -inf), seg, qi)
+        m_own = (c.b - th[own])[qi]
+        put(f"margin-{name}", np.where(kept_own, 1.0 + np.add.reduceat((margin >= m_own) & ~is_own, seg), np.inf), f)
+    return top
+
+
+def _near_tie_places(c: _Candidates, th_w: np.ndarray, uncertainty: np.ndarray) -> np.ndarray:
+    """Places whose weighted θ must be exact before these outcomes can be trusted (step 6).
+
+    A comparison is doubtful when the θs' error bounds could overturn it: a candidate's keep
+    test, its margin against the own place's (the rank), or against the top answer's; and
+    the own place's keep test. Every place of a doubtful comparison is returned.
+    """
+    qi, seg, pc, own = c.query, c.start, c.place, c.own
+    unc = uncertainty[pc]
+    u_own = uncertainty[own]
+    m_all = c.raw - th_w[pc]
+    m_own = (c.b - th_w[own])[qi]
+    top_w, f_w = _first_argmax(np.where(c.raw >= th_w[pc], m_all, -np.inf), seg, qi)
     u_top = np.where(f_w >= 0, unc[np.maximum(f_w, 0)], 0.0)[qi]
     with np.errstate(invalid="ignore"):  # −inf − −inf: NaN, never near
         near = (np.abs(m_all) <= unc) & (unc > 0)  # kept or not
-        near |= (np.abs(m_all - m_own) <= unc + u_own[qi]) & (unc + u_own[qi] > 0) & ~is_own
+        near |= (np.abs(m_all - m_own) <= unc + u_own[qi]) & (unc + u_own[qi] > 0) & ~c.is_own
         near |= ((np.abs(m_all - top_w[qi]) <= unc + u_top) & (unc + u_top > 0)
                  & (np.arange(len(pc)) != f_w[qi]) & np.isfinite(top_w[qi]))
-        flagged = (np.add.reduceat(near, seg) > 0) | ((np.abs(b - th_w[own]) <= u_own) & (u_own > 0))
-    if flagged.any():  # every place in a doubtful comparison: the candidate, the own place, the top answer
-        top_place = np.where(f_w >= 0, pc[np.maximum(f_w, 0)], own)
-        fix = np.unique(np.concatenate([pc[near & flagged[qi]], own[flagged], top_place[flagged]]))
-    else:
-        fix = np.empty(0, np.int64)
-    # image level: the top image is the lowest-index image of the places tied at the top;
-    # the rank counts the wrong training images reaching b
-    tied = (raw == top[qi]) & np.isfinite(top[qi])
-    img_top = np.minimum.reduceat(np.where(tied, img, np.iinfo(np.int64).max), seg)
+        flagged = (np.add.reduceat(near, seg) > 0) | ((np.abs(c.b - th_w[own]) <= u_own) & (u_own > 0))
+    if not flagged.any():
+        return np.empty(0, np.int64)
+    top_place = np.where(f_w >= 0, pc[np.maximum(f_w, 0)], own)
+    return np.unique(np.concatenate([pc[near & flagged[qi]], own[flagged], top_place[flagged]]))
+
+
+def _score_image_level(c: _Candidates, top: np.ndarray, records: _Records, slots: int,
+                       out: dict[str, dict[str, np.ndarray]]) -> None:
+    """The image-level baseline into ``out`` (its answered place is filled in by ``_assemble``).
+
+    The top image is the lowest-index image of the places tied at the top; the rank counts
+    the wrong training images reaching b, resolved up to ``records.cap``.
+    """
+    qi, seg, pc = c.query, c.start, c.place
+    bq, finite = c.b[qi], np.isfinite(c.b)
+    cap = records.cap
+    tied = (c.raw == top[qi]) & np.isfinite(top[qi])
+    img_top = np.minimum.reduceat(np.where(tied, c.image, np.iinfo(np.int64).max), seg)
     img_top[~np.isfinite(top)] = -1
-    above = (t1c >= bq) & ~is_own & finite[qi]
-    contrib = np.where(above & (t2c < bq), (~hit).astype(np.int64), 0)  # one image reaches b: unless held out
-    multi = np.flatnonzero(above & (t2c >= bq))
-    beyond = np.zeros(len(own), dtype=bool)
-    if len(multi):
-        rec = pas.records
-        mrow = qrow[qi[multi]]
-        over = rec.n[mrow] >= cap
-        match = rec.place[mrow] == pc[multi][:, None]
+    above = (c.t1 >= bq) & ~c.is_own & finite[qi]
+    contrib = np.where(above & (c.t2 < bq), (~c.hit).astype(np.int64), 0)  # one image reaches b: unless held out
+    multi = np.flatnonzero(above & (c.t2 >= bq))
+    beyond = np.zeros(len(c.own), dtype=bool)
+    if len(multi):  # two or more images reach b: count them from the records
+        mrow = c.row[qi[multi]]
+        over = records.n[mrow] >= cap
+        match = records.place[mrow] == pc[multi][:, None]
         found = match.any(axis=1)
-        bits = rec.bits[mrow, np.argmax(match, axis=1)]
-        ge = np.unpackbits(bits, axis=1, bitorder="little")[:, : lay.slots].astype(bool)
-        contrib[multi] = np.where(found, ge.sum(axis=1) - ge[np.arange(len(multi)), hc[multi]], 1)
+        bits = records.bits[mrow, np.argmax(match, axis=1)]
+        ge = np.unpackbits(bits, axis=1, bitorder="little")[:, :slots].astype(bool)
+        contrib[multi] = np.where(found, ge.sum(axis=1) - ge[np.arange(len(multi)), c.held[multi]], 1)
         beyond[qi[multi][over]] = True
         if not (found | over).all():  # pragma: no cover
             raise RuntimeError("internal error: a multi-image record is missing")
     resolved = np.minimum(1.0 + np.add.reduceat(contrib, seg), cap + 1)
-    rank_img = np.where(finite, np.where(beyond, cap + 1, resolved), inf)
-    out["image-baseline"]["rank"][own] = rank_img
-    out["image-baseline"]["image"][own] = img_top
-    out["own"]["rank"][own] = b  # the query's best correct score, for the global thresholds
-    out["own"]["place"][own] = out["place-baseline"]["place"][own]
-    out["own"]["image"][own] = out["place-baseline"]["image"][own]
-    return top, fix
+    out["image-baseline"]["rank"][c.own] = np.where(finite, np.where(beyond, cap + 1, resolved), np.inf)
+    out["image-baseline"]["image"][c.own] = img_top
 
 
-def _assemble(sd: _SplitData, out: dict, top: np.ndarray, image_place: np.ndarray, image_traversal: np.ndarray,
-              n_places: int) -> SplitScores:
-    """The split's outcomes in the reference's order, answers as positions in the training set."""
+def _score_block(ent: dict[str, np.ndarray], blk: int, sd: _SplitData, lay: Layout, pas: _PassResult,
+                 out: dict[str, dict[str, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """Every method of ``_ORDER`` for the split's queries of one row block (module doc, step 5).
+
+    ``out[key]`` holds ``rank``, ``place`` and ``image`` arrays over the split's queries (in
+    place-index order); the block's part is written. Returns the queries' top raw score and
+    the places whose weighted θ must be made exact before the outcomes can be trusted.
+    """
+    th_s = np.asarray(sd.thresholds["simple"], dtype=np.float64)[lay.places]
+    th_w = np.asarray(sd.thresholds["weighted"], dtype=np.float64)[lay.places]
+    c = _candidates(ent, blk, sd, lay, pas.best_own, th_s, th_w)
+    top = _score_place_level(c, th_s, th_w, lay.places, out)
+    _score_image_level(c, top, pas.records, lay.slots, out)
+    return top, _near_tie_places(c, th_w, sd.uncertainty)
+
+
+def _score_splits(entries: _Entries, data: list[_SplitData], lay: Layout, pas: _PassResult, d: np.ndarray,
+                  sums: _FullSums, progress: Callable[[int, str], None] | None, done_before: int,
+                  ) -> tuple[list[dict[str, dict[str, np.ndarray]]], list[np.ndarray]]:
+    """Steps 5 and 6: every split scored block by block, near ties made exact and scored again.
+
+    Where a block's outcomes of a split hang on a near tie, the places involved get their
+    float64 θ and that block of that split is scored again, until no near tie is left.
+    Returns per split the ``out`` of ``_score_block`` over all its queries and their top raw
+    scores.
+    """
+    n_p = len(lay.places)
+    outs = [{k: {"rank": np.empty(n_p), "place": np.empty(n_p, np.int64), "image": np.empty(n_p, np.int64)}
+             for k in _ORDER} for _ in data]
+    tops = [np.empty(n_p) for _ in data]
+    todo = {blk: list(range(len(data))) for blk in range(lay.n_blocks)}  # row block -> splits to score
+    first_round = True
+    while todo:
+        fixes: dict[int, dict[int, np.ndarray]] = {}  # split -> row block -> places to make exact
+        for blk in sorted(todo):
+            ent = entries.get(blk)
+            for r in todo[blk]:
+                tops[r][lay.place_range(blk)], fix = _score_block(ent, blk, data[r], lay, pas, outs[r])
+                if len(fix):
+                    fixes.setdefault(r, {})[blk] = fix
+            if progress and first_round:
+                progress(done_before + blk + 1, f"scoring block {blk + 1}/{lay.n_blocks}")
+        first_round = False
+        todo = {}
+        for r, by_block in sorted(fixes.items()):
+            if not _make_exact(data[r], np.unique(np.concatenate(list(by_block.values()))), d, lay, sums):
+                # pragma: no cover - every doubtful comparison involves a place not yet exact
+                raise RuntimeError("internal error: near ties did not resolve")
+            for blk in by_block:
+                todo.setdefault(blk, []).append(r)
+    return outs, tops
+
+
+def _assemble(sd: _SplitData, out: dict[str, dict[str, np.ndarray]], top: np.ndarray, b: np.ndarray,
+              image_place: np.ndarray, image_traversal: np.ndarray, n_places: int) -> SplitScores:
+    """The split's ``SplitScores`` as the reference has them, answers as positions in the training set.
+
+    ``top`` and ``b`` are each query's top raw score and best correct score; the global θs
+    follow from them and the place baseline.
+    """
     sp = sd.split
     n_q = len(sp.queries)
     known = np.ones(n_q, dtype=bool)
@@ -965,15 +1130,15 @@ def _assemble(sd: _SplitData, out: dict, top: np.ndarray, image_place: np.ndarra
     img = out["image-baseline"]
     img["place"] = np.where(img["image"] >= 0, image_place[np.maximum(img["image"], 0)], -1)
     outcomes = {k: outcome(k, out[k]["rank"], out[k]["place"], out[k]["image"]) for k in _ORDER}
-    own, rank_base = out["own"], out["place-baseline"]["rank"]
+    base = out["place-baseline"]
     th = dict(sd.thresholds)
 
     def global_outcome(key: str, theta: float) -> Outcome:
         # the raw rule with one θ: the own place stays iff b ≥ θ, and then so does every
         # place above it, so the rank is the baseline's; the top answer stays iff it is ≥ θ
-        rank = np.where(own["rank"] >= theta, rank_base, np.inf)
+        rank = np.where(b >= theta, base["rank"], np.inf)
         acc = top >= theta
-        return outcome(key, rank, np.where(acc, own["place"], -1), np.where(acc, own["image"], -1))
+        return outcome(key, rank, np.where(acc, base["place"], -1), np.where(acc, base["image"], -1))
 
     outcomes["global-auto"] = global_outcome("global-auto", th["auto"])
     if "user" in th:
@@ -1018,31 +1183,30 @@ def scale_splits(
         seed: the protocol's seed (split r's automatic threshold samples with seed + r).
         max_k: image-level ranks beyond it are reported as ``max_k + 1``.
         block, table_memory, spill_dir, threads: see ``fast_paper_protocol``.
+        progress: ``progress(done, total, message)`` over the pass's block pairs, then the
+            scoring's row blocks.
     Returns:
         One ``SplitScores`` per split, with the reference's outcomes and thresholds. Its
         per-query matrices ``raw``/``best``/``correct`` are empty ``(0, n_places)`` (they
         are what this path avoids holding) and every ``Outcome.n_kept`` is ``-1``.
     """
     d = descriptors
+    image_place, image_traversal = np.asarray(image_place), np.asarray(image_traversal)
     threads = min(os.cpu_count() or 1, 8) if threads is None else max(1, int(threads))
     if any(sp.unknown.any() for sp in splits):
         raise VPRInputError("scale_splits: splits with unknown places (the open set) are not supported; "
                             "use evaluation.open_set_protocol")
     lay = make_layout(image_place, n_places, block)
-    runs, n_p = len(splits), len(lay.places)
-    query_rows = np.stack([lay.row_of_image[sp.queries] for sp in splits])
+    query_rows = np.stack([lay.row_of_image[sp.queries] for sp in splits])  # (R, P): queries by place index
     held = lay.slot_of_row[query_rows]
     sums = _full_sums(d, lay, query_rows)
-    # every θ_p is a convex combination of its place's μᵢ: all lie in [min μ, max μ]
+    # every θ_p is a convex combination of its place's μᵢ: all lie in [min μ, max μ] (the pass's floor)
     mu_lo, mu_hi = np.inf, -np.inf
     for r, sp in enumerate(splits):
         mu = _split_mu(r, lay.row_of_image[sp.train], lay, sums, held[r])[0]
         mu_lo, mu_hi = min(mu_lo, float(mu.min())), max(mu_hi, float(mu.max()))
-    is_query = np.zeros(lay.n_rows, dtype=bool)
-    is_query[query_rows.ravel()] = True
-    # automatic θ: the reference's exact branch as is, its sampled branch mirrored
+    # automatic θ (step 4): the reference's exact branch as is; its sampled pairs located for the pass
     autos: dict[int, float] = {}
-    plans: dict[int, _PairPlan] = {}
     sampled = []
     for r, sp in enumerate(splits):
         n = len(sp.train)
@@ -1051,21 +1215,21 @@ def scale_splits(
         else:
             sampled.append(r)
     with ThreadPoolExecutor(threads) as pool:  # numpy frees the GIL: splits side by side
-        plans = dict(zip(sampled, pool.map(lambda r: _pair_plan(splits[r].train, lay, seed + r, AUTO_MAX_PAIRS),
-                                           sampled)))
+        plans = dict(zip(sampled, pool.map(lambda r: _pair_plan(splits[r].train, lay, seed + r), sampled)))
     row_traversal = None
     if cross_condition:
-        _, codes = np.unique(np.asarray(image_traversal), return_inverse=True)
+        _, codes = np.unique(image_traversal, return_inverse=True)
         row_traversal = np.full(lay.n_rows, -1, dtype=np.int64)
         real = lay.image_of_row >= 0
         row_traversal[real] = codes.ravel()[lay.image_of_row[real]]
-    entries = _Entries(lay, table_memory, spill_dir)
     n_pairs = lay.n_blocks * (lay.n_blocks + 1) // 2
-    steps = n_pairs + lay.n_blocks  # progress: one count over the pass's block pairs, then the scoring
+    steps = n_pairs + lay.n_blocks
+    report = (lambda done, what: progress(done, steps, what)) if progress else None
+    entries = _Entries(lay, table_memory, spill_dir)
     try:
         x = _as_layout32(d, lay)
-        pas = _blocked_pass(x, lay, query_rows, row_traversal, entries, plans, max_k, (mu_lo, mu_hi), is_query,
-                            sums.centre, threads, progress and (lambda k, _, what: progress(k, steps, what)))
+        pas = _blocked_pass(x, lay, query_rows, row_traversal, entries, plans, max_k, (mu_lo, mu_hi), sums.centre,
+                            threads, report)
         del x
         if plans:
             eps = _score_bound(d, lay)
@@ -1077,37 +1241,12 @@ def scale_splits(
                 for r, sp in enumerate(splits)]
         kappa = _error_scale(d, lay, sums, data, seed)
         for sd in data:
-            _set_uncertainty(sd, lay, kappa)
-        outs = [{k: {"rank": np.empty(n_p), "place": np.empty(n_p, np.int64), "image": np.empty(n_p, np.int64)}
-                 for k in (*_ORDER, "own")} for _ in splits]
-        tops = [np.empty(n_p) for _ in splits]
-        todo = {(blk, r) for blk in range(lay.n_blocks) for r in range(runs)}
-        scored = False
-        while True:  # near ties: make the places involved exact, score those queries again
-            fixes: dict[int, list] = {}
-            for blk in sorted({blk for blk, _ in todo}):
-                ent = entries.get(blk)
-                for r in sorted(r for b, r in todo if b == blk):
-                    tops[r][lay.cols(blk)], fix = _score_block(ent, blk, data[r], lay, pas, max_k, outs[r])
-                    if len(fix):
-                        fixes.setdefault(r, []).append((blk, fix))
-                if progress and not scored:
-                    progress(n_pairs + blk + 1, steps, f"scoring block {blk + 1}/{lay.n_blocks}")
-            scored = True
-            if not fixes:
-                break
-            todo, progressed = set(), False
-            for r, items in fixes.items():
-                before = int(np.count_nonzero(data[r].uncertainty == 0))
-                _make_exact(data[r], np.unique(np.concatenate([f for _, f in items])), d, lay, sums)
-                progressed |= int(np.count_nonzero(data[r].uncertainty == 0)) > before
-                todo |= {(blk, r) for blk, _ in items}
-            if not progressed:  # pragma: no cover - a doubtful comparison always involves an inexact place
-                raise RuntimeError("internal error: near ties did not resolve")
+            sd.uncertainty = _uncertainty(sd, lay, kappa)
+        outs, tops = _score_splits(entries, data, lay, pas, d, sums, report, n_pairs)
     finally:
         entries.close()
-    image_place, image_traversal = np.asarray(image_place), np.asarray(image_traversal)
-    return [_assemble(sd, outs[r], tops[r], image_place, image_traversal, n_places) for r, sd in enumerate(data)]
+    return [_assemble(sd, outs[r], tops[r], pas.best_own[query_rows[r]].astype(np.float64), image_place,
+                      image_traversal, n_places) for r, sd in enumerate(data)]
 
 
 def fast_paper_protocol(
