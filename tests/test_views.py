@@ -157,3 +157,17 @@ def test_route_figure_of_a_long_route_shows_its_start_and_says_so():
     on_map = next(t for t in fig.data if t.meta == "map places")
     assert len(on_map.x) <= 600
     np.testing.assert_array_equal(np.asarray(on_map.customdata)[:, 1], frame_place[np.asarray(on_map.customdata)[:, 0]])
+
+
+def test_protocol_pairs_is_each_protocols_scored_pairs(demo):
+    from vpr_explorer.places import make_places
+    from vpr_explorer.views import protocol_pairs
+
+    places = make_places(demo, SPEC)  # 12 places x 9 images
+    n = 12 * 9
+    assert protocol_pairs("paper", places, demo) == n * n
+    assert protocol_pairs("traversal", places, demo) == 60 * 2 * 60  # every frame against two traversals
+    assert protocol_pairs("traversal", places, demo, database=["day"]) == 60 * 60
+    # open set: per split, one query per place against the known places' images, one held out of each
+    known = 12 - round(0.3 * 12)  # 8
+    assert protocol_pairs("open-set", places, demo, runs=5) == 5 * 12 * (known * 9 - known)

@@ -418,9 +418,10 @@ def protocol_pairs(protocol: str, places: Places, dataset: Dataset, *, runs: int
     if protocol == "traversal":
         n_db = max(1, dataset.n_traversals - 1) if database is None else len(database)
         return dataset.n_frames * n_db * dataset.n_frames
-    if protocol == "open-set":
+    if protocol == "open-set":  # one query per place against the known places' images less one each
         known = places.n_places - int(round(unknown_share * places.n_places))
-        return int(runs) * places.n_places * max(0, n - known)
+        training = round(n * known / max(1, places.n_places)) - known
+        return int(runs) * places.n_places * max(0, training)
     return n * n
 
 
