@@ -19,21 +19,12 @@ import resource
 import sys
 import time
 
-import numpy as np
 
 from vpr_explorer.pipeline import dataset_descriptors, run_protocol
 from vpr_explorer.places import PlaceSpec, make_places
 from vpr_explorer.report import render
 from vpr_explorer.scale import fast_paper_protocol
 from vpr_explorer.settings import data_root
-
-
-def _same(a, b) -> bool:
-    """Two method rows with the same numbers (NaN, e.g. the precision of nothing accepted, equals NaN)."""
-    pairs = [(a.recall[k], b.recall[k]) for k in a.recall] + [(a.accepted, b.accepted), (a.precision, b.precision),
-                                                              (a.own_traversal, b.own_traversal)]
-    return a.key == b.key and all(np.array_equal(np.asarray(x, float), np.asarray(y, float), equal_nan=True)
-                                  for x, y in pairs)
 
 
 def main() -> None:
@@ -69,7 +60,7 @@ def main() -> None:
         t0 = time.perf_counter()
         ref = paper_protocol(desc, places.image_place, dataset.image_traversal, places.n_places, runs=args.runs,
                              seed=args.seed, cross_condition=args.cross_condition, settings=settings)
-        same = all(_same(a, b) for a, b in zip(ref.rows, ev.rows)) and len(ref.rows) == len(ev.rows)
+        same = ref.same_numbers(ev)
         print(f"\npaper_protocol (straightforward): {time.perf_counter() - t0:.1f} s; identical tables: {same}")
 
     t0 = time.perf_counter()

@@ -97,14 +97,6 @@ def timed(fn):
     return out, time.perf_counter() - w, time.process_time() - c
 
 
-def _same(a, b) -> bool:
-    """Two method rows with the same numbers (NaN, e.g. the precision of nothing accepted, equals NaN)."""
-    pairs = [(a.recall[k], b.recall[k]) for k in a.recall] + [(a.accepted, b.accepted), (a.precision, b.precision),
-                                                              (a.own_traversal, b.own_traversal)]
-    return a.key == b.key and all(np.array_equal(np.asarray(x, float), np.asarray(y, float), equal_nan=True)
-                                  for x, y in pairs)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--places", type=int, default=9197, help="places of 12 images (default 9,197: 110,364 images)")
@@ -161,7 +153,7 @@ def main() -> None:
 
         ref, w_ref, _ = timed(lambda: paper_protocol(d, labels, trav, places, runs=args.runs, seed=args.seed,
                                                      cross_condition=args.cross_condition))
-        same = all(_same(a, b) for a, b in zip(ref.rows, ev.rows)) and len(ref.rows) == len(ev.rows)
+        same = ref.same_numbers(ev)
         print(f"\npaper_protocol: {w_ref:.1f} s; identical numbers: {same}")
         if not same:
             sys.exit(1)

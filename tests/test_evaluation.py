@@ -199,3 +199,17 @@ def test_to_dict_is_strict_json_when_nothing_is_accepted():
     assert user["precision"] == {"mean": None, "std": None} and user["accepted"]["mean"] == 0.0
     adaptive = next(t for t in data["tradeoff"] if t["series"].startswith("adaptive"))
     assert adaptive["param"] is None
+
+
+def test_same_numbers_compares_every_row_exactly_with_nan_equal_to_nan():
+    import dataclasses
+
+    d, labels, trav = _synthetic(seed=5)
+    ev = paper_protocol(d, labels, trav, 12, runs=2, seed=0, user_theta=2.0)
+    assert np.isnan(ev.row("global-user").precision[0])  # nothing accepted: NaN equals NaN
+    again = paper_protocol(d, labels, trav, 12, runs=2, seed=0, user_theta=2.0)
+    assert ev.same_numbers(again)
+    first = ev.rows[0]
+    nudged = dataclasses.replace(first, recall={**first.recall, 1: (first.recall[1][0] + 1e-12, first.recall[1][1])})
+    assert not ev.same_numbers(dataclasses.replace(ev, rows=(nudged, *ev.rows[1:])))
+    assert not ev.same_numbers(dataclasses.replace(ev, rows=ev.rows[:-1]))

@@ -122,6 +122,22 @@ class Evaluation:
     def row(self, key: str) -> MethodRow:
         return next(r for r in self.rows if r.key == key)
 
+    def same_numbers(self, other: Evaluation) -> bool:
+        """The same methods with exactly the same Recall@K, accepted, precision and own-traversal share.
+
+        NaN (e.g. the precision of nothing accepted) equals NaN. How the benchmarks check the
+        fast paper protocol against ``paper_protocol``.
+        """
+
+        def same(a: MethodRow, b: MethodRow) -> bool:
+            pairs = [(a.recall[k], b.recall[k]) for k in a.recall]
+            pairs += [(a.accepted, b.accepted), (a.precision, b.precision), (a.own_traversal, b.own_traversal)]
+            return a.key == b.key and all(
+                np.array_equal(np.asarray(x, float), np.asarray(y, float), equal_nan=True) for x, y in pairs
+            )
+
+        return len(self.rows) == len(other.rows) and all(same(a, b) for a, b in zip(self.rows, other.rows))
+
     def to_dict(self) -> dict:
         """JSON-ready numbers (rates in [0, 1]); undefined values (e.g. precision with nothing accepted) are ``None``."""
 

@@ -19,7 +19,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vpr_explorer.database import DatabaseModel, TraversalDecisions, database_rows, decide_traversal, fit_database
+from vpr_explorer.database import (
+    PAIRS_PER_BLOCK,
+    DatabaseModel,
+    TraversalDecisions,
+    database_rows,
+    decide_traversal,
+    fit_database,
+)
 from vpr_explorer.datasets import Dataset
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.evaluation import Evaluation
@@ -354,8 +361,6 @@ def similarity_grid(
     Similarities are computed a band of rows at a time (``decide_traversal``'s block
     size), so memory stays at one band whatever the route length.
     """
-    from vpr_explorer.database import PAIRS_PER_BLOCK
-
     d = np.asarray(descriptors)
     q = dataset.traversal_index(query)
     db_t = np.array([dataset.traversal_index(t) for t in database], dtype=np.int64)
