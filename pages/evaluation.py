@@ -11,7 +11,7 @@ from vpr_explorer.views import AUTO_RUN_PAIRS, evaluation_json, evaluation_rows,
 
 from ui import cache, state
 from ui.current import current
-from ui.feedback import stop_on_input_error
+from ui.feedback import PLACES_HINT, stop_on_input_error
 from ui.routing import ensure_routed
 
 ensure_routed(__file__)
@@ -45,7 +45,7 @@ with st.form("protocol_form"):
     tolerance = c[2].number_input("tolerance ± frames (traversal protocol)", 0, 20, 0, key="w_tolerance")
     submitted = st.form_submit_button("Run", type="primary")
 
-with stop_on_input_error(hint="Change group or step on the Places page."):
+with stop_on_input_error(hint=PLACES_HINT):
     places = make_places(ds, cur.spec)
 first_visit = "eval_request" not in st.session_state
 cost = protocol_pairs(protocol, places, ds, runs=int(runs), database=database, unknown_share=float(share))
@@ -67,11 +67,12 @@ elif submitted or first_visit:
 
 def show_results() -> None:
     protocol_run, options = st.session_state["eval_request"]
-    with stop_on_input_error(hint="Change the protocol settings above (or group/step on the Places page)."):
+    with stop_on_input_error(hint="Change the protocol settings above, or group/step on the **Places** page."):
         ev = cache.evaluation(cur.data, cur.spec, protocol_run, **options)
 
     st.subheader(f"{PROTOCOL_LABELS[ev.protocol]}")
-    st.caption(", ".join(f"{k}: {val}" for k, val in ev.settings.items() if k != "k_grid") + f" · {ev.seconds:.1f} s")
+    shown = {k: val for k, val in ev.settings.items() if k not in ("k_grid", "group", "step", "reading") and val is not None}
+    st.caption(", ".join(f"{k}: {val}" for k, val in shown.items()) + f" · {ev.seconds:.1f} s")
     for note in ev.notes:
         st.caption(f"note: {note}")
     st.caption("The image-level baseline ranks images (the authors' 'Baseline'); the place-level baseline ranks places "
@@ -113,7 +114,7 @@ def open_pair() -> None:
     st.session_state["goto_inspector"] = True
 
 
-with stop_on_input_error():
+with stop_on_input_error(hint="Pick the query traversal on the **Places** page."):
     grid = cache.grid(cur.data, cur.database, cur.query)
 if grid.sampled:
     st.caption(f"{ds.n_frames:,} frames: each row is one query frame (the centre of its block of {grid.block}) against "

@@ -109,6 +109,14 @@ with col_desc:
                 st.caption(f"**{name}**: {reason}")
 
 st.divider()
+disk_problem = cache.disk_cache_problem()
+if disk_problem is not None:
+    st.warning(
+        f"**The cache folder is not writable: nothing will be cached.** Descriptors are kept in memory only "
+        f"(computed again after the app restarts) and the demo route is drawn in the temporary folder.\n\n"
+        f"{disk_problem}",
+        icon=":material/warning:",
+    )
 try:
     ds = cache.dataset(v.source)
 except VPRInputError as exc:
@@ -125,8 +133,9 @@ for note in ds.notes:
 
 try:
     cur = current()
+    kept = "cached on disk" if disk_problem is None else "in memory only"
     st.success(f"{v.descriptor} descriptors ready: {cur.data.descriptors.shape[0]} × {cur.data.descriptors.shape[1]} "
-               f"(cached on disk; regrouping never recomputes them). Next: **Places**.", icon=":material/check_circle:")
+               f"({kept}; regrouping never recomputes them). Next: **Places**.", icon=":material/check_circle:")
 except VPRInputError as exc:
     show_error(exc, hint="Fix or remove the file named above, or pick another route or descriptor.")
 
@@ -139,7 +148,9 @@ for t, name in enumerate(ds.traversals):
         col.image(cache.thumbnail(ds.paths[t][f]), caption=f"{f}", width="stretch")
 
 with st.expander("Memory and disk caches"):
-    st.caption(f"Descriptors are cached on disk under `{settings.cache_root()}` by image content. "
+    where = (f"cached on disk under `{settings.descriptor_folder()}`" if disk_problem is None
+             else f"not cached on disk (`{settings.cache_root()}` is not writable; set {settings.CACHE_ENV})")
+    st.caption(f"Descriptors are {where}, keyed by image content. "
                "Forgetting the in-memory results re-reads the folders (after you changed files).")
     if st.button("Forget in-memory results", key="w_clear"):
         cache.clear_all()

@@ -11,7 +11,7 @@ from vpr_explorer.views import FIND_KINDS, LIVE_METHODS, top_candidates
 from ui import cache, state
 from ui.controls import threshold_controls
 from ui.current import current
-from ui.feedback import stop_on_input_error
+from ui.feedback import PLACES_HINT, stop_on_input_error
 from ui.routing import ensure_routed
 
 ensure_routed(__file__)
@@ -23,10 +23,15 @@ BEST_IMAGES = 4
 st.title("Query inspector")
 with stop_on_input_error():
     cur = current()
+with stop_on_input_error(hint=PLACES_HINT):
     r = cache.fitted(cur.data, cur.spec, cur.query)
 ds, model = cur.data.dataset, r.model
 v = state.view()
 frame = v.frame if v.frame is not None and 0 <= v.frame < ds.n_frames else r.first_scored_frame()
+if v.frame is not None and v.frame != frame:
+    st.warning(f"frame={v.frame} is not a frame of {ds.name!r} (0 to {ds.n_frames - 1}): showing frame {frame} "
+               "instead.", icon=":material/warning:")
+    state.update(frame=None)
 
 top = st.columns([2, 3, 2])
 top[0].selectbox("Query traversal (database: every other one)", list(ds.traversals),
@@ -67,7 +72,7 @@ if note:
     finder[3].info(note)
 
 image = ds.image_index(cur.query, frame)
-with stop_on_input_error():
+with stop_on_input_error(hint="Change k or your global θ above, or group/step on the **Places** page."):
     dec = cache.decision(cur.data, cur.spec, cur.query, image, k=k, user_theta=user_theta)
 cands = top_candidates(dec, SHOWN_CANDIDATES)
 

@@ -63,7 +63,7 @@ if spec is not None:
             st.plotly_chart(plots.route_figure(alt.frame_place, ds.traversals), key=f"route_{reading.value}",
                             width="stretch")
 
-with stop_on_input_error(hint="Change group or step."):
+with stop_on_input_error(hint="Change group or step above."):
     r, seconds = cache.regrouped_timed(cur.data, spec, cur.query)
 
 st.subheader("Live consequences")

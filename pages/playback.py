@@ -9,10 +9,10 @@ from ui import state
 from ui.current import current
 from ui.feedback import progress_reporter, stop_on_input_error
 from ui.routing import ensure_routed
+from ui.state import K_RANGE
 
 ensure_routed(__file__)
 
-K_RANGE = (-1.0, 3.0)
 VIEWER_HEIGHT = 860
 
 st.title("Playback")
@@ -40,7 +40,7 @@ k = cols[2].slider("k: θ_p(k) = θ_p + k·s_p (k = 0 is the paper)", K_RANGE[0]
 if st.button("Record and play", type="primary", icon=":material/play_circle:", disabled=not database):
     progress, clear = progress_reporter(f"Recording {ds.n_frames} frames of {query}")
     try:
-        with stop_on_input_error(hint=None):
+        with stop_on_input_error(hint="Change the traversals or k above, or group/step on the **Places** page."):
             st.session_state["playback"] = record_playback(
                 ds, cur.data.descriptors, cur.spec, database=database, queries=query, serve=True, k=k,
                 descriptor=cur.data.descriptor, progress=progress,

@@ -10,7 +10,7 @@ from vpr_explorer.thresholds import THRESHOLD_LABELS, ThresholdMethod
 from ui import cache, state
 from ui.controls import threshold_controls
 from ui.current import current
-from ui.feedback import stop_on_input_error
+from ui.feedback import PLACES_HINT, stop_on_input_error
 from ui.routing import ensure_routed
 
 ensure_routed(__file__)
@@ -18,12 +18,17 @@ ensure_routed(__file__)
 st.title("Thresholds: where θ_p sits")
 with stop_on_input_error():
     cur = current()
+with stop_on_input_error(hint=PLACES_HINT):
     r = cache.fitted(cur.data, cur.spec, cur.query)
 ds, model = cur.data.dataset, r.model
 theta_w = model.theta["weighted"]
 order = np.argsort(theta_w, kind="stable")
 v = state.view()
 place = v.place if v.place is not None and 0 <= v.place < model.n_places else int(order[len(order) // 2])
+if v.place is not None and v.place != place:
+    st.warning(f"place={v.place} is not a place here ({model.n_places} places, 0 to {model.n_places - 1}): showing "
+               f"place {place} instead.", icon=":material/warning:")
+    state.update(place=None)
 
 
 def pick_from_overview() -> None:
@@ -43,7 +48,7 @@ with overview:
     st.plotly_chart(plots.places_overview(theta_w, model.positive_mean, model.negative_mean, selected=place),
                     key="overview", on_select=pick_from_overview, selection_mode="points", width="stretch")
 
-with stop_on_input_error():
+with stop_on_input_error(hint=PLACES_HINT):
     d = cache.detail(cur.data, cur.spec, cur.query, place)
 method = st.session_state.get("w_method", ThresholdMethod.WEIGHTED.value)
 theta_k = d.theta_k(k, method)

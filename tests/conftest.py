@@ -1,7 +1,8 @@
 """Shared fixtures: the real datasets (through VPR_EXPLORER_DATA), the demo route and an isolated cache.
 
-Real-data tests skip with a clear reason when ``VPR_EXPLORER_DATA`` is unset; ``.ci/run``
-sets it, and passes ``--require-data`` so that such a skip fails CI instead.
+Real-data tests skip with a clear reason when ``VPR_EXPLORER_DATA`` is unset (or fail, with
+``--require-data``). ``.ci/run`` sets it and fails the run when any test is skipped, so CI
+never skips them.
 """
 
 from __future__ import annotations

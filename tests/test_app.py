@@ -469,6 +469,73 @@ def test_a_bad_url_parameter_is_ignored_with_a_warning(app):
     assert any("group='three'" in w.value for w in at.warning)
 
 
+@pytest.mark.parametrize("params, said", [
+    ({"group": "0"}, ["group='0'", "1 or more", "using the default (3)"]),
+    ({"group": "99999999999999999999"}, ["group='99999999999999999999'", "10,000,000", "using the default (3)"]),
+    ({"step": "1"}, ["step='1'", "step=1 < group=3", "using the dataset's default step"]),
+    ({"reading": "diagonal"}, ["reading='diagonal'", "using the stride reading"]),
+    ({"k": "10"}, ["k='10'", "outside -1 to 3", "using k = 0"]),
+    ({"theta": "5"}, ["theta='5'", "outside -1 to 1", "no global θ of your own"]),
+    ({"place": "-2"}, ["place='-2'", "0 or more", "the default place"]),
+])
+def test_a_bad_url_value_is_named_with_what_is_used_instead(app, params, said):
+    app.query_params.update(params)
+    at = app.run()
+    assert_clean(at)
+    warning = next((w.value for w in at.warning if "Ignored in the link" in w.value), "")
+    assert all(fragment in warning for fragment in said), (warning, said)
+    for name in ("places", "thresholds"):  # and every page then runs on what was used instead
+        page(at, name)
+        assert_clean(at)
+    assert metric(at, "negative scores ≥ θ_p weighted")
+    assert at.slider(key="w_k").value == 0.0
+
+
+def test_a_url_query_traversal_the_dataset_lacks_is_replaced_with_a_warning(app):
+    app.query_params.update({"query": "dusk"})
+    at = app.run()
+    assert_clean(at)
+    assert any("query='dusk'" in w.value and "using 'snow' instead" in w.value and "**Places** page" in w.value
+               for w in at.warning), [w.value for w in at.warning]
+    assert "query" not in at.query_params
+    at = page(at, "places")
+    assert_clean(at)
+    assert at.selectbox(key="w_query").value == "snow"
+
+
+@pytest.mark.parametrize("name, param, value, said", [
+    ("thresholds", "place", "999", "place=999 is not a place here (12 places, 0 to 11)"),
+    ("inspector", "frame", "999", "frame=999 is not a frame of 'demo' (0 to 59)"),
+])
+def test_a_url_place_or_frame_out_of_range_says_what_is_shown_instead(app, name, param, value, said):
+    app.query_params.update({param: value})
+    at = page(app.run(), name)
+    assert_clean(at)
+    assert any(said in w.value and "instead" in w.value for w in at.warning), [w.value for w in at.warning]
+    assert param not in at.query_params
+
+
+@pytest.mark.parametrize("name", ["thresholds", "inspector", "evaluation"])
+def test_a_group_step_error_names_the_places_page(app, name):
+    app.query_params.update({"group": "40", "step": "40"})  # one place on the demo's 60 frames
+    at = page(app.run(), name)
+    assert_clean(at, errors=True)
+    (error,) = [e.value for e in at.error]
+    assert "at least 2 places" in error and "**Places** page" in error and "Dataset" not in error
+
+
+def test_on_the_places_page_a_group_step_error_points_at_its_own_sliders(app):
+    app.query_params.update({"group": "40", "step": "40"})
+    at = page(app.run(), "places")
+    assert_clean(at, errors=True)
+    (error,) = [e.value for e in at.error]
+    assert "at least 2 places" in error and "Change group or step above." in error
+    at.slider(key="w_group").set_value(3).run()
+    at.slider(key="w_step").set_value(5).run()
+    assert_clean(at)
+    assert metric(at, "places") == "12"
+
+
 # --------------------------------------------------------------------------- bad input
 
 
@@ -496,10 +563,10 @@ def test_a_folder_without_images_shows_an_error(app, tmp_path):
     assert at.session_state["view"].source == "demo"
 
 
-def make_route(root: Path, frames: int = 12, corrupt: str | None = None) -> Path:
+def make_route(root: Path, frames: int = 12, corrupt: str | None = None, names: tuple[str, ...] = ("a", "b")) -> Path:
     rng = np.random.default_rng(0)
     base = rng.integers(0, 255, size=(frames, 24, 32, 3), dtype=np.uint8)
-    for t, name in enumerate(("a", "b")):
+    for t, name in enumerate(names):
         (root / name).mkdir(parents=True)
         for f in range(frames):
             noisy = np.clip(base[f].astype(int) + rng.integers(-20, 20, base[f].shape), 0, 255).astype(np.uint8)
@@ -595,3 +662,21 @@ def test_gardens_point_pages_show_the_library_numbers(app, data_root, gardens_po
                                dec.raw[top_candidates(dec, 8)])
     page(at, "evaluation")
     assert_clean(at)
+
+
+def test_query_and_ref_folders_query_with_query(app, tmp_path):
+    """Folder order would make ``query/`` the database; the names say otherwise."""
+    route = make_route(tmp_path / "route", frames=18, names=("query", "ref"))
+    at = choose_folder(app.run(), route)
+    at = page(at, "places")
+    assert_clean(at)
+    assert at.selectbox(key="w_query").value == "query"
+    at = page(at, "evaluation")
+    at.radio(key="w_protocol").set_value("traversal")
+    at.button[0].click()
+    at = at.run()
+    assert_clean(at)
+    caption = next(c.value for c in at.caption if c.value.startswith("dataset:"))
+    assert "database: ['ref']" in caption and "queries: query" in caption
+    assert "direction: default, recognised from the traversal names" in caption
+    assert "places: 4 places × 3 database images" in caption  # group 3 of the 18 frames, ref's images only

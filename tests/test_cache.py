@@ -64,7 +64,7 @@ def fresh(paths: list[Path]) -> np.ndarray:
 
 
 def only_shard(cache: DescriptorCache, key: str) -> Path:
-    (manifest,) = sorted((cache.root / key).glob("*.json"))
+    (manifest,) = sorted((cache.folder / key).glob("*.json"))
     return manifest
 
 
@@ -217,31 +217,37 @@ def test_shard_of_another_dimension_is_not_trusted(images, cache):
     assert len(index) == 0 and found.shape == (0, 5)
 
 
-# ------------------------------------------------------------------ failed runs write nothing
+# ------------------------------------------------------------------ failed runs keep only checked vectors
 
 
-def test_unreadable_image_fails_naming_it_and_caches_nothing(images, cache, tmp_path):
+def test_unreadable_image_fails_naming_it_and_keeps_the_finished_batches(images, cache, tmp_path):
     extract_descriptors(images[:3], CountingExtractor(), cache=cache)
-    before = cache.stats()
     broken = tmp_path / "broken.jpg"
     broken.write_bytes(b"\xff\xd8\xff\xe0 this is not really a JPEG")
+    # Batches of 4 over 7 misses then the broken file: [3 4 5 6] [7 8 9 broken].
     with pytest.raises(VPRInputError, match=r"broken\.jpg: cannot read the image .*replace or remove the file"):
         extract_descriptors([*images, broken], CountingExtractor(), cache=cache, batch_size=4)
-    assert cache.stats() == before
+    assert cache.stats()["vectors"] == 3 + 4  # the batch holding the broken image is not kept
+    again = CountingExtractor()
+    np.testing.assert_array_equal(extract_descriptors(images, again, cache=cache), fresh(images))
+    assert sorted(again.loaded) == images[7:]
 
 
-def test_failure_after_several_shards_worth_caches_nothing(images, cache, tmp_path, monkeypatch):
-    # With shards of 2 images, batches of 2 and the broken image last, four full shards'
-    # worth of vectors pass their checks before the failure: none of them may be kept.
+def test_failure_after_several_shards_keeps_them_and_the_rerun_computes_the_rest(images, cache, tmp_path,
+                                                                                  monkeypatch):
+    # Shards of 2 images, batches of 2, the broken image in the fifth batch: four shards
+    # are written before the failure, and the rerun computes only images 8 and 9.
     import vpr_explorer.descriptors.extract as extract
 
     monkeypatch.setattr(extract, "SHARD_SIZE", 2)
     broken = tmp_path / "zz_broken.png"
     broken.write_bytes(b"not a png at all")
     with pytest.raises(VPRInputError, match=r"zz_broken\.png"):
-        extract_descriptors([*images, broken], CountingExtractor(), cache=cache, batch_size=2)
-    assert cache.stats() == {"shards": 0, "vectors": 0, "bytes": 0}
-    extract_descriptors(images, CountingExtractor(), cache=cache, batch_size=2)
+        extract_descriptors([*images[:9], broken, images[9]], CountingExtractor(), cache=cache, batch_size=2)
+    assert cache.stats()["shards"] == 4 and cache.stats()["vectors"] == 8
+    again = CountingExtractor()
+    np.testing.assert_array_equal(extract_descriptors(images, again, cache=cache, batch_size=2), fresh(images))
+    assert sorted(again.loaded) == images[8:]
     assert cache.stats()["shards"] == 5 and cache.stats()["vectors"] == 10
 
 
@@ -374,7 +380,7 @@ def test_float16_results_cold_warm_and_partly_warm(images, tmp_path, storage):
     partly = extract_descriptors(images, counting, cache=cache, dtype="float16")
     assert counting.forwarded == 6
     check_float16_result(partly, reference)
-    for shard in (cache.root / CountingExtractor().cache_key).glob("*.npy"):
+    for shard in (cache.folder / CountingExtractor().cache_key).glob("*.npy"):
         assert np.load(shard).dtype == storage  # the cache's storage dtype decides, not the result's
 
     cold = extract_descriptors(images, CountingExtractor(), cache=DescriptorCache(tmp_path / "other", dtype=storage),
@@ -508,7 +514,8 @@ def test_hash_file_is_sha256_of_the_bytes_and_names_missing_files(images, tmp_pa
 
 def test_default_root_follows_the_environment(monkeypatch, tmp_path):
     monkeypatch.setenv("VPR_EXPLORER_CACHE", str(tmp_path / "env-cache"))
-    assert DescriptorCache().root == tmp_path / "env-cache" / "descriptors"
+    assert DescriptorCache().root == tmp_path / "env-cache"
+    assert DescriptorCache().folder == tmp_path / "env-cache" / "descriptors"
 
 
 def test_clear_and_stats(images, cache):
@@ -517,13 +524,13 @@ def test_clear_and_stats(images, cache):
     cache.store("other-1", hashes, np.ones((2, 5), dtype=np.float32))
     stats = cache.stats()
     assert stats["shards"] == 2 and stats["vectors"] == len(images) + 2
-    npy_bytes = sum(p.stat().st_size for p in cache.root.rglob("*.npy"))
+    npy_bytes = sum(p.stat().st_size for p in cache.folder.rglob("*.npy"))
     assert stats["bytes"] > npy_bytes
     assert cache.stats("other-1")["vectors"] == 2
 
     cache.clear("other-1")
     assert cache.stats() == cache.stats("counting-pixels-test") and cache.stats()["shards"] == 1
-    keep = cache.root / "counting-pixels-test" / "notes.txt"
+    keep = cache.folder / "counting-pixels-test" / "notes.txt"
     keep.write_text("not the cache's")
     cache.clear()
     assert cache.stats() == {"shards": 0, "vectors": 0, "bytes": 0}

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from vpr_explorer.datasets import load_dataset
+from vpr_explorer.datasets import load_dataset, traversal_roles
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.places import PlaceSpec, make_places
 
@@ -115,3 +115,32 @@ def test_nordland_layout(data_root):
     assert ds.n_frames == 3576
     assert ds.paths[0][0].name == ds.paths[1][0].name == "images-00010.png"
     assert make_places(ds, PlaceSpec(3, 3)).n_places == 1192
+
+
+@pytest.mark.parametrize("names, database, query, by_name", [
+    (("query", "ref"), ("ref",), "query", True),  # folder order alone would query with ref
+    (("Reference", "Live"), ("Reference",), "Live", True),
+    (("db", "q", "x"), ("db",), "q", True),
+    (("map", "run1", "run2"), ("map",), "run2", True),
+    (("database", "day", "night"), ("database",), "night", True),
+    (("queries", "summer", "winter"), ("summer",), "queries", True),
+    (("day_left", "day_right", "night_right"), ("day_left",), "night_right", False),
+    (("summer", "winter"), ("summer",), "winter", False),
+    (("query", "queries"), ("query",), "queries", False),  # two query names: no telling, folder order
+])
+def test_traversal_roles_from_names_else_folder_order(names, database, query, by_name):
+    roles = traversal_roles(names)
+    assert tuple(names[t] for t in roles.database) == database
+    assert names[roles.query] == query and roles.by_name is by_name
+
+
+def test_a_dataset_with_query_and_ref_folders(tmp_path):
+    for name in ("query", "ref"):
+        (tmp_path / name).mkdir()
+        for i in range(3):
+            _img(tmp_path / name / f"{i}.png")
+    ds = load_dataset(tmp_path)
+    assert ds.traversals == ("query", "ref")
+    roles = ds.default_roles()
+    assert ds.traversals[roles.query] == "query" and [ds.traversals[t] for t in roles.database] == ["ref"]
+    assert roles.describe(ds.traversals) == "query against ref (recognised from the traversal names)"

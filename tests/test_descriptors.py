@@ -51,7 +51,7 @@ def test_registry_names_and_availability():
     assert set(available) == set(EXTRACTOR_NAMES)
     assert available["pixels"] is None and available["efficientnet-lite0"] is None
     pixels = get_extractor("pixels")
-    assert isinstance(pixels, Extractor) and pixels.cache_key == "pixels-1" and pixels.dim == 2048
+    assert isinstance(pixels, Extractor) and pixels.cache_key == "pixels-2" and pixels.dim == 2048
 
 
 def test_unknown_extractor_lists_the_choices():
@@ -286,7 +286,7 @@ def test_unit_range_scaling_by_hand(tmp_path):
 
 def test_efficientnet_descriptors(images):
     extractor = get_extractor("efficientnet-lite0")
-    assert extractor.cache_key == "efficientnet-lite0-1" and extractor.dim == 1280
+    assert extractor.cache_key == "efficientnet-lite0-2" and extractor.dim == 1280
     d = extract_descriptors(images[:3], extractor)
     assert d.shape == (3, 1280) and d.dtype == np.float32
     np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-6)
@@ -395,3 +395,79 @@ def test_gardens_point_night_to_day_recall(gardens_point_descriptors, name, at_l
     chance = 5 / 200
     print(f"GardensPoint night_right -> day_right, {name}: R@1 (+-2 frames) = {r1:.3f} (chance {chance:.3f})")
     assert r1 >= at_least
+
+
+# ------------------------------------------------------------------ decoding: bit depth, exactness
+
+
+def independent_pixels(path: Path) -> np.ndarray:
+    """The pixels recipe as its docstring states it, written out plainly (no project code).
+
+    PIL open -> convert("L") -> resize((64, 32), BILINEAR) -> per 8x8 patch: subtract the
+    mean, divide by the population std (a flat patch gives zeros) -> flatten -> unit length.
+    """
+    with Image.open(path) as image:
+        grey = np.asarray(image.convert("L").resize((64, 32), Image.BILINEAR), dtype=np.float64)
+    out = np.zeros_like(grey)
+    for r in range(0, 32, 8):
+        for c in range(0, 64, 8):
+            patch = grey[r : r + 8, c : c + 8]
+            if patch.std() > 0:
+                out[r : r + 8, c : c + 8] = (patch - patch.mean()) / patch.std()
+    flat = out.ravel()
+    return flat / np.linalg.norm(flat)
+
+
+@pytest.mark.realdata
+def test_pixels_is_its_stated_recipe_on_every_gardens_point_image(data_root):
+    paths = list(load_dataset(data_root / "GardensPointWalking").image_paths)
+    got = extract_descriptors(paths, get_extractor("pixels"))
+    cosines = np.array([float(row @ independent_pixels(p)) for row, p in zip(got, paths)])
+    worst = int(np.argmin(cosines))
+    assert cosines.min() > 0.9999, f"{paths[worst]}: cosine {cosines[worst]:.5f}"
+
+
+def high_depth_copies(source: Path, folder: Path) -> tuple[Path, dict[str, Path]]:
+    """An 8-bit greyscale PNG of ``source`` and the same picture at 16, 32 (int) and 32 (float) bits."""
+    grey = np.asarray(Image.open(source).convert("L"))
+    eight = folder / "grey8.png"
+    Image.fromarray(grey).save(eight)
+    copies = {
+        "I;16": (Image.fromarray(grey.astype(np.uint16) * 257), "grey16.png"),  # full 16-bit range
+        "I": (Image.fromarray(np.round(grey * ((2**31 - 1) / 255)).astype(np.int32)), "grey32.tif"),
+        "F": (Image.fromarray(grey.astype(np.float32) / 255), "grey-float.tif"),
+    }
+    paths = {}
+    for mode, (image, name) in copies.items():
+        image.save(folder / name)
+        with Image.open(folder / name) as reopened:
+            assert reopened.mode == mode  # the file really is of that depth
+        paths[mode] = folder / name
+    return eight, paths
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize("frame", [0, 100])
+def test_high_bit_depth_greyscale_gives_the_8_bit_descriptors(gardens_point, tmp_path, frame):
+    n = gardens_point.n_frames
+    source = gardens_point.image_paths[n + frame]  # night_right: dark, where clipping showed white
+    eight, deep = high_depth_copies(source, tmp_path)
+
+    pixels = extract_descriptors([eight, *deep.values()], get_extractor("pixels"))
+    for row, mode in zip(pixels[1:], deep):
+        np.testing.assert_allclose(row, pixels[0], atol=1e-6, err_msg=mode)
+
+    effnet = extract_descriptors([eight, deep["I;16"]], get_extractor("efficientnet-lite0"))
+    assert float(effnet[0] @ effnet[1]) > 0.999
+
+
+def test_high_bit_depth_scaling_by_hand(tmp_path):
+    from vpr_explorer.descriptors.base import open_image
+
+    values = np.array([[0, 257, 32768, 65535]], dtype=np.uint16)
+    Image.fromarray(values).save(tmp_path / "ramp16.png")
+    # v / 257, rounded half up: 32768 / 257 = 127.5
+    np.testing.assert_array_equal(np.asarray(open_image(tmp_path / "ramp16.png", "L")), [[0, 1, 128, 255]])
+    np.testing.assert_array_equal(np.asarray(open_image(tmp_path / "ramp16.png", "RGB"))[0, :, 0], [0, 1, 128, 255])
+    Image.fromarray(np.array([[-0.5, 0.0, 0.5, 2.0]], dtype=np.float32)).save(tmp_path / "ramp.tif")
+    np.testing.assert_array_equal(np.asarray(open_image(tmp_path / "ramp.tif", "L")), [[0, 0, 128, 255]])

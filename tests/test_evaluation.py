@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from reference import loop_rank, loop_thresholds, pairwise_negative_stats, unit_rows
+from reference import loop_protocol, loop_rank, loop_thresholds, pairwise_negative_stats, unit_rows
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.evaluation import (
     draw_splits,
@@ -91,6 +91,13 @@ def test_splits_hold_out_one_query_per_place_and_never_train_on_it():
     b = draw_splits(labels, 5, runs=3, seed=7)
     assert all(np.array_equal(x.queries, y.queries) for x, y in zip(a, b))
     assert any(not np.array_equal(x.queries, y.queries) for x, y in zip(a, draw_splits(labels, 5, runs=3, seed=8)))
+
+
+def test_seed_out_of_range_is_named():
+    labels = np.repeat(np.arange(5), 3)
+    for seed in (-1, 2**63, 1.5):
+        with pytest.raises(VPRInputError, match="seed="):
+            draw_splits(labels, 5, runs=1, seed=seed)
 
 
 def test_unknown_places_leave_training_entirely():
@@ -213,3 +220,112 @@ def test_same_numbers_compares_every_row_exactly_with_nan_equal_to_nan():
     nudged = dataclasses.replace(first, recall={**first.recall, 1: (first.recall[1][0] + 1e-12, first.recall[1][1])})
     assert not ev.same_numbers(dataclasses.replace(ev, rows=(nudged, *ev.rows[1:])))
     assert not ev.same_numbers(dataclasses.replace(ev, rows=ev.rows[:-1]))
+
+
+# --------------------------------------------------------------------------- frame tolerance in every protocol
+
+
+def test_pooled_truth_hand_case_is_symmetric():
+    from vpr_explorer.evaluation import pooled_truth
+
+    # 9 frames, group 3 step 3: places [0,1,2] [3,4,5] [6,7,8]; one traversal, image i = frame i
+    frame_place = np.repeat(np.arange(3), 3)
+    image_place, image_frame = frame_place.copy(), np.arange(9)
+    assert pooled_truth(image_place, image_frame, frame_place, 0, 3) is None
+    img, place = pooled_truth(image_place, image_frame, frame_place, 1, 3)
+    # frame 2 reaches frame 3 (place 1), frame 3 reaches 2 (place 0), and 5 <-> 6
+    assert sorted(zip(img.tolist(), place.tolist())) == [(2, 1), (3, 0), (5, 2), (6, 1)]
+    img, place = pooled_truth(image_place, image_frame, frame_place, 2, 3)
+    assert sorted(zip(img.tolist(), place.tolist())) == [(1, 1), (2, 1), (3, 0), (4, 0), (4, 2), (5, 2), (6, 1),
+                                                          (7, 1)]
+    # places 10 frames apart: a tolerance of 2 reaches no other place
+    gap = np.full(30, -1)
+    gap[[0, 1, 2, 10, 11, 12, 20, 21, 22]] = np.repeat(np.arange(3), 3)
+    lab = np.flatnonzero(gap >= 0)
+    assert pooled_truth(gap[lab], lab, gap, 2, 3) is None
+    with pytest.raises(VPRInputError, match="tolerance=-1"):
+        pooled_truth(image_place, image_frame, frame_place, -1, 3)
+
+
+def test_tolerance_counts_neighbouring_places_as_right(demo, demo_pixels):
+    from vpr_explorer.scale import fast_paper_protocol
+
+    places = make_places(demo, PlaceSpec(3, 3))
+    args = (demo_pixels, places.image_place, demo.image_traversal, places.n_places)
+    frames = dict(image_frame=demo.image_frame, frame_place=places.frame_place)
+    exact = paper_protocol(*args, runs=5, seed=0)
+    loose = paper_protocol(*args, runs=5, seed=0, tolerance=2, **frames)
+    assert loose.settings["tolerance"] == 2 and exact.settings["tolerance"] == 0
+    # more right places: a rank can only improve, and on this route it does
+    for a, b in zip(exact.rows, loose.rows):
+        assert b.recall[1][0] >= a.recall[1][0], a.key
+    assert loose.row("place-baseline").recall[1][0] > exact.row("place-baseline").recall[1][0]
+    # the fast path hands such a run to the straightforward protocol, and says so
+    fast = fast_paper_protocol(*args, runs=5, seed=0, tolerance=2, **frames)
+    assert fast.same_numbers(loose) and any("frame tolerance of 2" in n for n in fast.notes)
+    # where places are further apart than the tolerance, nothing changes but the setting
+    apart = make_places(demo, PlaceSpec(3, 10))
+    args = (demo_pixels, apart.image_place, demo.image_traversal, apart.n_places)
+    fast = fast_paper_protocol(*args, runs=3, tolerance=2, image_frame=demo.image_frame, frame_place=apart.frame_place)
+    assert fast.same_numbers(paper_protocol(*args, runs=3)) and fast.settings["tolerance"] == 2
+    opened = open_set_protocol(*args, runs=3, tolerance=2, image_frame=demo.image_frame, frame_place=apart.frame_place)
+    assert opened.same_numbers(open_set_protocol(*args, runs=3))
+
+
+# --------------------------------------------------------------------------- every row against plain loops
+
+
+def _hard(seed=0):
+    """Noisy places: neither trivial nor hopeless (asserted), so leaks and wrong rules show."""
+    return _synthetic(seed=seed, n_places=10, per_place=6, dim=24, noise=2.2)
+
+
+def _assert_rows_equal_loops(ev, ref, keys, with_rejection=False):
+    for key in keys:
+        row, want = ev.row(key), ref[key]
+        for k in ev.ks:
+            np.testing.assert_allclose(row.recall[k], want["recall"][k], atol=1e-12, err_msg=f"{key} R@{k}")
+        np.testing.assert_allclose(row.accepted, want["accepted"], atol=1e-12, err_msg=f"{key} accepted")
+        np.testing.assert_allclose(row.precision, want["precision"], atol=1e-12, err_msg=f"{key} precision")
+        np.testing.assert_allclose(row.own_traversal, want["own"], atol=1e-12, err_msg=f"{key} own traversal")
+        if with_rejection:
+            np.testing.assert_allclose(row.unknown_rejection, want["rejection"], atol=1e-12, err_msg=f"{key} rejection")
+
+
+KEYS = ("image-baseline", "place-baseline", "margin-simple", "margin-weighted", "raw-simple", "raw-weighted")
+
+
+@pytest.mark.parametrize("cross_condition", [False, True])
+def test_every_row_of_the_paper_protocol_equals_plain_loops(cross_condition):
+    d, labels, trav = _hard()
+    ev = paper_protocol(d, labels, trav, 10, runs=6, seed=3, cross_condition=cross_condition)
+    r1 = ev.row("place-baseline").recall[1][0]
+    assert 0.3 < r1 < 0.95, r1  # the numbers can tell a wrong rule from a right one
+    margin, raw = ev.row("margin-weighted").recall[1][0], ev.row("raw-weighted").recall[1][0]
+    assert margin != raw  # the margin and raw rules differ on this data
+    ref = loop_protocol(d, labels, trav, 10, draw_splits(labels, 10, runs=6, seed=3), cross_condition=cross_condition)
+    _assert_rows_equal_loops(ev, ref, KEYS)
+
+
+def test_every_row_of_the_open_set_and_its_tradeoff_equals_plain_loops():
+    d, labels, trav = _hard(seed=4)
+    ks_family = (-0.5, 0.0, 2.0, 3.5)
+    ev = open_set_protocol(d, labels, trav, 10, runs=5, seed=2, unknown_share=0.3, k_grid=ks_family)
+    splits = draw_splits(labels, 10, runs=5, seed=2, unknown_share=0.3)
+    ref = loop_protocol(d, labels, trav, 10, splits, ks_family=ks_family)
+    r1 = ev.row("place-baseline").recall[1][0]
+    assert 0.3 < r1 < 0.95, r1
+    _assert_rows_equal_loops(ev, ref, KEYS, with_rejection=True)
+    assert ev.row("margin-weighted").unknown_rejection[0] < 1  # the numbers are not trivial either
+    rejected = []
+    for t in ev.tradeoff:
+        if not t.series.startswith("θ_p(k)"):
+            continue
+        base = t.series.split()[-1]
+        want = ref[("family", base, t.rule, t.param)]
+        np.testing.assert_allclose(t.known_recall1, want["recall"][1], atol=1e-12, err_msg=f"{t.series} {t.rule} {t.param}")
+        np.testing.assert_allclose(t.unknown_rejection, want["rejection"], atol=1e-12)
+        np.testing.assert_allclose(t.precision, want["precision"], atol=1e-12)
+        np.testing.assert_allclose(t.accepted, want["accepted"], atol=1e-12)
+        rejected.append(t.unknown_rejection[0])
+    assert len(rejected) == 16 and max(rejected) > min(rejected)  # k moves the rejection

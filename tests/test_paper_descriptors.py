@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import hashlib
 import os
+import subprocess
+import sys
 import textwrap
 from pathlib import Path
 
@@ -164,6 +166,51 @@ def test_paper_extractors_are_listed_unavailable_with_where_to_get_the_weights(t
             get_extractor(name)
 
 
+def cli(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "vpr_explorer.cli", *args], capture_output=True, text=True,
+                          timeout=300, env={**os.environ, **(env or {})})
+
+
+def one_error_line(r: subprocess.CompletedProcess) -> str:
+    assert r.returncode == 2, r.stderr
+    assert "Traceback" not in r.stderr
+    (line,) = [line for line in r.stderr.splitlines() if line.strip()]
+    assert line.startswith("error: ")
+    return line
+
+
+def test_missing_alexnet_weights_tell_a_command_line_user_what_to_do(tmp_path):
+    route = tmp_path / "route"
+    for traversal in ("day", "night"):
+        (route / traversal).mkdir(parents=True)
+        for f in range(8):
+            write_rgb(route / traversal / f"frame_{f}.png", seed=f)
+    args = ["evaluate", "--dataset", str(route), "--descriptor", "alexnet-conv3", "--group", "2", "--step", "4",
+            "--cache-dir", str(tmp_path / "cache")]
+    hub_file = tmp_path / "torch_home" / "hub" / "checkpoints" / "alexnet-owt-7be5be79.pth"
+    env = "VPR_EXPLORER_ALEXNET_WEIGHTS"
+
+    line = one_error_line(cli(*args))
+    assert line.startswith("error: descriptor 'alexnet-conv3' is unavailable here: no weights file: expected "
+                           "alexnet-owt-7be5be79.pth")
+    # What works without writing Python: a file at a path, or an environment variable.
+    assert f"download https://download.pytorch.org/models/alexnet-owt-7be5be79.pth and put it at {hub_file}" in line
+    assert f"or set the environment variable {env} to the file (or to a folder holding it)" in line
+    # The API's options are named as such, never as something to pass on a command line.
+    assert "pass weights=PATH" not in line and "(from Python, the weights=PATH and download=True options" in line
+
+    # Following either instruction is what the command line reads: the (here bogus) file is found.
+    folder = tmp_path / "weights"
+    folder.mkdir()
+    (folder / hub_file.name).write_bytes(b"not a checkpoint")
+    line = one_error_line(cli(*args, env={env: str(folder)}))
+    assert line.startswith(f"error: {folder / hub_file.name}: cannot read it as a PyTorch checkpoint")
+    hub_file.parent.mkdir(parents=True)
+    hub_file.write_bytes(b"not a checkpoint either")
+    line = one_error_line(cli(*args))
+    assert line.startswith(f"error: {hub_file}: cannot read it as a PyTorch checkpoint")
+
+
 def test_weights_are_looked_for_in_option_then_variable_then_hub_cache(tmp_path, monkeypatch):
     spec = checkpoints.place_weights("cosplace", "ResNet18", 256)
     hub_file = checkpoints.hub_checkpoint(spec)
@@ -274,7 +321,7 @@ def test_projection_is_vpr_tutorials_seeded_matrix():
 def test_alexnet_conv3_matches_a_reference_and_is_stable(alexnet_file, images):
     extractor = get_extractor("alexnet-conv3", weights=alexnet_file, device="cpu")
     digest = hashlib.sha256(alexnet_file.read_bytes()).hexdigest()
-    assert extractor.dim == 4096 and extractor.cache_key == f"alexnet-conv3-1.p0.{digest[:12]}"
+    assert extractor.dim == 4096 and extractor.cache_key == f"alexnet-conv3-2.p0.{digest[:12]}"
     loaded = extractor.load(images[0])
     assert loaded.shape == (3, 224, 224) and loaded.dtype == np.float32
     batch = np.stack([extractor.load(p) for p in images[:3]])
@@ -302,7 +349,7 @@ def test_alexnet_conv3_matches_a_reference_and_is_stable(alexnet_file, images):
 def test_alexnet_weights_from_the_variable(alexnet_file, monkeypatch):
     monkeypatch.setenv("VPR_EXPLORER_ALEXNET_WEIGHTS", str(alexnet_file))
     assert available_extractors()["alexnet-conv3"] is None
-    assert get_extractor("alexnet-conv3", device="cpu").cache_key.startswith("alexnet-conv3-1.p0.")
+    assert get_extractor("alexnet-conv3", device="cpu").cache_key.startswith("alexnet-conv3-2.p0.")
 
 
 def test_alexnet_checkpoint_with_missing_or_renamed_keys_is_refused(tmp_path):
@@ -338,7 +385,7 @@ def test_cosplace_resnet50_loads_strictly_and_matches_the_published_network(cosp
         assert key in keys
     extractor = get_extractor("cosplace", weights=path, short_side=SHORT, device="cpu")
     digest = hashlib.sha256(path.read_bytes()).hexdigest()
-    assert extractor.dim == 2048 and extractor.cache_key == f"cosplace-1.ResNet50-2048.s{SHORT}.{digest[:12]}"
+    assert extractor.dim == 2048 and extractor.cache_key == f"cosplace-2.ResNet50-2048.s{SHORT}.{digest[:12]}"
 
     batch = np.stack([extractor.load(p) for p in images[:2]])
     assert batch.shape == (2, 3, SHORT, 96)  # 120 x 80 -> 96 x 64: aspect kept
@@ -368,7 +415,7 @@ def test_eigenplaces_from_torch_hub_cache_and_cosplace_from_a_variable(r18_256, 
     hub_file.parent.mkdir(parents=True)
     hub_file.write_bytes(path.read_bytes())
     eigen = get_extractor("eigenplaces", backbone="ResNet18", fc_output_dim=256, short_side=SHORT, device="cpu")
-    assert eigen.dim == 256 and eigen.cache_key.startswith("eigenplaces-1.ResNet18-256.s64.")
+    assert eigen.dim == 256 and eigen.cache_key.startswith("eigenplaces-2.ResNet18-256.s64.")
 
     folder = tmp_path / "cosplace_weights"
     folder.mkdir()
@@ -465,7 +512,7 @@ def test_torchscript_model_end_to_end_through_the_cache(tmp_path, images, forget
     assert "my-ts" in extractor_names() and available_extractors()["my-ts"] is None
     extractor = get_extractor("my-ts", device="cpu")
     assert extractor.dim == 16 and extractor.load(images[0]).shape == (3, 32, 48)
-    assert extractor.cache_key.startswith("my-ts-48x32.unit.")
+    assert extractor.cache_key.startswith("my-ts-2.48x32.unit.")
 
     cache = DescriptorCache(tmp_path / "cache")
     d = extract_descriptors(images, extractor, cache=cache)
@@ -590,7 +637,7 @@ def test_models_from_the_settings_file(tmp_path, images, monkeypatch):
     monkeypatch.setenv(MODELS_ENV, str(settings))
     assert available_extractors()["tiny-net"] is None
     extractor = get_extractor("tiny-net", device="cpu")
-    assert extractor.cache_key.startswith("tiny-net-40x30.signed.") and extractor.dim == 16
+    assert extractor.cache_key.startswith("tiny-net-2.40x30.signed.") and extractor.dim == 16
     assert extract_descriptors(images, extractor).shape == (4, 16)
 
     settings.write_text('[models.tiny-net]\nmodel = "nets/tiny.pt"\ninput_sise = 40\n')

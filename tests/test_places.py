@@ -69,3 +69,25 @@ def test_images_take_their_frames_place(tmp_path):
     assert np.array_equal(pl.image_place[20:40], pl.frame_place)
     assert pl.images_per_place.tolist() == [6, 6, 6, 6]
     assert pl.describe().startswith("4 places × 6 images")
+
+
+@pytest.mark.parametrize("group, step, reading, fragment", [
+    (99999999999999999999, 10, "stride", "group=99999999999999999999: at most 10,000,000 frames"),
+    (3, 99999999999999999999, "stride", "step=99999999999999999999: at most 10,000,000 frames"),
+    (99999999999999999999, 1, "skip", "group=99999999999999999999: at most 10,000,000 frames"),
+    (3, 10, "diagonal", "reading='diagonal': choose stride or skip"),
+])
+def test_out_of_range_parameters_name_the_limit(group, step, reading, fragment):
+    with pytest.raises(VPRInputError, match=fragment):
+        PlaceSpec(group, step, reading)
+
+
+def test_the_largest_allowed_group_still_labels_frames():
+    assert frame_places(10, PlaceSpec(10_000_000, 10_000_000)).tolist() == [-1] * 10
+
+
+def test_describe_counts_only_the_given_images(tmp_path):
+    ds = _fake_dataset(tmp_path, 20, n_trav=3)
+    pl = make_places(ds, PlaceSpec(2, 5))
+    first = np.flatnonzero(ds.image_traversal == 0)
+    assert pl.describe(images=first, what="database images").startswith("4 places × 2 database images")

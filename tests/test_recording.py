@@ -17,8 +17,11 @@ import numpy as np
 import pytest
 from rerun.chunk import RrdReader
 
+from images import write_random_png
+
 from vpr_explorer.cli import main
 from vpr_explorer.database import decide_traversal, fit_database
+from vpr_explorer.datasets import load_dataset
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.pipeline import dataset_descriptors, resolve_dataset
 from vpr_explorer.places import PlaceSpec, make_places
@@ -26,6 +29,7 @@ from vpr_explorer.recording import (
     check_output,
     new_recording,
     record_dataset,
+    record_playback,
     record_traversal,
     save_traversal,
     viewer_servers,
@@ -279,6 +283,53 @@ def test_served_recording_reaches_the_viewer_servers(demo, tmp_path):
     with urllib.request.urlopen(playback.viewer_url, timeout=10) as page:
         assert b"Rerun Viewer" in page.read()
     assert len(read_rrd(playback.rrd)[0]["/query"]) == dataset.n_frames
+
+
+# --------------------------------------------------------------------------- an existing .rrd: replaced whole or kept
+
+
+def _ctrl_c_at(frame: int):
+    """A progress callback that presses Ctrl-C once ``frame`` frames are logged."""
+    def progress(done: int, total: int) -> None:
+        if done == frame:
+            raise KeyboardInterrupt
+    return progress
+
+
+def test_an_interrupted_record_keeps_the_existing_rrd_byte_for_byte(demo, tmp_path):
+    dataset, _ = demo
+    out = tmp_path / "run.rrd"
+    record_dataset("demo", PlaceSpec(2, 2), "pixels", database=["day"], queries="snow", out=out)
+    before = out.read_bytes()
+    with pytest.raises(KeyboardInterrupt):
+        record_dataset("demo", PlaceSpec(3, 5), "pixels", database=["day"], queries="night", out=out,
+                       progress=_ctrl_c_at(10))
+    assert out.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["run.rrd"]  # no partial file left behind
+    # a complete run replaces it
+    record_dataset("demo", PlaceSpec(3, 5), "pixels", database=["day"], queries="night", out=out)
+    assert out.read_bytes() != before
+    assert "night against day" in read_rrd(out)[1]["/summary"]["TextDocument:text"][0]
+    assert [p.name for p in tmp_path.iterdir()] == ["run.rrd"]
+
+
+def test_a_record_failing_midway_keeps_the_existing_rrd_and_writes_no_new_one(tmp_path):
+    route = tmp_path / "route"
+    for t, name in enumerate(("day", "night")):
+        (route / name).mkdir(parents=True)
+        for f in range(12):
+            write_random_png(route / name / f"{f:03d}.png", seed=100 * t + f, size=(32, 24))
+    dataset = load_dataset(route)
+    desc = dataset_descriptors(dataset, "pixels")
+    out = tmp_path / "out" / "run.rrd"
+    out.parent.mkdir()
+    out.write_bytes(b"a complete recording from yesterday")
+    (route / "night" / "007.png").unlink()  # a query image vanishes while the recording runs
+    for target in (out, out.with_name("new.rrd")):
+        with pytest.raises(VPRInputError, match="007.png: cannot read the image"):
+            record_playback(dataset, desc, PlaceSpec(2, 3), database=["day"], queries="night", out=target)
+    assert out.read_bytes() == b"a complete recording from yesterday"
+    assert [p.name for p in out.parent.iterdir()] == ["run.rrd"]
 
 
 # --------------------------------------------------------------------------- bad input

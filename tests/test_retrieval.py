@@ -5,6 +5,7 @@ import pytest
 
 from reference import loop_rank
 from vpr_explorer.retrieval import (
+    TIE_TOLERANCE,
     Rule,
     decide,
     pessimistic_rank,
@@ -62,6 +63,45 @@ def test_ties_count_against_the_query():
     correct = np.array([[True, False, False], [False, True, False], [False, False, True]])
     assert pessimistic_rank(scores, correct).tolist() == [2, 2, 3]
     assert top_answer(scores).tolist() == [0, 0, 0]
+
+
+def test_scores_within_the_tolerance_tie_whatever_their_last_bits():
+    # byte-identical images score 1.0, 0.99999994 or 0.99999988 against one query depending
+    # on the BLAS kernel and block shape (float32 spacing below 1 is 6e-8): all ties
+    one = np.float32(1.0)
+    below = [float(np.nextafter(one, 0, dtype=np.float32)), float(np.nextafter(np.nextafter(one, 0), 0))]
+    for right, wrong in ((1.0, below[0]), (below[1], 1.0), (below[0], below[1])):
+        scores = np.array([[right, wrong, 0.5]])
+        correct = np.array([[True, False, False]])
+        assert pessimistic_rank(scores, correct).tolist() == [2]  # the wrong twin counts against
+        assert top_answer(scores).tolist() == [0]  # the lowest index among the tied
+        assert top_answer(scores[:, ::-1]).tolist() == [1]
+    # the tolerance and no more: 2e-5 apart is no tie
+    assert pessimistic_rank(np.array([[0.8, 0.8 - 2e-5]]), np.array([[True, False]])).tolist() == [1]
+    assert pessimistic_rank(np.array([[0.8, 0.8 - 0.5e-5]]), np.array([[True, False]])).tolist() == [2]
+    assert TIE_TOLERANCE == 1e-5
+
+
+def test_image_behind_raw_is_the_lowest_index_within_the_tolerance():
+    sims = np.array([[0.3, 0.9 - 4e-6, 0.9, 0.9 - 3e-5]])
+    raw, best = place_scores(sims, np.array([0, 0, 0, 0]), 1)
+    assert raw[0, 0] == 0.9 and best[0, 0] == 1
+
+
+def test_ranks_and_answers_do_not_move_with_last_bit_noise():
+    # what a different summation order does to float32 scores: ±2 ulp, everywhere
+    rng = np.random.default_rng(1)
+    base = np.round(rng.uniform(0.2, 1.0, size=(300, 40)), 3).astype(np.float32)  # many exact ties
+    correct = rng.random(base.shape) < 0.1
+    ulp = np.spacing(base)
+    noisy = base + ulp * rng.integers(-2, 3, base.shape).astype(np.float32)
+    for a, b in ((base, noisy), (noisy, base + ulp)):
+        np.testing.assert_array_equal(pessimistic_rank(a.astype(float), correct), pessimistic_rank(b.astype(float), correct))
+        np.testing.assert_array_equal(top_answer(a.astype(float)), top_answer(b.astype(float)))
+    # exact equality would not survive it: that is the point of the tolerance
+    exact_base = ((base[:, :, None] >= base[:, None, :]).sum(axis=2))
+    exact_noisy = ((noisy[:, :, None] >= noisy[:, None, :]).sum(axis=2))
+    assert (exact_base != exact_noisy).any()
 
 
 def test_rank_matches_sorting_reference():

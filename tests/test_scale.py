@@ -110,8 +110,10 @@ def assert_same_splits(ref_splits, fast_splits, max_k):
         assert list(b.outcomes) == list(a.outcomes)
         for key in ("simple", "weighted"):
             np.testing.assert_allclose(b.thresholds[key], a.thresholds[key], rtol=0, atol=THETA_TOL, equal_nan=True)
-        for key in ("auto", "oracle", "user"):
+        for key in ("auto", "user"):
             assert b.thresholds.get(key) == a.thresholds.get(key), (r, key)
+        # the oracle θ is one query's top score: the same query on both paths, its score to float32 rounding
+        assert abs(b.thresholds["oracle"] - a.thresholds["oracle"]) <= 1e-6, (r, "oracle")
         for key, oa in a.outcomes.items():
             ob = b.outcomes[key]
             rank_a = oa.rank
@@ -286,7 +288,7 @@ def test_nordland_g3s3_pixels_equals_paper_protocol(monkeypatch, data_root):
     desc = dataset_descriptors(dataset, "pixels")
     assert places.n_places == 1192 and desc.shape == (7152, 2048)
     ref, fast = check(monkeypatch, desc, places.image_place, dataset.image_traversal, places.n_places, runs=2)
-    assert fast.seconds < ref.seconds
+    # (speed: benchmarks/bench_nordland_real.py; a timing assertion does not belong in a shared-CPU test)
 
 
 # --------------------------------------------------------------------------- the candidate cutoff
@@ -332,3 +334,71 @@ def test_candidate_cutoff_holds_for_every_weighted_threshold_within_its_bound():
         exact = th_w + unc * rng.choice([-1.0, 1.0, 0.0, -0.5], n_p)
         matter = places_that_matter(raw, b, own, th_s, exact)
         assert not (matter & (raw < cut[:, None])).any()
+
+
+# --------------------------------------------------------------------------- ties across BLAS kernels
+
+_TABLE_SCRIPT = """
+import json, sys
+from vpr_explorer.datasets import load_dataset
+from vpr_explorer.evaluation import paper_protocol
+from vpr_explorer.pipeline import dataset_descriptors
+from vpr_explorer.places import PlaceSpec, make_places
+from vpr_explorer.scale import fast_paper_protocol
+
+ds = load_dataset(sys.argv[1])
+pl = make_places(ds, PlaceSpec(3, 3))
+d = dataset_descriptors(ds, "pixels")
+args = (d, pl.image_place, ds.image_traversal, pl.n_places)
+out = {"fast": fast_paper_protocol(*args, runs=2, block=int(sys.argv[2]), threads=int(sys.argv[3])).to_dict()["methods"]}
+if sys.argv[4] == "ref":
+    out["ref"] = paper_protocol(*args, runs=2).to_dict()["methods"]
+print(json.dumps(out))
+"""
+
+
+@pytest.mark.realdata
+def test_nordland_tables_do_not_depend_on_blas_kernel_block_size_or_threads(data_root):
+    # Nordland's tunnels are runs of byte-identical frames: their scores against one query
+    # differ in the last bit between BLAS kernels (Haswell vs Sandybridge vs the CPU's own),
+    # block shapes and thread counts. With exact-equality ties the image-level R@5 moved
+    # (issue 10); with the 1e-5 tie tolerance every table must be the same, digit for digit.
+    import json
+    import os
+    import subprocess
+    import sys
+
+    from vpr_explorer.datasets import load_dataset
+    from vpr_explorer.pipeline import dataset_descriptors
+
+    dataset = load_dataset(data_root / "Nordland_64x32")
+    dataset_descriptors(dataset, "pixels")  # cached once for the subprocesses (same cache folder)
+    configs = [  # (environment, block rows, pass threads, with the reference)
+        ({"OPENBLAS_CORETYPE": "Haswell", "OPENBLAS_NUM_THREADS": "1"}, 1024, 1, "ref"),
+        ({"OPENBLAS_NUM_THREADS": "2"}, 4096, 2, "ref"),
+        ({"OPENBLAS_CORETYPE": "Sandybridge", "OPENBLAS_NUM_THREADS": "2"}, 2500, 2, "fast"),
+    ]
+    tables = []
+    for extra, block, threads, which in configs:
+        env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_CORETYPE", "OPENBLAS_L2_SIZE")}
+        env.update(extra)
+        res = subprocess.run([sys.executable, "-c", _TABLE_SCRIPT, str(data_root / "Nordland_64x32"), str(block),
+                              str(threads), which], env=env, capture_output=True, text=True, timeout=600)
+        assert res.returncode == 0, res.stderr[-3000:]
+        out = json.loads(res.stdout.strip().splitlines()[-1])
+        tables += [(f"{extra} {name} block={block} threads={threads}", t) for name, t in out.items()]
+    first_name, first = tables[0]
+    assert first[0]["key"] == "image-baseline" and 0.2 < first[0]["recall"]["5"]["mean"] < 0.6
+    for name, table in tables[1:]:
+        assert table == first, f"{name} differs from {first_name}"
+
+
+def test_progress_counts_every_split_then_the_pass():
+    d, labels, trav = structured(seed=6, n_places=40, per_place=4, dim=16)
+    calls = []
+    fast_paper_protocol(d, labels, trav, 40, runs=7, block=64, progress=lambda *a: calls.append(a))
+    totals = {t for _, t, _ in calls}
+    assert len(totals) == 1 and calls[-1][0] == calls[-1][1]  # one total, reached at the end
+    assert [m for _, _, m in calls[:7]] == [f"split {r}/7: automatic θ" for r in range(1, 8)]
+    assert [n for n, _, _ in calls] == sorted(n for n, _, _ in calls)  # never goes backwards
+    assert any("similarity block" in m for _, _, m in calls) and any("scoring block" in m for _, _, m in calls)

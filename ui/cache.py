@@ -13,12 +13,19 @@ which holds the descriptors' content ``fingerprint()``. Models and big matrices 
 ``st.cache_data``. Work that reports progress (extraction, evaluation protocols) goes
 through ``_memo`` instead: a cached function replays the ``st.*`` calls made inside it,
 which must not happen to a progress bar.
+
+When the cache folder cannot be written (``disk_cache_problem``), the explorer still
+runs: descriptors are kept in memory only and the demo route is drawn into the
+temporary folder; the Dataset page says so.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import io
+import os
+import tempfile
 import threading
 import time
 from collections import OrderedDict
@@ -32,8 +39,8 @@ from PIL import Image
 
 from vpr_explorer import settings
 from vpr_explorer.database import QueryDecision, explain_query
-from vpr_explorer.datasets import Dataset
-from vpr_explorer.descriptors import fingerprint
+from vpr_explorer.datasets import Dataset, load_dataset
+from vpr_explorer.descriptors import extract_descriptors, fingerprint, get_extractor
 from vpr_explorer.descriptors.base import open_image
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.evaluation import Evaluation
@@ -54,6 +61,8 @@ from vpr_explorer.views import (
 from ui.feedback import progress_reporter
 
 MEMO_ENTRIES = 8
+# Seconds a cache-folder check is trusted: it writes a probe file, so not on every rerun.
+CACHE_CHECK_TTL = 10
 
 
 @dataclass(frozen=True, eq=False)
@@ -136,7 +145,7 @@ def _memoised(key: tuple, label: str, compute: Callable[[Callable[..., None]], o
 def _folder_stamp(source: str) -> str:
     """Changes when a dataset folder's listing may have changed (its and its sub-folders' mtimes)."""
     if source == DEMO:
-        return f"demo@{settings.cache_root()}"
+        return f"demo@{settings.cache_root()}:{disk_cache_problem() is None}"
     root = Path(source).expanduser()
     try:
         parts = [f"{root.resolve()}:{root.stat().st_mtime_ns}"]
@@ -146,8 +155,39 @@ def _folder_stamp(source: str) -> str:
     return "|".join(parts)
 
 
+@st.cache_data(show_spinner=False, ttl=CACHE_CHECK_TTL)
+def _cache_problem(root: str) -> str | None:
+    try:
+        settings.check_cache_root(root)
+    except VPRInputError as exc:
+        return str(exc)
+    return None
+
+
+def disk_cache_problem() -> str | None:
+    """Why nothing can be cached on disk (the cache folder cannot be written), or ``None`` when it can."""
+    return _cache_problem(str(settings.cache_root()))
+
+
+def _demo_in_temporary_folder() -> Dataset:
+    """The demo route drawn under the temporary folder, for when the cache folder cannot hold it."""
+    from vpr_explorer import demo
+
+    uid = os.getuid() if hasattr(os, "getuid") else "user"
+    root = Path(tempfile.gettempdir()) / f"vpr_explorer-{uid}" / demo.demo_root().relative_to(settings.cache_root())
+    if not demo.route_is_complete(root):
+        try:
+            demo.write_demo_route(root)
+        except OSError:
+            if not demo.route_is_complete(root):  # another session may have installed it meanwhile
+                raise
+    return dataclasses.replace(load_dataset(root, list(demo.DEMO_TRAVERSALS)), name=DEMO)
+
+
 @st.cache_resource(show_spinner="Reading the dataset folder…", max_entries=8)
 def _dataset(source: str, stamp: str) -> Dataset:
+    if source == DEMO and disk_cache_problem() is not None:
+        return _demo_in_temporary_folder()
     return resolve_dataset(source)
 
 
@@ -169,26 +209,36 @@ def _files_key(ds: Dataset) -> str:
 
 
 def load(source: str, descriptor: str) -> Loaded:
-    """The dataset and its descriptors, computed with a progress bar and time estimate if not in memory."""
+    """The dataset and its descriptors, computed with a progress bar and time estimate if not in memory.
+
+    Through the on-disk cache, or in memory only when the cache folder cannot be written.
+    """
     ds = dataset(source)
     files = _files_key(ds)
+    on_disk = disk_cache_problem() is None
 
     def compute(progress):
-        d = dataset_descriptors(ds, descriptor, progress=progress)
+        if on_disk:
+            d = dataset_descriptors(ds, descriptor, progress=progress)
+        else:
+            d = extract_descriptors(list(ds.image_paths), get_extractor(descriptor), progress=progress)
         d = np.asarray(d, dtype=np.float32)  # already float32 and read-only: no copy
         if d.flags.writeable:
             d = d.copy()
             d.setflags(write=False)
         return Loaded(ds, descriptor, d, f"{files[:16]}-{fingerprint(d)[:24]}")
 
-    return _memoised(("descriptors", descriptor, files), f"Computing {descriptor} descriptors of "
+    # on_disk in the key: a cache folder that stops (or starts) being writable is not
+    # stuck with a failure (or an in-memory result) remembered under the other mode.
+    return _memoised(("descriptors", descriptor, files, on_disk), f"Computing {descriptor} descriptors of "
                      f"{ds.n_images} images", compute)
 
 
 def loaded_in_memory(source: str, descriptor: str) -> bool:
     """True when ``load`` would return at once (descriptors already in this server's memory)."""
     try:
-        return _memo().get(("descriptors", descriptor, _files_key(dataset(source)))) is not None
+        key = ("descriptors", descriptor, _files_key(dataset(source)), disk_cache_problem() is None)
+        return _memo().get(key) is not None
     except VPRInputError:
         return False
 
@@ -298,7 +348,7 @@ def evaluation(data: Loaded, spec: PlaceSpec | None, protocol: str, **options) -
 @st.cache_data(show_spinner=False, max_entries=2048)
 def _thumbnail(path: str, mtime_ns: int, height: int) -> bytes | None:
     try:
-        image = open_image(Path(path), "RGB", (height * 2, height))
+        image = open_image(Path(path), "RGB", display_size=(height * 2, height))
     except VPRInputError:
         return None
     image.thumbnail((height * 4, height))

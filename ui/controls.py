@@ -5,8 +5,7 @@ from __future__ import annotations
 import streamlit as st
 
 from ui import state
-
-K_RANGE = (-1.0, 3.0)
+from ui.state import K_RANGE, THETA_RANGE
 
 
 def threshold_controls(container=st) -> tuple[float, float | None]:
@@ -23,7 +22,7 @@ def threshold_controls(container=st) -> tuple[float, float | None]:
     st.session_state["w_user_on"] = v.theta is not None
     container.checkbox("also compare a global θ of my own", key="w_user_on", on_change=toggle_user)
     if v.theta is not None:
-        container.number_input("my global θ", -1.0, 1.0, step=0.01, format="%.3f",
+        container.number_input("my global θ", THETA_RANGE[0], THETA_RANGE[1], step=0.01, format="%.3f",
                                **state.bind("w_user_theta", "theta", float(v.theta)))
     v = state.view()
     return v.k, v.theta

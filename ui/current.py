@@ -4,11 +4,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from vpr_explorer.errors import VPRInputError
+import streamlit as st
+
 from vpr_explorer.places import PlaceSpec
 from vpr_explorer.views import default_step, split_traversals
 
 from ui import cache, state
+from ui.feedback import DATASET_HINT, PLACES_HINT, fixed_on
 from ui.state import DEFAULT_GROUP, View
 
 
@@ -39,12 +41,26 @@ def effective_spec(view: View, n_frames: int, prepared: bool) -> PlaceSpec | Non
 
 
 def current() -> Current:
-    """Load (or fetch from memory) everything the view names; raises ``VPRInputError`` on bad input."""
+    """Load (or fetch from memory) everything the view names.
+
+    A query traversal the dataset does not have (an old link) is replaced by the default,
+    with a warning saying so.
+
+    Raises:
+        ``ui.feedback.FixOn`` (a ``VPRInputError``) naming the page where the input at fault is set.
+    """
     v = state.view()
-    data = cache.load(v.source, v.descriptor)
+    with fixed_on(DATASET_HINT):
+        data = cache.load(v.source, v.descriptor)
     ds = data.dataset
-    spec = effective_spec(v, ds.n_frames, ds.prepared_places is not None)
-    if v.query is not None and v.query not in ds.traversals:
-        raise VPRInputError(f"query traversal {v.query!r} is not in {ds.name!r}: choose one of {', '.join(ds.traversals)}")
-    database, query = split_traversals(ds, v.query)
+    with fixed_on(PLACES_HINT):
+        spec = effective_spec(v, ds.n_frames, ds.prepared_places is not None)
+    with fixed_on(DATASET_HINT):
+        split_traversals(ds)  # one traversal: raises, saying what to add
+        wanted = v.query if v.query in ds.traversals else ds.traversals[ds.default_roles().query]
+        database, query = split_traversals(ds, wanted)
+    if v.query is not None and v.query != query:
+        st.warning(f"query={v.query!r} is not a traversal of {ds.name!r} ({', '.join(ds.traversals)}): using "
+                   f"{query!r} instead. Pick the query traversal on the **Places** page.", icon=":material/warning:")
+        state.update(query=None)
     return Current(v, data, spec, database, query)

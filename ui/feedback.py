@@ -15,6 +15,28 @@ import streamlit as st
 
 from vpr_explorer.errors import VPRInputError
 
+DATASET_HINT = "Fix it on the **Dataset** page, or pick another dataset there."
+PLACES_HINT = "Change group or step on the **Places** page."
+
+
+class FixOn(VPRInputError):
+    """A library input error that knows where the app fixes it (``hint``, naming the page)."""
+
+    def __init__(self, exc: VPRInputError, hint: str) -> None:
+        super().__init__(str(exc))
+        self.hint = hint
+
+
+@contextmanager
+def fixed_on(hint: str) -> Iterator[None]:
+    """Attach ``hint`` (where the input at fault is set) to a ``VPRInputError`` raised inside."""
+    try:
+        yield
+    except FixOn:
+        raise
+    except VPRInputError as exc:
+        raise FixOn(exc, hint) from exc
+
 
 def show_error(exc: VPRInputError, *, hint: str | None = None) -> None:
     """Show a library input error, with a hint of where to fix it."""
@@ -22,12 +44,16 @@ def show_error(exc: VPRInputError, *, hint: str | None = None) -> None:
 
 
 @contextmanager
-def stop_on_input_error(hint: str | None = "Fix it on the **Dataset** page, or pick another dataset there.") -> Iterator[None]:
-    """Run a page's work; on ``VPRInputError`` show it and stop the page (the sidebar stays usable)."""
+def stop_on_input_error(hint: str | None = None) -> Iterator[None]:
+    """Run a page's work; on ``VPRInputError`` show it and stop the page (the sidebar stays usable).
+
+    The hint is the error's own (``FixOn``) where it has one, else ``hint``: it names the
+    page whose control sets the input at fault.
+    """
     try:
         yield
     except VPRInputError as exc:
-        show_error(exc, hint=hint)
+        show_error(exc, hint=getattr(exc, "hint", None) or hint)
         st.stop()
 
 

@@ -15,8 +15,8 @@ def render() -> None:
         source = "built-in demo route" if v.source == "demo" else v.source
         places = (f"group {v.group or 'default'}, step {v.step or 'default'}, {v.reading} reading")
         st.caption(f"dataset: `{source}`  \ndescriptor: `{v.descriptor}`  \nplaces: {places}  \n"
-                   f"queries: `{v.query or 'last traversal'}`")
+                   f"queries: `{v.query or 'default'}`")
         st.caption("The address bar holds this view: copy it to share it.")
         ignored = st.session_state.pop("url_ignored", None)
         if ignored:
-            st.warning("Ignored in the link: " + "; ".join(ignored))
+            st.warning("Ignored in the link:\n\n" + "\n".join(f"- {why}" for why in ignored), icon=":material/warning:")

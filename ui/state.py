@@ -20,12 +20,17 @@ from dataclasses import dataclass
 
 import streamlit as st
 
-from vpr_explorer.places import Reading
+from vpr_explorer.errors import VPRInputError
+from vpr_explorer.places import PlaceSpec, Reading
 from vpr_explorer.pipeline import DEMO
 
 DEFAULT_DESCRIPTOR = "pixels"
 """Always available and instant; efficientnet-lite0 is the learned choice, one click away."""
 DEFAULT_GROUP = 3
+K_RANGE = (-1.0, 3.0)
+"""The k sliders' range."""
+THETA_RANGE = (-1.0, 1.0)
+"""A user's global θ: a cosine similarity."""
 
 _KEY = "view"
 _INT_FIELDS = ("group", "step", "place", "frame")
@@ -62,35 +67,71 @@ class View:
 
     @classmethod
     def from_params(cls, params: dict[str, str]) -> tuple[View, list[str]]:
-        """A view from query parameters, and the parameters that had to be ignored (with why)."""
+        """A view from query parameters, and the parameters that had to be ignored.
+
+        Each ignored one is said as "name='value': why; using what instead".
+        """
         values: dict[str, object] = {}
         ignored = []
         names = {f.name for f in dataclasses.fields(cls)}
         for name, text in params.items():
             if name not in names:
                 continue
-            if name in _INT_FIELDS:
-                try:
-                    values[name] = int(text)
-                except ValueError:
-                    ignored.append(f"{name}={text!r} (not a whole number)")
-                    continue
-            elif name in _FLOAT_FIELDS:
-                try:
-                    values[name] = float(text)
-                except ValueError:
-                    ignored.append(f"{name}={text!r} (not a number)")
-                    continue
-                if not math.isfinite(values[name]):
-                    ignored.append(f"{name}={text!r} (not a finite number)")
-                    del values[name]
-                    continue
-            elif name == "reading" and text not in {r.value for r in Reading}:
-                ignored.append(f"reading={text!r} (choose {' or '.join(r.value for r in Reading)})")
-                continue
-            else:
-                values[name] = text
+            try:
+                values[name] = _parse(name, text)
+            except ValueError as exc:
+                ignored.append(f"{name}={text!r}: {exc}; using {_INSTEAD[name]}")
+        # step against group: only the pair can say whether places would overlap
+        if "step" in values:
+            try:
+                PlaceSpec(values.get("group", DEFAULT_GROUP), values["step"], values.get("reading", Reading.STRIDE))
+            except VPRInputError as exc:
+                ignored.append(f"step={params['step']!r}: {exc}; using {_INSTEAD['step']}")
+                del values["step"]
         return cls(**values), ignored
+
+
+_INSTEAD = {
+    "group": f"the default ({DEFAULT_GROUP})",
+    "step": "the dataset's default step",
+    "reading": f"the {Reading.STRIDE.value} reading",
+    "place": "the default place",
+    "frame": "the default frame",
+    "k": "k = 0 (the paper's thresholds)",
+    "theta": "no global θ of your own",
+}
+"""What the app uses when a link's parameter is refused."""
+
+
+def _parse(name: str, text: str) -> object:
+    """One query parameter's value; ``ValueError`` saying why it cannot be used."""
+    if name in _INT_FIELDS:
+        try:
+            value = int(text)
+        except ValueError:
+            raise ValueError("not a whole number") from None
+        if name in ("group", "step"):
+            try:  # the library's own limits and message (the skip reading checks each on its own)
+                PlaceSpec(value, 1, Reading.SKIP) if name == "group" else PlaceSpec(1, value, Reading.SKIP)
+            except VPRInputError as exc:
+                raise ValueError(str(exc)) from None
+        elif value < 0:
+            raise ValueError("must be 0 or more")
+        return value
+    if name in _FLOAT_FIELDS:
+        try:
+            value = float(text)
+        except ValueError:
+            raise ValueError("not a number") from None
+        low, high = K_RANGE if name == "k" else THETA_RANGE
+        if not math.isfinite(value):
+            raise ValueError("not a finite number")
+        if not low <= value <= high:
+            raise ValueError(f"outside {low:g} to {high:g}")
+        return value
+    if name == "reading" and text not in {r.value for r in Reading}:
+        raise ValueError(f"choose {' or '.join(r.value for r in Reading)}")
+    return text
 
 
 def view() -> View:

@@ -1,6 +1,8 @@
 """Command line: ``vpr-explorer evaluate …`` (and the other sub-commands).
 
-Bad input prints one ``error:`` line naming the file or parameter and exits 2.
+Bad input prints one ``error:`` line naming the file or parameter and exits 2; Ctrl-C
+prints one ``error: interrupted`` line and exits 130. Either way the progress bars are
+cleared first, so that the line stands on its own.
 """
 
 from __future__ import annotations
@@ -12,21 +14,52 @@ from pathlib import Path
 
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.evaluation import K_GRID, Protocol
+from vpr_explorer.pipeline import MAX_RUNS
 from vpr_explorer.places import PlaceSpec, Reading
+
+INTERRUPTED = "interrupted; run the same command again to resume (descriptors computed so far are cached)"
+
+class _Bars:
+    """The progress bars drawn on stderr, so that an ``error:`` line never lands on one's line."""
+
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        self.open: list = []
+        self.drawn = False
+
+    def clear(self) -> None:
+        """Close the unfinished bars and end their line, so that what follows starts a line of its own."""
+        while self.open:
+            self.open.pop().close()
+        if self.drawn:
+            sys.stderr.write("\n")
+            sys.stderr.flush()
+        self.reset()
+
+
+_bars = _Bars()
 
 
 def _bar(desc: str):
+    """A ``progress(done, total, *message)`` callback drawing a tqdm bar on stderr; the message goes beside it."""
     from tqdm import tqdm
 
     state: dict = {}
 
-    def update(done: int, total: int, *_):
+    def update(done: int, total: int, *message):
         if "bar" not in state:
+            _bars.drawn = True  # before the bar exists: Ctrl-C may land while it is being drawn
             state["bar"] = tqdm(total=total, desc=desc, unit="", file=sys.stderr, leave=False, dynamic_ncols=True)
+            _bars.open.append(state["bar"])
         bar = state["bar"]
+        if message and message[0]:
+            bar.set_postfix_str(str(message[0]), refresh=False)
         bar.update(done - bar.n)
-        if done >= total:
+        if done >= total and bar in _bars.open:
             bar.close()
+            _bars.open.remove(bar)
 
     return update
 
@@ -45,16 +78,47 @@ def add_dataset_args(p: argparse.ArgumentParser) -> None:
                         "and disk, at about 1e-3 relative error in scores (default float32)")
 
 
+#: evaluate's options that only some protocols read (argparse default None: "not given"),
+#: with the protocols that read them and their value when not given.
+PROTOCOL_OPTIONS = {
+    "runs": ((Protocol.PAPER, Protocol.OPEN_SET), 50),
+    "seed": ((Protocol.PAPER, Protocol.OPEN_SET), 0),
+    "cross_condition": ((Protocol.PAPER, Protocol.OPEN_SET), False),
+    "unknown_share": ((Protocol.OPEN_SET,), 0.3),
+    "k": ((Protocol.OPEN_SET,), list(K_GRID)),
+    "database": ((Protocol.TRAVERSAL,), None),
+    "queries": ((Protocol.TRAVERSAL,), None),
+}
+
+
+def _protocol_options(args: argparse.Namespace) -> dict:
+    """The options ``args.protocol`` reads, defaults filled in; one it would ignore is refused, named."""
+    protocol = Protocol(args.protocol)
+    values = {}
+    for name, (protocols, default) in PROTOCOL_OPTIONS.items():
+        value = getattr(args, name)
+        if value is not None and protocol not in protocols:
+            option = "--" + name.replace("_", "-")
+            owners = " and ".join(p.value for p in protocols)
+            raise VPRInputError(
+                f"{option} applies to the {owners} protocol{'s' if len(protocols) > 1 else ''} only, and this is "
+                f"--protocol {protocol.value}: drop {option}, or pick --protocol {protocols[0].value}"
+            )
+        values[name] = default if value is None else value
+    return values
+
+
 def _evaluate(args: argparse.Namespace) -> int:
     from vpr_explorer.pipeline import evaluate_dataset
     from vpr_explorer.report import render
 
+    o = _protocol_options(args)
     ev = evaluate_dataset(
         args.dataset, PlaceSpec(args.group, args.step, args.reading), args.descriptor, args.protocol,
         cache_root=args.cache_dir, extract_progress=_bar("descriptors"), dtype=args.dtype,
-        runs=args.runs, seed=args.seed, cross_condition=args.cross_condition, unknown_share=args.unknown_share,
-        database=args.database, queries=args.queries, tolerance=args.tolerance, user_theta=args.theta,
-        k_grid=args.k, progress=_bar("splits"),
+        runs=o["runs"], seed=o["seed"], cross_condition=o["cross_condition"], unknown_share=o["unknown_share"],
+        database=o["database"], queries=o["queries"], tolerance=args.tolerance, user_theta=args.theta,
+        k_grid=o["k"], progress=_bar(f"{args.protocol} protocol"),
     )
     print(render(ev))
     if args.json:
@@ -90,17 +154,28 @@ def build_parser() -> argparse.ArgumentParser:
     ev = sub.add_parser("evaluate", help="run a protocol and print the paper's kind of table")
     add_dataset_args(ev)
     ev.add_argument("--protocol", choices=[p.value for p in Protocol], default=Protocol.PAPER.value)
-    ev.add_argument("--runs", type=int, default=50, help="random splits (paper: 50)")
-    ev.add_argument("--seed", type=int, default=0)
-    ev.add_argument("--cross-condition", action="store_true",
-                    help="score each query only against database images of other traversals")
-    ev.add_argument("--unknown-share", type=float, default=0.3, help="open set: share of places held out (default 0.3)")
-    ev.add_argument("--k", type=float, nargs="+", default=list(K_GRID), help="open set: k values of θ_p + k·s_p")
-    ev.add_argument("--database", nargs="+", default=None, help="traversal protocol: database traversal(s)")
-    ev.add_argument("--queries", default=None, help="traversal protocol: query traversal")
-    ev.add_argument("--tolerance", type=int, default=0, help="traversal protocol: frames of slack for a right place")
-    ev.add_argument("--theta", type=float, default=None, help="also evaluate this global threshold")
-    ev.add_argument("--json", type=Path, default=None, help="write the numbers to this JSON file")
+    ev.add_argument("--runs", type=int, default=None,
+                    help=f"paper and open-set protocols: random splits, at most {MAX_RUNS} (default and paper: 50)")
+    ev.add_argument("--seed", type=int, default=None, help="paper and open-set protocols: seed of the splits (default 0)")
+    ev.add_argument("--cross-condition", action="store_true", default=None,
+                    help="paper and open-set protocols: score each query only against database images of other "
+                         "traversals")
+    ev.add_argument("--unknown-share", type=float, default=None,
+                    help="open-set protocol: share of places held out (default 0.3)")
+    ev.add_argument("--k", type=float, nargs="+", default=None,
+                    help=f"open-set protocol: k values of θ_p + k·s_p (default {' '.join(f'{k:g}' for k in K_GRID)})")
+    ev.add_argument("--database", nargs="+", default=None,
+                    help="traversal protocol: database traversal(s) (default: a traversal named ref, reference, "
+                         "database, db or map, else the first)")
+    ev.add_argument("--queries", default=None,
+                    help="traversal protocol: query traversal (default: one named query, queries, q or live, "
+                         "else the last)")
+    ev.add_argument("--tolerance", type=int, default=0,
+                    help="frames of slack: a place is right when one of its frames is within this many frames "
+                         "of the query's (default 0; the authors count ±2)")
+    ev.add_argument("--theta", type=float, default=None, help="also evaluate this global threshold (a finite number)")
+    ev.add_argument("--json", type=Path, default=None,
+                    help="write the numbers, and every setting that shaped them, to this JSON file")
     ev.set_defaults(func=_evaluate)
 
     rec = sub.add_parser("record", help="play a query traversal back against a database: write a rerun .rrd")
@@ -116,11 +191,21 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    _bars.reset()
     try:
         return args.func(args)
     except VPRInputError as exc:
+        _bars.clear()
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as exc:
+        from vpr_explorer.descriptors import ExtractionInterrupted
+
+        _bars.clear()
+        # Ctrl-C during extraction: the finished batches are cached and the exception says how many.
+        print(f"error: interrupted; {exc}" if isinstance(exc, ExtractionInterrupted) else f"error: {INTERRUPTED}",
+              file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

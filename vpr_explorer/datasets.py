@@ -31,9 +31,63 @@ PREPARED_NAME = re.compile(r"^Place(\d+)_Cond(\d+)_G(\d+)$", re.IGNORECASE)
 POSITION_FILES = ("positions.csv", "gp_pos.csv")
 
 
+DATABASE_NAMES = frozenset({"ref", "reference", "database", "db", "map"})
+QUERY_NAMES = frozenset({"query", "queries", "q", "live"})
+"""Traversal (folder) names, case-insensitive, that say which side a traversal is on."""
+
+
 def natural_key(name: str) -> tuple:
     """Sort key that orders ``Image2`` before ``Image10``."""
     return tuple(int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name))
+
+
+@dataclass(frozen=True)
+class TraversalRoles:
+    """Which traversals are the database and which one queries, and how that was decided.
+
+    Attributes:
+        database: traversal indices of the database.
+        query: traversal index of the queries.
+        by_name: ``True`` when the traversal names decided it (e.g. ``ref/`` and ``query/``),
+            ``False`` for folder order (the first traversal against the last).
+    """
+
+    database: tuple[int, ...]
+    query: int
+    by_name: bool
+
+    def describe(self, traversals: tuple[str, ...]) -> str:
+        """E.g. "query against ref (recognised from the traversal names)"."""
+        db = ", ".join(traversals[t] for t in self.database)
+        how = ("recognised from the traversal names" if self.by_name
+               else "by folder order: the first traversal against the last")
+        return f"{traversals[self.query]} against {db} ({how})"
+
+
+def traversal_roles(traversals: tuple[str, ...] | list[str]) -> TraversalRoles:
+    """The default database and query traversals of a dataset.
+
+    Names decide first: a traversal called ``query``/``queries``/``q``/``live`` is the query
+    and one called ``ref``/``reference``/``database``/``db``/``map`` the database
+    (case-insensitive). Otherwise folder order: the last traversal queries the first, as
+    in GardensPoint (``day_left`` … ``night_right``) and Nordland (``summer``, ``winter``).
+    """
+    names = [t.lower() for t in traversals]
+    n = len(names)
+    if n < 2:
+        raise VPRInputError(f"{n} traversal(s): a database and a query traversal need at least 2")
+    named_q = [i for i, t in enumerate(names) if t in QUERY_NAMES]
+    named_db = [i for i, t in enumerate(names) if t in DATABASE_NAMES]
+    if len(named_q) == 1:
+        q = named_q[0]
+    elif named_db and not named_q:
+        q = max(i for i in range(n) if i not in named_db) if len(named_db) < n else None
+    else:
+        q = None
+    if q is None:  # nothing (or nothing unambiguous) recognised: folder order
+        return TraversalRoles(database=(0,), query=n - 1, by_name=False)
+    database = tuple(i for i in named_db if i != q) or (next(i for i in range(n) if i != q),)
+    return TraversalRoles(database=database, query=q, by_name=True)
 
 
 @dataclass(frozen=True, eq=False)
@@ -106,6 +160,10 @@ class Dataset:
             f"traversal {traversal!r} is not in dataset {self.name!r}: "
             f"choose one of {', '.join(self.traversals)}"
         )
+
+    def default_roles(self) -> TraversalRoles:
+        """The database and query traversals to use when none are given (see ``traversal_roles``)."""
+        return traversal_roles(self.traversals)
 
     def image_index(self, traversal: str | int, frame: int) -> int:
         """Index of frame ``frame`` of ``traversal`` in image order."""

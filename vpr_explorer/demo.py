@@ -37,7 +37,7 @@ from PIL import Image, ImageDraw
 
 from vpr_explorer.datasets import Dataset, load_dataset
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.settings import cache_root
+from vpr_explorer.settings import CACHE_ENV, cache_root
 
 DEMO_TRAVERSALS = ("day", "night", "snow")
 DEMO_FRAMES = 60
@@ -841,8 +841,11 @@ def demo_dataset(seed: int = DEMO_SEED, n_frames: int = DEMO_FRAMES) -> Dataset:
     if not route_is_complete(root, seed=seed, n_frames=n_frames):
         try:
             write_demo_route(root, seed=seed, n_frames=n_frames)
-        except OSError:
+        except OSError as exc:
             # Another process may have installed the route while we drew ours.
             if not route_is_complete(root, seed=seed, n_frames=n_frames):
-                raise
+                raise VPRInputError(
+                    f"{root}: cannot write the demo route there ({exc.strerror or exc}); set {CACHE_ENV} to a "
+                    "writable folder"
+                ) from exc
     return dataclasses.replace(load_dataset(root, list(DEMO_TRAVERSALS)), name="demo")

@@ -57,12 +57,14 @@ class Protocol(StrEnum):
     PAPER = "paper"
     TRAVERSAL = "traversal"
     OPEN_SET = "open-set"
+    DATABASE = "database-queries"
 
 
 PROTOCOL_LABELS = {
     Protocol.PAPER: "paper: R random splits, one query image per place (closed set)",
     Protocol.TRAVERSAL: "traversal: a database traversal against a query traversal",
     Protocol.OPEN_SET: "open set: a share of places held out; their queries must be rejected",
+    Protocol.DATABASE: "database/queries: a benchmark's database against its queries, ground truth as given",
 }
 
 Stat = tuple[float, float]  # (mean, std) over runs
@@ -395,6 +397,8 @@ def draw_splits(
     With ``unknown_share``, that share of places (at least 1, leaving at least 2 known) is
     held out: their query stays, their other images leave the training set.
     """
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2**63:
+        raise VPRInputError(f"seed={seed!r}: must be a whole number from 0 to 2**63 - 1")
     order, starts, sizes = _members(image_place, n_places)
     places = np.flatnonzero(sizes > 0)
     _require_two_per_place(sizes, places)
@@ -421,12 +425,58 @@ def draw_splits(
     return splits
 
 
+def _check_tolerance(tolerance) -> int:
+    if isinstance(tolerance, bool) or not isinstance(tolerance, (int, np.integer)) or not 0 <= tolerance <= 1_000_000:
+        raise VPRInputError(f"tolerance={tolerance!r}: must be a whole number of frames, 0 or more (the authors use 2)")
+    return int(tolerance)
+
+
+def pooled_truth(
+    image_place: np.ndarray,
+    image_frame: np.ndarray | None,
+    frame_place: np.ndarray | None,
+    tolerance: int,
+    n_places: int,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Which places are right for every image as a query, with a frame tolerance.
+
+    A place is right for a query when it holds a frame within ``tolerance`` frames of the
+    query's frame (its own place always is). Returns ``(image, place)`` index pairs of the
+    right places other than the image's own, or ``None`` when there are none (tolerance 0,
+    or places further apart than the tolerance): then each query's own place is its only
+    right place.
+
+    Args:
+        image_place: ``(n_images,)`` place of each image, ``-1`` for skipped frames.
+        image_frame: ``(n_images,)`` frame index of each image in its traversal.
+        frame_place: ``(n_frames,)`` place of each frame index, ``-1`` between places.
+    """
+    tolerance = _check_tolerance(tolerance)
+    if tolerance == 0:
+        return None
+    if image_frame is None or frame_place is None:
+        raise VPRInputError("tolerance needs each image's frame and each frame's place (image_frame, frame_place)")
+    labelled = np.flatnonzero(image_place >= 0)
+    truth = query_truth(np.asarray(image_frame)[labelled], np.asarray(frame_place), tolerance)
+    truth = np.pad(truth, ((0, 0), (0, max(0, n_places - truth.shape[1]))))[:, :n_places]
+    truth[np.arange(len(labelled)), image_place[labelled]] = False
+    i, p = np.nonzero(truth)
+    return (labelled[i], p) if len(i) else None
+
+
 def _pooled_splits(d, image_place, image_traversal, n_places, *, runs, seed, unknown_share, cross_condition,
-                   user_theta, progress) -> list[SplitScores]:
+                   user_theta, progress, extra_truth=None) -> list[SplitScores]:
     if cross_condition and len(np.unique(image_traversal[image_place >= 0])) < 2:
         raise VPRInputError("cross_condition needs at least 2 traversals")
     splits = draw_splits(image_place, n_places, runs=runs, seed=seed, unknown_share=unknown_share)
     full = similarity(d, d) if len(d) <= 8000 else None
+    extra = None
+    if extra_truth is not None:  # image -> its other right places, as a sparse (image, place) list
+        extra = np.zeros((len(d), n_places), dtype=bool) if len(d) * n_places <= 50_000_000 else None
+        if extra is None:
+            raise VPRInputError(f"tolerance on {len(d):,} images × {n_places:,} places: too large for the "
+                                "straightforward protocol; use tolerance 0 or larger step")
+        extra[extra_truth] = True
     out = []
     for r, sp in enumerate(splits):
         pick, train = sp.queries, sp.train
@@ -434,6 +484,8 @@ def _pooled_splits(d, image_place, image_traversal, n_places, *, runs, seed, unk
         correct = np.zeros((len(pick), n_places), dtype=bool)
         known = ~sp.unknown[image_place[pick]]
         correct[np.flatnonzero(known), image_place[pick][known]] = True
+        if extra is not None:  # neighbouring places within the frame tolerance, if they are in the database
+            correct |= extra[pick] & ~sp.unknown[None, :]
         out.append(run_split(
             d[train], image_place[train], image_traversal[train], sims, correct, image_traversal[pick], n_places,
             cross_condition=cross_condition, user_theta=user_theta, seed=seed + r,
@@ -456,6 +508,9 @@ def paper_protocol(
     ks: tuple[int, ...] = KS,
     progress: Progress | None = None,
     settings: dict | None = None,
+    tolerance: int = 0,
+    image_frame: np.ndarray | None = None,
+    frame_place: np.ndarray | None = None,
 ) -> Evaluation:
     """The paper's closed-set protocol over ``runs`` seeded splits.
 
@@ -463,11 +518,16 @@ def paper_protocol(
         descriptors: ``(n_images, D)`` L2-normalised.
         image_place: ``(n_images,)`` place of each image, ``-1`` for skipped frames.
         image_traversal: ``(n_images,)`` traversal of each image.
+        tolerance: frames of slack: a place holding a frame within ``tolerance`` frames of
+            the query's frame is right too (the authors count ±2); needs ``image_frame``
+            ``(n_images,)`` and ``frame_place`` ``(n_frames,)``.
     """
     t0 = time.perf_counter()
     d, image_place, image_traversal, ks = _check_common(descriptors, image_place, image_traversal, runs, ks)
+    extra = pooled_truth(image_place, image_frame, frame_place, tolerance, n_places)
     splits = _pooled_splits(d, image_place, image_traversal, n_places, runs=runs, seed=seed, unknown_share=None,
-                            cross_condition=cross_condition, user_theta=user_theta, progress=progress)
+                            cross_condition=cross_condition, user_theta=user_theta, progress=progress,
+                            extra_truth=extra)
     notes = []
     if not cross_condition:
         notes.append("queries are matched against all traversals, their own included: see the own-traversal "
@@ -475,7 +535,7 @@ def paper_protocol(
     return Evaluation(
         protocol=Protocol.PAPER,
         settings={**(settings or {}), "runs": runs, "seed": seed, "cross_condition": cross_condition,
-                  "queries_per_run": len(splits[0].known)},
+                  "tolerance": int(tolerance), "queries_per_run": len(splits[0].known)},
         ks=ks, rows=_summarise(splits, ks, own_traversal=True), notes=tuple(notes),
         seconds=time.perf_counter() - t0,
     )
@@ -496,22 +556,30 @@ def open_set_protocol(
     ks: tuple[int, ...] = KS,
     progress: Progress | None = None,
     settings: dict | None = None,
+    tolerance: int = 0,
+    image_frame: np.ndarray | None = None,
+    frame_place: np.ndarray | None = None,
 ) -> Evaluation:
-    """Open set: ``unknown_share`` of the places are held out of the database in each split."""
+    """Open set: ``unknown_share`` of the places are held out of the database in each split.
+
+    ``tolerance``, ``image_frame``, ``frame_place`` as for ``paper_protocol``: a query of a
+    held-out place with a known place within the tolerance counts as a known-place query.
+    """
     t0 = time.perf_counter()
     d, image_place, image_traversal, ks = _check_common(descriptors, image_place, image_traversal, runs, ks)
     k_grid = tuple(float(k) for k in k_grid)
     if not k_grid or not all(np.isfinite(k_grid)):
         raise VPRInputError(f"k grid {k_grid}: give finite values of k, e.g. -1 0 0.5 1 2")
+    extra = pooled_truth(image_place, image_frame, frame_place, tolerance, n_places)
     splits = _pooled_splits(d, image_place, image_traversal, n_places, runs=runs, seed=seed,
                             unknown_share=unknown_share, cross_condition=cross_condition,
-                            user_theta=user_theta, progress=progress)
+                            user_theta=user_theta, progress=progress, extra_truth=extra)
     n_unknown = int((~splits[0].known).sum())
     return Evaluation(
         protocol=Protocol.OPEN_SET,
         settings={**(settings or {}), "runs": runs, "seed": seed, "unknown_share": unknown_share,
                   "unknown_places_per_run": n_unknown, "known_places_per_run": int(splits[0].known.sum()),
-                  "cross_condition": cross_condition, "k_grid": list(k_grid)},
+                  "cross_condition": cross_condition, "tolerance": int(tolerance), "k_grid": list(k_grid)},
         ks=ks, rows=_summarise(splits, ks, own_traversal=True), tradeoff=_tradeoff(splits, k_grid),
         notes=("the oracle global θ is chosen knowing which queries are unknown: an upper bound, not a method",),
         seconds=time.perf_counter() - t0,
@@ -559,8 +627,7 @@ def traversal_protocol(
     if query in database:
         name = traversal_names[query] if traversal_names else query
         raise VPRInputError(f"queries={name!r} is also a database traversal; pick another query traversal")
-    if isinstance(tolerance, bool) or not isinstance(tolerance, (int, np.integer)) or tolerance < 0:
-        raise VPRInputError(f"tolerance={tolerance!r}: must be a whole number of frames, 0 or more")
+    _check_tolerance(tolerance)
     n_places = int(frame_place.max()) + 1
     db = np.flatnonzero(np.isin(image_traversal, database) & (image_place >= 0))
     qs = np.flatnonzero(image_traversal == query)
@@ -578,4 +645,126 @@ def traversal_protocol(
                   "queries": names[query] if names else query, "tolerance": tolerance, "queries_scored": int(len(qs)),
                   "queries_between_places": int((~keep).sum())},
         ks=ks, rows=_summarise([split], ks, own_traversal=False), seconds=time.perf_counter() - t0,
+    )
+
+
+# --------------------------------------------------------------------------- database and queries with a relation
+
+
+def retrieval_protocol(
+    database: np.ndarray,
+    queries: np.ndarray,
+    database_place: np.ndarray,
+    n_places: int,
+    ground_truth,
+    *,
+    user_theta: float | None = None,
+    ks: tuple[int, ...] = KS,
+    settings: dict | None = None,
+    block: int = 2048,
+    progress: Progress | None = None,
+) -> Evaluation:
+    """A database against queries with ground truth as a relation (``groundtruth.GroundTruth``).
+
+    Thresholds come from the database images that belong to a place. Recall is counted as
+    the field counts it: the image-level baseline ranks every database image (a query
+    counts at K when one of its top K is a positive, ties against it), over the queries
+    with a positive; the place-level methods rank places, a place being right when it
+    holds a positive, over the queries with a positive inside some place. Queries with no
+    positive are unknown-place queries: counted apart (their rejection rate), never as
+    misses.
+
+    Args:
+        database: ``(n_database, D)``; queries: ``(n_queries, D)``; both L2-normalised.
+        database_place: ``(n_database,)`` place of each database image, ``-1`` outside places.
+        ground_truth: a ``GroundTruth`` of ``n_queries`` rows over ``n_database`` images.
+        block: queries scored at a time (memory: block × n_database float32).
+    """
+    from vpr_explorer.groundtruth import GroundTruth
+
+    t0 = time.perf_counter()
+    db = validate_descriptors(database)
+    q = validate_descriptors(queries)
+    database_place = np.asarray(database_place, dtype=np.int64)
+    ks = tuple(int(k) for k in ks)
+    if not isinstance(ground_truth, GroundTruth):
+        raise VPRInputError("ground_truth: give a groundtruth.GroundTruth")
+    if ground_truth.n_queries != len(q) or ground_truth.n_database != len(db) or database_place.shape != (len(db),):
+        raise VPRInputError(
+            f"ground truth of {ground_truth.n_queries} × {ground_truth.n_database} for {len(q)} queries and "
+            f"{len(db)} database images ({len(database_place)} place labels)"
+        )
+    if db.shape[1] != q.shape[1]:
+        raise VPRInputError(f"database descriptors are {db.shape[1]}-d but query descriptors {q.shape[1]}-d")
+    placed = np.flatnonzero(database_place >= 0)
+    if len(np.unique(database_place[placed])) < 2:
+        raise VPRInputError("the database holds fewer than 2 places: negative statistics need at least 2; "
+                            "lower group or step")
+    labels = database_place[placed]
+    th, spread, k_ad = _thresholds(db[placed], labels, n_places, user_theta=user_theta, seed=0)
+    place_methods = tuple(m for m in METHODS_BY_KEY.values()
+                          if m.level == "place" and m.key != "global-oracle" and (m.threshold is None or m.threshold in th))
+    parts: dict[str, list[Outcome]] = {}
+    tops, bests, base_right, place_known = [], [], [], []
+    for lo in range(0, len(q), block):
+        rows = np.arange(lo, min(lo + block, len(q)))
+        sims = similarity(q[rows], db)
+        correct = ground_truth.places(database_place, n_places, rows)
+        raw, best = place_scores(sims[:, placed], labels, n_places)
+        out = score_queries(sims[:, placed], labels, n_places, th, correct, place_methods, raw_best=(raw, best))
+        for key, o in out.items():  # answers as database positions
+            img = np.where(o.answer_image >= 0, placed[np.maximum(o.answer_image, 0)], -1)
+            parts.setdefault(key, []).append(Outcome(o.method, o.rank, o.answer_place, img, o.n_kept))
+        image_correct = ground_truth.dense(rows)
+        img_scores = np.asarray(sims, dtype=np.float64)
+        img = top_answer(img_scores)
+        parts.setdefault("image-baseline", []).append(Outcome(
+            METHODS_BY_KEY["image-baseline"], pessimistic_rank(img_scores, image_correct),
+            np.where(img >= 0, database_place[np.maximum(img, 0)], -1), img, np.full(len(rows), len(db))))
+        tops.append(raw.max(axis=1))
+        bests.append(np.where(correct, raw, -np.inf).max(axis=1))
+        base_right.append(out["place-baseline"].rank == 1)
+        place_known.append(correct.any(axis=1))
+        if progress:
+            progress(int(rows[-1]) + 1, len(q), f"queries {int(rows[-1]) + 1}/{len(q)}")
+    outcomes = {key: Outcome(ps[0].method, *(np.concatenate([getattr(p, f) for p in ps])
+                                             for f in ("rank", "answer_place", "answer_image", "n_kept")))
+                for key, ps in parts.items()}
+    known = np.concatenate(place_known)
+    top = np.concatenate(tops)
+    # place level: queries whose positives all lie outside places are left out (as the traversal
+    # protocol leaves out frames between places); queries with no positive at all stay, as unknown
+    scored = known | ~ground_truth.known
+    th["oracle"] = oracle_global_threshold(top[scored], np.concatenate(base_right)[scored], known[scored])
+    base = outcomes["place-baseline"]
+    # the raw rule with one θ: the right place stays iff its raw ≥ θ, and then so does every place
+    # above it, so the rank is the baseline's; the top answer stays iff it is ≥ θ
+    acc = top >= th["oracle"]
+    outcomes["global-oracle"] = Outcome(METHODS_BY_KEY["global-oracle"],
+                                        np.where(np.concatenate(bests) >= th["oracle"], base.rank, np.inf),
+                                        np.where(acc, base.answer_place, -1), np.where(acc, base.answer_image, -1),
+                                        base.n_kept)
+    order = ["image-baseline", *[m.key for m in place_methods], "global-oracle"]
+    outcomes = {k: outcomes[k] for k in order}
+    empty = np.empty((0, n_places))
+
+    def summary(outs: dict[str, Outcome], known_rows: np.ndarray) -> tuple[MethodRow, ...]:
+        split = SplitScores(outs, empty, empty.astype(np.int64), empty.astype(bool), known_rows,
+                            np.zeros(len(known_rows), dtype=np.int64), np.ones(len(db), dtype=np.int64), th, spread,
+                            k_ad)
+        return _summarise([split], ks, own_traversal=False)
+
+    place_outs = {k: Outcome(o.method, o.rank[scored], o.answer_place[scored], o.answer_image[scored],
+                             o.n_kept[scored]) for k, o in outcomes.items()}
+    rows_ = list(summary(place_outs, known[scored]))
+    rows_[0] = summary(outcomes, ground_truth.known)[0]  # the image level counts every query
+    return Evaluation(
+        protocol=Protocol.DATABASE,
+        settings={**(settings or {}), "ground_truth": ground_truth.description, "queries": int(len(q)),
+                  "database_images": int(len(db)), "database_images_in_places": int(len(placed)),
+                  "queries_without_positive": int(ground_truth.n_unknown),
+                  "queries_between_places": int((~scored).sum())},
+        ks=ks, rows=tuple(rows_), seconds=time.perf_counter() - t0,
+        notes=("image level: a query counts at K when one of its top K database images is a positive; place "
+               "level: when the top K places hold one",),
     )

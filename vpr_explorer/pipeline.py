@@ -23,6 +23,7 @@ from vpr_explorer.evaluation import (
 )
 from vpr_explorer.places import Places, PlaceSpec, make_places
 from vpr_explorer.scale import fast_paper_protocol
+from vpr_explorer.settings import check_cache_root
 
 DEMO = "demo"
 
@@ -75,13 +76,61 @@ def dataset_descriptors(
     )
 
 
+MAX_RUNS = 1000
+"""Most random splits a pooled protocol runs: each split keeps its own thresholds and outcomes
+(memory and time grow with runs); the paper uses 50."""
+MAX_SEED = 2**63 - 1
+
+
+def check_whole(name: str, value: object, *, low: int, high: int, why: str = "") -> int:
+    """``value`` as an ``int`` in ``[low, high]``, or a ``VPRInputError`` naming ``name`` and the limit."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise VPRInputError(f"{name}={value!r}: must be a whole number from {low:,} to {high:,}")
+    if not low <= value <= high:
+        limit = f"{low:,} or more" if value < low else f"{high:,} or less"
+        raise VPRInputError(f"{name}={value}: must be {limit}{why}")
+    return int(value)
+
+
+def check_finite(name: str, value: object, *, low: float | None = None, high: float | None = None,
+                 example: str = "") -> float:
+    """``value`` as a finite ``float`` strictly inside ``(low, high)`` where given, or a ``VPRInputError``."""
+    ok = not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating))
+    if ok and not np.isfinite(value):
+        ok = False
+    what = "a finite number" + (f" between {low:g} and {high:g}" if low is not None and high is not None else "")
+    if ok and ((low is not None and value <= low) or (high is not None and value >= high)):
+        ok = False
+    if not ok:
+        raise VPRInputError(f"{name}={value!r}: must be {what}{f' (e.g. {example})' if example else ''}")
+    return float(value)
+
+
 def default_traversals(dataset: Dataset, database: Sequence[str] | None, queries: str | None) -> tuple[list[int], int]:
-    """Database and query traversal indices; by default the first traversal against the last."""
+    """Database and query traversal indices; by default ``Dataset.default_roles`` (names, else folder order)."""
     if dataset.n_traversals < 2:
         raise VPRInputError(f"{dataset.name!r} has one traversal: the traversal protocol needs a second to query with")
-    q = dataset.traversal_index(queries) if queries is not None else dataset.n_traversals - 1
-    db = [dataset.traversal_index(t) for t in database] if database else [0 if q != 0 else 1]
+    roles = dataset.default_roles()
+    db = [dataset.traversal_index(t) for t in database] if database else None
+    if queries is not None:
+        q = dataset.traversal_index(queries)
+    elif db is not None and roles.query in db:
+        # the default query traversal was named as a database: query with the last one left
+        q = max((t for t in range(dataset.n_traversals) if t not in db), default=roles.query)
+    else:
+        q = roles.query
+    if db is None:
+        db = [t for t in roles.database if t != q] or [0 if q != 0 else 1]
     return db, q
+
+
+def traversal_direction(dataset: Dataset, database: Sequence[int], query: int) -> str:
+    """How the traversal protocol's direction was chosen, in words (for its settings and header)."""
+    roles = dataset.default_roles()
+    if list(database) != list(roles.database) or query != roles.query:
+        return "as given"
+    return ("default, recognised from the traversal names" if roles.by_name
+            else "default by folder order: the first traversal against the last (pick with database/queries)")
 
 
 def _protocol(protocol: Protocol | str) -> Protocol:
@@ -91,13 +140,50 @@ def _protocol(protocol: Protocol | str) -> Protocol:
         raise VPRInputError(f"protocol {protocol!r}: choose one of {', '.join(p.value for p in Protocol)}") from None
 
 
-def check_options(protocol: Protocol | str, dataset: Dataset, *, runs: int = 50, database=None, queries=None,
-                  **_) -> None:
-    """Cheap checks of a protocol's options, so that bad input fails before descriptor extraction."""
-    if _protocol(protocol) is Protocol.TRAVERSAL:
+def check_options(
+    protocol: Protocol | str,
+    dataset: Dataset,
+    *,
+    runs: int = 50,
+    seed: int = 0,
+    unknown_share: float = 0.3,
+    database: Sequence[str] | None = None,
+    queries: str | None = None,
+    tolerance: int = 0,
+    user_theta: float | None = None,
+    k_grid: Sequence[float] = K_GRID,
+    **_,
+) -> Protocol:
+    """Check a protocol's options (``run_protocol``'s), cheaply, so that bad input fails before any work.
+
+    Raises:
+        VPRInputError: naming the option, its value and the limit or the fix.
+    """
+    protocol = _protocol(protocol)
+    if user_theta is not None:
+        check_finite("theta", user_theta, example="0.5, a cosine similarity")
+    check_whole("tolerance", tolerance, low=0, high=dataset.n_frames,
+                why=f" (frames of slack; {dataset.name!r} has {dataset.n_frames:,} frames)")
+    if protocol is Protocol.TRAVERSAL:
         default_traversals(dataset, database, queries)
-    elif isinstance(runs, bool) or not isinstance(runs, int) or runs < 1:
-        raise VPRInputError(f"runs={runs!r}: must be a whole number, 1 or more")
+        return protocol
+    check_whole("runs", runs, low=1, high=MAX_RUNS,
+                why=" (random splits: each keeps its own thresholds and scores, so memory and time grow with runs; "
+                    "the paper uses 50)")
+    check_whole("seed", seed, low=0, high=MAX_SEED)
+    if protocol is Protocol.OPEN_SET:
+        check_finite("unknown_share", unknown_share, low=0, high=1, example="0.3")
+        k_grid = list(k_grid)
+        if not k_grid:
+            raise VPRInputError("k: give at least one value of k for θ_p + k·s_p, e.g. -1 0 0.5 1 2")
+        for k in k_grid:
+            check_finite("k", k, example="-1 0 0.5 1 2")
+    return protocol
+
+
+def _paper_progress(progress: Progress | None, runs: int) -> Progress | None:
+    """``fast_paper_protocol`` reports each split, then the blocks of its one pass over all splits."""
+    return progress
 
 
 def run_protocol(
@@ -118,27 +204,44 @@ def run_protocol(
     progress: Progress | None = None,
     settings: dict | None = None,
 ) -> Evaluation:
-    """Run one protocol of ``evaluation`` on a dataset's descriptors."""
-    protocol = _protocol(protocol)
+    """Run one protocol of ``evaluation`` on a dataset's descriptors.
+
+    Options are checked first (``check_options``). The result's settings hold every option
+    that shaped the run: group/step/reading, the user's θ and the tolerance beside the
+    protocol's own (runs, seed, …).
+    """
+    protocol = check_options(protocol, dataset, runs=runs, seed=seed, unknown_share=unknown_share, database=database,
+                             queries=queries, tolerance=tolerance, user_theta=user_theta, k_grid=k_grid)
     if len(descriptors) != dataset.n_images:
         raise VPRInputError(
             f"{len(descriptors)} descriptors for {dataset.n_images} images of {dataset.name!r}: recompute them"
         )
-    settings = {"dataset": dataset.name, "places": places.describe(), **(settings or {})}
-    common = dict(user_theta=user_theta, settings=settings)
+    spec = places.spec
+    settings = {
+        "dataset": dataset.name, "places": places.describe(), **(settings or {}),
+        "group": spec.group if spec else None, "step": spec.step if spec else None,
+        "reading": spec.reading.value if spec else None,
+        "theta": None if user_theta is None else float(user_theta), "tolerance": int(tolerance),
+    }
     if protocol is Protocol.TRAVERSAL:
         db, q = default_traversals(dataset, database, queries)
+        db_images = np.flatnonzero(np.isin(dataset.image_traversal, db))
+        settings.update(places=places.describe(images=db_images, what="database images"),
+                        direction=traversal_direction(dataset, db, q))
         return traversal_protocol(
             descriptors, places.image_place, dataset.image_traversal, dataset.image_frame, places.frame_place,
-            database=db, query=q, tolerance=tolerance, traversal_names=dataset.traversals, **common,
+            database=db, query=q, tolerance=tolerance, traversal_names=dataset.traversals, user_theta=user_theta,
+            settings=settings,
         )
-    pooled = dict(runs=runs, seed=seed, cross_condition=cross_condition, progress=progress, **common)
+    pooled = dict(runs=runs, seed=seed, cross_condition=cross_condition, user_theta=user_theta, settings=settings,
+                  tolerance=tolerance, image_frame=dataset.image_frame, frame_place=places.frame_place)
     if protocol is Protocol.PAPER:
         # evaluation.paper_protocol's numbers (tests/test_scale.py) in one pass over the image pairs
-        return fast_paper_protocol(descriptors, places.image_place, dataset.image_traversal, places.n_places, **pooled)
+        return fast_paper_protocol(descriptors, places.image_place, dataset.image_traversal, places.n_places,
+                                   progress=_paper_progress(progress, runs), **pooled)
     return open_set_protocol(
         descriptors, places.image_place, dataset.image_traversal, places.n_places,
-        unknown_share=unknown_share, k_grid=k_grid, **pooled,
+        unknown_share=unknown_share, k_grid=k_grid, progress=progress, **pooled,
     )
 
 
@@ -159,6 +262,7 @@ def evaluate_dataset(
     ``dtype`` and ``storage`` go to :func:`dataset_descriptors`, the other options to
     :func:`run_protocol`.
     """
+    check_cache_root(cache_root)  # an unusable cache folder fails before the dataset is read or the demo drawn
     dataset = resolve_dataset(source)
     places = make_places(dataset, spec)
     check_options(protocol, dataset, **options)
@@ -167,3 +271,97 @@ def evaluate_dataset(
     )
     return run_protocol(protocol, dataset, places, desc, settings={"descriptor": descriptor, "dtype": str(desc.dtype)},
                         **options)
+
+
+# --------------------------------------------------------------------------- benchmark layouts (database and queries)
+
+
+def open_dataset(source: str | Path, layout: str = "auto", *, radius: float | None = None,
+                 database: Sequence[str] | None = None, queries: str | None = None):
+    """A ``Dataset`` (aligned traversals, prepared places, ``"demo"``) or a ``layouts.RetrievalDataset``.
+
+    ``layout`` is ``auto`` (detected, see ``layouts.detect_layout``) or one of ``layouts.Layout``.
+    """
+    from vpr_explorer.groundtruth import DEFAULT_RADIUS
+    from vpr_explorer.layouts import RETRIEVAL_LAYOUTS, Layout, detect_layout, load_retrieval
+
+    try:
+        layout = Layout(layout)
+    except ValueError:
+        raise VPRInputError(f"layout {layout!r}: choose one of {', '.join(x.value for x in Layout)}") from None
+    if str(source) == DEMO:
+        if layout not in (Layout.AUTO, Layout.TRAVERSALS):
+            raise VPRInputError(f"--layout {layout.value}: the demo route is traversal folders")
+        return resolve_dataset(source)
+    path = Path(source).expanduser()
+    if not path.exists():
+        raise VPRInputError(f"{path}: the dataset folder does not exist; check the path")
+    if layout is Layout.AUTO:
+        layout = detect_layout(path)
+    if layout in RETRIEVAL_LAYOUTS:
+        return load_retrieval(path, layout, radius=DEFAULT_RADIUS if radius is None else radius,
+                              database=list(database) if database else None, queries=queries)
+    if radius is not None:
+        raise VPRInputError(f"--radius applies to position-tagged layouts; {path} is read as {layout.value}")
+    dataset = load_dataset(path)
+    if layout is Layout.PREPARED and dataset.prepared_places is None:
+        raise VPRInputError(f"{path}: --layout prepared needs images named Place####_Cond##_G##")
+    return dataset
+
+
+def retrieval_places(dataset, spec: PlaceSpec | None = None, metric=None):
+    """``(n_database,)`` place of each database image and the number of places.
+
+    The layout's own place ids (a manifest's ``place`` column) when it has them; else
+    ``metric`` (a ``MetricPlaceSpec``: metres along the route or a lattice) when the layout
+    has positions; else ``spec`` (group/step counting database images in listed order).
+    """
+    from vpr_explorer.places import frame_places, metric_places
+
+    if dataset.database_place is not None:
+        return dataset.database_place, int(dataset.database_place.max()) + 1
+    if metric is not None:
+        if dataset.database_xy is None:
+            raise VPRInputError(f"{dataset.name}: the {dataset.layout.value} layout has no positions: group/step in "
+                                "metres need them; use --geometry frames (group/step in images)")
+        place, n = metric_places(dataset.database_xy, metric)
+    else:
+        if spec is None:
+            raise VPRInputError("group/step missing: give a PlaceSpec(group, step) or a MetricPlaceSpec")
+        place = frame_places(dataset.n_database, spec)
+        n = int(place.max()) + 1 if (place >= 0).any() else 0
+    if n < 2:
+        what = metric.describe() if metric is not None else spec.describe()
+        raise VPRInputError(f"{what} leaves {n} place(s) in the {dataset.n_database} database images of "
+                            f"{dataset.name!r}: negative statistics need at least 2 places; lower group or step")
+    return place, n
+
+
+def evaluate_retrieval(
+    dataset,
+    descriptors: np.ndarray,
+    *,
+    spec: PlaceSpec | None = None,
+    metric=None,
+    user_theta: float | None = None,
+    settings: dict | None = None,
+    progress: Progress | None = None,
+) -> Evaluation:
+    """The database/queries protocol on a ``RetrievalDataset`` with its descriptors (database rows first)."""
+    from vpr_explorer.evaluation import retrieval_protocol
+
+    if len(descriptors) != dataset.n_images:
+        raise VPRInputError(f"{len(descriptors)} descriptors for {dataset.n_images} images of {dataset.name!r}: "
+                            "recompute them")
+    if user_theta is not None:
+        check_finite("theta", user_theta, example="0.5, a cosine similarity")
+    place, n_places = retrieval_places(dataset, spec, metric)
+    how = ("places from the layout" if dataset.database_place is not None
+           else metric.describe() if metric is not None else spec.describe())
+    d = np.asarray(descriptors)
+    return retrieval_protocol(
+        d[:dataset.n_database], d[dataset.n_database:], place, n_places, dataset.ground_truth,
+        user_theta=user_theta, progress=progress,
+        settings={"dataset": dataset.name, "layout": dataset.layout.value, "places": f"{n_places} places ({how})",
+                  **({"theta": user_theta} if user_theta is not None else {}), **(settings or {})},
+    )

@@ -31,6 +31,9 @@ class Reading(StrEnum):
     SKIP = "skip"
 
 
+MAX_FRAMES = 10_000_000
+"""The most frames ``group`` or ``step`` may span: far beyond any route (Nordland has 27,592 frames)."""
+
 READING_LABELS = {
     Reading.STRIDE: "stride: a place starts every `step` frames (authors' code, paper's numbers)",
     Reading.SKIP: "skip: take `group` frames, skip the next `step` (paper's text)",
@@ -50,6 +53,13 @@ class PlaceSpec:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
                 raise VPRInputError(f"{name}={value!r}: must be a whole number of frames, 1 or more")
+            if value > MAX_FRAMES:
+                raise VPRInputError(
+                    f"{name}={value}: at most {MAX_FRAMES:,} frames (longer than any route: no place would fit); "
+                    "lower it"
+                )
+        if self.reading not in {r.value for r in Reading}:
+            raise VPRInputError(f"reading={self.reading!r}: choose {' or '.join(r.value for r in Reading)}")
         object.__setattr__(self, "reading", Reading(self.reading))
         if self.reading is Reading.SKIP and self.step < 1:
             raise VPRInputError(f"step={self.step}: must be 1 or more")
@@ -107,11 +117,23 @@ class Places:
     def images_of(self, place: int) -> np.ndarray:
         return np.flatnonzero(self.image_place == place)
 
-    def describe(self) -> str:
+    def describe(self, images: np.ndarray | None = None, what: str = "images") -> str:
+        """E.g. "20 places × 9 images (group 3, step 10 (stride reading))".
+
+        Args:
+            images: count only these image indices (e.g. a traversal protocol's database);
+                default every image.
+            what: what the images are called, e.g. "database images".
+        """
         how = self.spec.describe() if self.spec else "places fixed by file names"
-        counts = np.unique(self.images_per_place)
+        if images is None:
+            per_place = self.images_per_place
+        else:
+            labels = self.image_place[np.asarray(images, dtype=np.int64)]
+            per_place = np.bincount(labels[labels >= 0], minlength=self.n_places)
+        counts = np.unique(per_place)
         per = str(counts[0]) if len(counts) == 1 else f"{counts.min()}-{counts.max()}"
-        return f"{self.n_places} places × {per} images ({how})"
+        return f"{self.n_places} places × {per} {what} ({how})"
 
 
 def make_places(dataset: Dataset, spec: PlaceSpec | None) -> Places:
@@ -137,3 +159,87 @@ def make_places(dataset: Dataset, spec: PlaceSpec | None) -> Places:
         )
     image_place = np.tile(frame_place, dataset.n_traversals)
     return Places(frame_place=frame_place, image_place=image_place, n_places=n_places, spec=spec)
+
+
+# --------------------------------------------------------------------------- places in metres
+
+
+class PlaceGeometry(StrEnum):
+    """How positions become places when group/step are metres."""
+
+    FRAMES = "frames"  # database images in listed order, group/step in images
+    ROUTE = "route"  # distance along the database route, in its listed order
+    LATTICE = "lattice"  # cells of a square lattice over the plane
+
+
+GEOMETRY_LABELS = {
+    PlaceGeometry.FRAMES: "frames: group/step count database images in listed order",
+    PlaceGeometry.ROUTE: "route: group/step are metres along the database route",
+    PlaceGeometry.LATTICE: "lattice: group/step are metres of a square lattice over the plane",
+}
+
+
+@dataclass(frozen=True)
+class MetricPlaceSpec:
+    """Places of a database with positions: ``group`` metres make a place, one every ``step``.
+
+    In the stride reading place k covers ``[k·step, k·step + group)`` (along the route, or
+    per axis of the lattice); in the skip reading ``[k·(group+step), k·(group+step) + group)``.
+    """
+
+    group: float
+    step: float
+    reading: Reading = Reading.STRIDE
+    geometry: PlaceGeometry = PlaceGeometry.ROUTE
+
+    def __post_init__(self) -> None:
+        for name in ("group", "step"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+                    or not np.isfinite(value) or value <= 0 or value > 1e7:
+                raise VPRInputError(f"{name}={value!r}: must be a distance in metres above 0 (at most 10,000 km)")
+        if self.reading not in {r.value for r in Reading}:
+            raise VPRInputError(f"reading={self.reading!r}: choose {' or '.join(r.value for r in Reading)}")
+        object.__setattr__(self, "reading", Reading(self.reading))
+        if self.geometry not in {g.value for g in PlaceGeometry} or self.geometry == PlaceGeometry.FRAMES:
+            raise VPRInputError(f"geometry={self.geometry!r}: choose route or lattice")
+        object.__setattr__(self, "geometry", PlaceGeometry(self.geometry))
+        if self.reading is Reading.STRIDE and self.step < self.group:
+            raise VPRInputError(f"step={self.step:g} m < group={self.group:g} m: in the stride reading places would "
+                                f"overlap; set step >= {self.group:g}, or use the skip reading")
+
+    @property
+    def period(self) -> float:
+        return self.step if self.reading is Reading.STRIDE else self.group + self.step
+
+    def describe(self) -> str:
+        return f"group {self.group:g} m, step {self.step:g} m ({self.geometry.value}, {self.reading.value} reading)"
+
+
+def _bins(v: np.ndarray, spec: MetricPlaceSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Bin of each value and whether it falls inside the bin's first ``group`` metres."""
+    k = np.floor(v / spec.period).astype(np.int64)
+    return k, (v - k * spec.period) < spec.group
+
+
+def metric_places(xy: np.ndarray, spec: MetricPlaceSpec) -> tuple[np.ndarray, int]:
+    """``(n,)`` place of each database image (``-1`` outside every place) and the number of places.
+
+    Route: the distance along the database in its listed order (0 at the first image).
+    Lattice: cells over the plane from the lowest x and y; cells are numbered in row-major
+    order of (y, x), empty cells get no id.
+    """
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    if spec.geometry is PlaceGeometry.ROUTE:
+        along = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))]
+        k, inside = _bins(along, spec)
+        place = np.where(inside, k, -1)
+    else:
+        origin = xy.min(axis=0)
+        kx, in_x = _bins(xy[:, 0] - origin[0], spec)
+        ky, in_y = _bins(xy[:, 1] - origin[1], spec)
+        place = np.where(in_x & in_y, ky * (int(kx.max()) + 1) + kx, -1)
+    used = np.unique(place[place >= 0])
+    out = np.full(len(place), -1, dtype=np.int64)
+    out[place >= 0] = np.searchsorted(used, place[place >= 0])
+    return out, len(used)

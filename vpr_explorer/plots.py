@@ -139,7 +139,13 @@ def theta_histogram(theta: Mapping[str, np.ndarray], auto: float, user_theta: fl
         v = np.asarray(v, dtype=float)
         fig.add_trace(go.Histogram(x=v[np.isfinite(v)], name=f"θ_p {name}", opacity=0.6, nbinsx=30,
                                    marker_color=LINE_COLOURS.get(f"θ_p {name}"), meta=f"θ_p {name}"))
-    counts = max((np.histogram(v[np.isfinite(v)], bins=30)[0].max() for v in values if np.isfinite(v).any()), default=1)
+    def peak(v: np.ndarray) -> int:
+        v = v[np.isfinite(v)]
+        # θ_p that are equal in exact arithmetic can differ by an ulp: numpy refuses 30 bins over that range
+        flat = np.ptp(v) <= 1e-9 * max(1.0, float(np.abs(v).max()))
+        return int(np.histogram(v, bins=1 if flat else 30)[0].max())
+
+    counts = max((peak(v) for v in values if np.isfinite(v).any()), default=1)
     fig.add_trace(_vline("global θ, automatic", auto, float(counts), dash="dot"))
     if user_theta is not None:
         fig.add_trace(_vline("global θ, user value", user_theta, float(counts), dash="dash"))

@@ -55,6 +55,7 @@ from vpr_explorer.database import DatabaseModel, TraversalDecisions, decide_trav
 from vpr_explorer.datasets import Dataset, load_dataset
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.places import Places, PlaceSpec, make_places
+from vpr_explorer.settings import check_cache_root
 from vpr_explorer.retrieval import METHODS_BY_KEY
 
 APPLICATION_ID = "vpr_explorer"
@@ -244,12 +245,17 @@ def playback_blueprint(query: str, database: Sequence[str]) -> rrb.Blueprint:
 
 
 def _image(path: Path) -> rr.AsComponents:
-    if path.suffix.lower() in ENCODED_SUFFIXES:
-        return rr.EncodedImage(path=path)
-    from PIL import Image
+    """The image file as rerun logs it; an unreadable one is an error (rerun would only warn and log nothing)."""
+    from PIL import Image, UnidentifiedImageError
 
-    with Image.open(path) as im:
-        return rr.Image(np.asarray(im.convert("RGB")))
+    try:
+        if path.suffix.lower() in ENCODED_SUFFIXES:
+            return rr.EncodedImage(contents=path.read_bytes(), media_type=rr.components.MediaType.guess_from_path(path))
+        with Image.open(path) as im:
+            return rr.Image(np.asarray(im.convert("RGB")))
+    except (OSError, UnidentifiedImageError) as exc:
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise VPRInputError(f"{path}: cannot read the image ({why}); restore the file and record again") from exc
 
 
 def _summary(
@@ -446,6 +452,15 @@ def check_output(path: str | Path) -> Path:
     return path
 
 
+def check_record_options(dataset: Dataset, *, k: float, tolerance: int) -> None:
+    """A recording's numeric options, or a ``VPRInputError`` naming the one at fault and its limit."""
+    from vpr_explorer.pipeline import check_finite, check_whole
+
+    check_finite("k", k, example="0 for the paper's θ_p, 1 for θ_p + s_p")
+    check_whole("tolerance", tolerance, low=0, high=dataset.n_frames,
+                why=f" (frames of slack; {dataset.name!r} has {dataset.n_frames:,} frames)")
+
+
 # --------------------------------------------------------------------------- serving
 
 
@@ -607,27 +622,38 @@ def save_traversal(
             returned ``Playback.viewer_url`` shows it.
     """
     out = check_output(out)
+    check_record_options(dataset, k=k, tolerance=tolerance)
     query = dataset.traversals[dataset.traversal_index(query_traversal)]
     database = [dataset.traversals[t] for t in model.traversals]
     servers = viewer_servers() if serve else None
     rec = new_recording(recording_id)
-    sinks: list = [rr.FileSink(out)]
+    # Written beside ``out`` and renamed over it once complete: an interrupted or failed run
+    # leaves an existing recording as it was (and no partial file).
+    partial = out.with_name(f".{out.stem}.{uuid.uuid4().hex[:8]}.partial.rrd")
+    sinks: list = [rr.FileSink(partial)]
     if servers is not None:
         sinks.append(rr.GrpcSink(servers.grpc_url))
     try:
-        rec.set_sinks(*sinks)
-    except RuntimeError as exc:
-        raise VPRInputError(f"{out}: cannot write the recording ({exc}); pick a writable path") from exc
-    rec.send_recording_name(f"{dataset.name}: {query} against {', '.join(database)}")
-    rec.send_blueprint(playback_blueprint(query, database))
-    try:
-        decisions = record_traversal(dataset, places, descriptors, model, query, recording=rec, k=k,
-                                     tolerance=tolerance, descriptor=descriptor, progress=progress)
+        try:
+            rec.set_sinks(*sinks)
+        except RuntimeError as exc:
+            raise VPRInputError(f"{out}: cannot write the recording ({exc}); pick a writable path") from exc
+        rec.send_recording_name(f"{dataset.name}: {query} against {', '.join(database)}")
+        rec.send_blueprint(playback_blueprint(query, database))
+        try:
+            decisions = record_traversal(dataset, places, descriptors, model, query, recording=rec, k=k,
+                                         tolerance=tolerance, descriptor=descriptor, progress=progress)
+        finally:
+            # Sends what is buffered and closes the file (writing its footer); the served copy
+            # lives on in the gRPC server, which ``_server_owner`` keeps running.
+            rec.flush()
+            rec.disconnect()
+        try:
+            partial.replace(out)
+        except OSError as exc:
+            raise VPRInputError(f"{out}: cannot write the recording ({exc.strerror}); pick a writable path") from exc
     finally:
-        # Sends what is buffered and closes the file (writing its footer); the served copy
-        # lives on in the gRPC server, which ``_server_owner`` keeps running.
-        rec.flush()
-        rec.disconnect()
+        partial.unlink(missing_ok=True)
     return Playback(rrd=out, recording_id=rec.get_recording_id(), dataset=dataset.name, database=tuple(database),
                     query=query, decisions=decisions, viewer_url=servers.viewer_url if servers else None)
 
@@ -657,6 +683,7 @@ def record_playback(
     database = _traversal_choice(database, queries)
     for name in (*database, queries):
         dataset.traversal_index(name)
+    check_record_options(dataset, k=k, tolerance=tolerance)
     rid = recording_id or uuid.uuid4().hex
     out = check_output(out if out is not None else playback_dir() / f"{rid}.rrd")
     places = make_places(dataset, spec)
@@ -689,7 +716,10 @@ def record_dataset(
     """
     rid = recording_id or uuid.uuid4().hex
     out = check_output(out if out is not None else playback_dir() / f"{rid}.rrd")
+    check_cache_root(cache_root)  # an unusable cache folder fails before the dataset is read or the demo drawn
     dataset = load_traversals(source, database, queries)
+    check_record_options(dataset, k=k, tolerance=tolerance)
+    make_places(dataset, spec)  # group/step that leave too few places fail before any descriptor is computed
 
     from vpr_explorer.pipeline import dataset_descriptors
 

@@ -56,11 +56,21 @@ def tradeoff_table(ev: Evaluation, rule: str = "margin") -> str:
     return _grid(header, rows)
 
 
+#: Settings the header line leaves out: the k grid is the trade-off table's rows, group/step/reading are in
+#: "places", and the traversal protocol's direction has a line of its own.
+_NOT_IN_HEADER = frozenset({"k_grid", "group", "step", "reading", "direction"})
+
+
 def render(ev: Evaluation) -> str:
     """The full text report of an evaluation."""
     s = ev.settings
-    what = ", ".join(f"{k}={v}" for k, v in s.items() if k not in ("k_grid",))
-    parts = [f"protocol: {ev.protocol.value}  ({what})", "", method_table(ev)]
+    what = ", ".join(f"{k}={v}" for k, v in s.items() if k not in _NOT_IN_HEADER and v is not None)
+    parts = [f"protocol: {ev.protocol.value}  ({what})"]
+    if ev.protocol is Protocol.TRAVERSAL and "database" in s:
+        database = ", ".join(map(str, s["database"]))
+        parts.append(f"queries {s['queries']} against database {database}"
+                     + (f" ({s['direction']})" if s.get("direction") else "") + f"; {s.get('places', '')}")
+    parts += ["", method_table(ev)]
     if ev.protocol is Protocol.OPEN_SET:
         parts += ["", "trade-off over θ_p(k) = θ_p + k·s_p (k = 0 is the paper) and global θ:", "", tradeoff_table(ev)]
     parts += ["", *(f"note: {n}" for n in ev.notes), f"({ev.seconds:.1f} s)"]

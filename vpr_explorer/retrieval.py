@@ -10,9 +10,19 @@ For a query q and place p, raw_p = max over p's database images i of s(q, i).
 | raw (authors' code)    | drop raw_p < θ_p; rank the rest by raw_p                       |
 | global threshold       | the raw rule with one θ for every place                        |
 
-Ties are counted against the query: the rank of the true place is 1 + the number of
-other places scoring *at least* as high (GardensPoint has byte-identical frames, so exact
-ties are real). A query for which every place is dropped is **rejected**.
+**Ties** are scores within ``TIE_TOLERANCE`` (1e-5) of each other, and they count against
+the query: the rank of the true place is 1 + the number of wrong candidates scoring at
+least its score − 1e-5. An answer is the lowest-index candidate within 1e-5 of the top
+score, and the image behind raw_p the lowest-index image of the place within 1e-5 of it.
+Exact float equality would be a rule about summation order: the same two byte-identical
+images (GardensPoint night frames 179 and 183, Nordland's tunnel frames) score 1.0 or
+0.99999994 against one query depending on the BLAS kernel, the block shape and the
+threads, so every path (a loop, a blocked pass, the app, a recording) agrees only with a
+tolerance well above that rounding (~1e-7 for float32 products of unit vectors) and well
+below any difference that tells two places apart. Comparisons with a threshold stay exact
+(raw_p ≥ θ_p): a score is kept or dropped, never "tied" with a threshold.
+
+A query for which every place is dropped is **rejected**.
 
 Similarity matrices are ``(n_queries, n_database)`` throughout.
 """
@@ -25,6 +35,10 @@ from enum import StrEnum
 import numpy as np
 
 from vpr_explorer.errors import VPRInputError
+
+#: Scores within this of each other tie (module doc): ranks count such ties against the
+#: query, and answers go to the lowest index among them.
+TIE_TOLERANCE = 1e-5
 
 
 class Rule(StrEnum):
@@ -83,8 +97,8 @@ def place_scores(
     Returns:
         raw: ``(n_queries, n_places)`` best score per place, ``-inf`` where a place has no
             (non-excluded) database image.
-        best: ``(n_queries, n_places)`` database index attaining it (the first on ties), ``-1``
-            where raw is ``-inf``.
+        best: ``(n_queries, n_places)`` the lowest-index database image of the place scoring
+            within ``TIE_TOLERANCE`` of raw, ``-1`` where raw is ``-inf``.
     """
     sims = np.atleast_2d(sims)
     db_places = np.asarray(db_places)
@@ -98,7 +112,7 @@ def place_scores(
     sizes = np.diff(np.r_[starts, len(order)])
     cols = sims[:, order]
     seg_max = np.maximum.reduceat(cols, starts, axis=1)
-    hit = cols == np.repeat(seg_max, sizes, axis=1)
+    hit = cols >= np.repeat(seg_max, sizes, axis=1) - TIE_TOLERANCE
     first = np.minimum.reduceat(np.where(hit, order[None, :], len(order)), starts, axis=1)
     raw = np.full((nq, n_places), -np.inf, dtype=np.float64)
     best = np.full((nq, n_places), -1, dtype=np.int64)
@@ -133,20 +147,21 @@ def pessimistic_rank(scores: np.ndarray, correct: np.ndarray) -> np.ndarray:
         scores: ``(n_queries, n_candidates)``; ``-inf`` marks a dropped candidate.
         correct: ``(n_queries, n_candidates)`` bool, which candidates are right answers.
     Returns:
-        1 + the number of wrong candidates scoring at least as high as the best correct one;
-        ``inf`` where no correct candidate is kept (or the query has none).
+        1 + the number of wrong candidates scoring at least the best correct one's score
+        − ``TIE_TOLERANCE``; ``inf`` where no correct candidate is kept (or the query has none).
     """
     best = np.where(correct, scores, -np.inf).max(axis=1)
-    above = ((scores >= best[:, None]) & ~correct).sum(axis=1)
+    above = ((scores >= best[:, None] - TIE_TOLERANCE) & ~correct).sum(axis=1)
     rank = 1.0 + above
     rank[~np.isfinite(best)] = np.inf
     return rank
 
 
 def top_answer(scores: np.ndarray) -> np.ndarray:
-    """``(n_queries,)`` index of the highest score (lowest index on ties), ``-1`` if all dropped."""
-    idx = np.argmax(scores, axis=1)
-    idx[~np.isfinite(scores[np.arange(len(scores)), idx])] = -1
+    """``(n_queries,)`` the lowest index scoring within ``TIE_TOLERANCE`` of the top, ``-1`` if all dropped."""
+    top = np.max(scores, axis=1)
+    idx = np.argmax(scores >= top[:, None] - TIE_TOLERANCE, axis=1)
+    idx[~np.isfinite(top)] = -1
     return idx
 
 
@@ -313,7 +328,7 @@ class QueryDecision:
             why = (f"the true place {true} scored {self.raw[true]:.3f}, below its threshold {theta[true]:.3f}, "
                    "so it was dropped") if theta is not None else f"the true place {true} has no database image"
         elif rank == 1:
-            why = f"the true place {true} ties with it at the top, and ties count against the query"
+            why = f"the true place {true} ties with it at the top (within 1e-5), and ties count against the query"
         else:
             why = f"the true place {true} ranked {_ordinal(rank)} (raw {self.raw[true]:.3f}{th(true)})"
         return f"{head} (wrong): raw {self.raw[ans]:.3f}{th(ans)}; {why}"

@@ -87,6 +87,7 @@ Image-level ranks beyond max(ks) are reported as max(ks) + 1 (Recall@K never nee
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import tempfile
 import time
@@ -109,8 +110,10 @@ from vpr_explorer.evaluation import (
     _summarise,
     draw_splits,
     oracle_global_threshold,
+    paper_protocol,
+    pooled_truth,
 )
-from vpr_explorer.retrieval import METHODS_BY_KEY, Outcome
+from vpr_explorer.retrieval import METHODS_BY_KEY, TIE_TOLERANCE, Outcome
 from vpr_explorer.stats import SIGMA_FLOOR, NegativeStats, mixture_moments
 from vpr_explorer.thresholds import (
     AUTO_MAX_PAIRS,
@@ -136,7 +139,9 @@ _U32 = 2.0**-24
 _CHUNK = 8192
 #: One top-2 table entry: layout row, place index, best score and its slot, second best and its slot.
 _ENTRY = (("row", np.int32), ("place", np.int32), ("t1", np.float32), ("a1", np.uint8), ("t2", np.float32),
-          ("a2", np.uint8))
+          ("a2", np.uint8), ("near", np.uint8))
+#: Ties (``retrieval.TIE_TOLERANCE``): scores within it of each other tie.
+_TIE = TIE_TOLERANCE
 #: Most rows a block may have: flat indices into a block's scores are int32 (46,000² < 2³¹).
 _MAX_BLOCK_ROWS = 46_000
 
@@ -239,17 +244,59 @@ def make_layout(image_place: np.ndarray, n_places: int, block_rows: int = BLOCK_
 
 
 def _top2_rows(vals: np.ndarray) -> dict[str, np.ndarray]:
-    """Best and second-best of each row of ``vals`` ``(n, m)`` and the first slots reaching them.
+    """Best and second-best of each row of ``vals`` ``(n, m)``, the first slots reaching them,
+    and whether two slots could tie.
 
     a1 is the first slot of the best value; with the best twice, t2 = t1 and a2 is the next
-    such slot (argmax returns the first maximum).
+    such slot (argmax returns the first maximum). ``near`` marks rows where the best or, with
+    the best held out, the second has another slot within the tie tolerance (t2 ≥ t1 − tie
+    or t3 ≥ t2 − tie): only there can the image behind raw_p (the lowest slot within the
+    tolerance) differ from a1/a2, and those rows keep all their slot scores (``_NearSlots``).
     """
     at = np.arange(len(vals))
     a1 = np.argmax(vals, axis=1)
     rest = vals.copy()
     rest[at, a1] = -np.inf
     a2 = np.argmax(rest, axis=1)
-    return {"t1": vals[at, a1], "a1": a1.astype(np.uint8), "t2": rest[at, a2], "a2": a2.astype(np.uint8)}
+    t1, t2 = vals[at, a1], rest[at, a2]
+    rest[at, a2] = -np.inf
+    t3 = rest.max(axis=1)
+    with np.errstate(invalid="ignore"):
+        near = ((t2 >= t1 - _TIE) & np.isfinite(t2)) | ((t3 >= t2 - _TIE) & np.isfinite(t3))
+    return {"t1": t1, "a1": a1.astype(np.uint8), "t2": t2, "a2": a2.astype(np.uint8), "near": near.astype(np.uint8)}
+
+
+class _NearSlots:
+    """Every slot score of the table entries marked ``near`` (rare: near-duplicate images).
+
+    Keyed by (layout row, place index); ``lookup`` returns the ``(n, m)`` scores of the
+    given keys, all of which must have been added.
+    """
+
+    def __init__(self, n_places: int):
+        self.n_places = n_places
+        self.keys: list[np.ndarray] = []
+        self.vals: list[np.ndarray] = []
+        self._sorted: tuple[np.ndarray, np.ndarray] | None = None
+
+    def add(self, rows: np.ndarray, places: np.ndarray, vals: np.ndarray) -> None:
+        if len(rows):
+            self.keys.append(rows.astype(np.int64) * self.n_places + places)
+            self.vals.append(np.array(vals, dtype=np.float32))
+            self._sorted = None
+
+    def lookup(self, rows: np.ndarray, places: np.ndarray) -> np.ndarray:
+        if self._sorted is None:
+            keys = np.concatenate(self.keys) if self.keys else np.empty(0, np.int64)
+            vals = np.concatenate(self.vals) if self.vals else np.empty((0, 0), np.float32)
+            order = np.argsort(keys, kind="stable")
+            self._sorted = (keys[order], vals[order])
+        keys, vals = self._sorted
+        want = rows.astype(np.int64) * self.n_places + places
+        pos = np.searchsorted(keys, want)
+        if len(want) and (pos >= len(keys)).any() or not np.array_equal(keys[np.minimum(pos, len(keys) - 1)], want):
+            raise RuntimeError("internal error: a near-tie entry without its slot scores")  # pragma: no cover
+        return vals[pos]
 
 
 class _Entries:
@@ -514,6 +561,7 @@ class _PassResult:
     v: np.ndarray  # (n_rows, R) Σ_{q∈Q_r, other place} (s_iq − c)²
     best_own: np.ndarray  # (n_rows,) b: best score in the own place, the image itself left out
     records: _Records
+    near: _NearSlots
 
 
 def _as_layout32(d: np.ndarray, lay: Layout) -> np.ndarray:
@@ -546,13 +594,13 @@ def _floor(best: np.ndarray, mu_range: tuple[float, float], is_query: np.ndarray
     and under any θs in [min μ, max μ] = ``mu_range`` (float32, rounded down).
 
     With b ≥ max μ ≥ θ_own the own place is kept in every split and a place must reach
-    b − (max μ − min μ); otherwise the answer may be any kept place, and kept means
+    b − (max μ − min μ) − tie; otherwise the answer may be any kept place, and kept means
     raw ≥ θ ≥ min μ. Rows that are never a query get +∞.
     """
     lo, hi = mu_range
     b = best.astype(np.float64)
     with np.errstate(invalid="ignore"):
-        f = np.where(b >= hi + 1e-9, b - (hi - lo), np.minimum(b - (hi - lo), lo)) - 1e-9
+        f = np.where(b >= hi + 1e-9, b - (hi - lo), np.minimum(b - (hi - lo), lo)) - _TIE - 1e-9
     f = np.where(np.isfinite(b), f, -np.inf)
     return np.where(is_query, _round_down32(f), np.float32(np.inf))
 
@@ -603,6 +651,7 @@ def _blocked_pass(
     best_own = np.full(n_rows, -np.inf, dtype=np.float32)
     floor = np.full(n_rows, np.inf, dtype=np.float32)
     records = _Records(n_rows, m, cap)
+    near = _NearSlots(len(lay.places))
     pad = lay.image_of_row < 0
     widest = m * int(np.diff(lay.block_start).max())
     s_buf = np.empty(widest * widest, dtype=np.float32)
@@ -650,21 +699,21 @@ def _blocked_pass(
                 best_own[ri] = mine.max(axis=1)
                 floor[ri] = _floor(best_own[ri], mu_range, is_query[ri])
             side = _table_side(pool, s3, floor[ri], axis=1, parts=threads)
-            _store_side(entries, records, side, bi, ri.start, lay.block_start[bj], best_own[ri], own)
+            _store_side(entries, records, near, side, bi, ri.start, lay.block_start[bj], best_own[ri], own)
             if bi != bj:
                 side = _table_side(pool, s.reshape(m, gi, nj), floor[rj], axis=0, parts=threads)
-                _store_side(entries, records, side, bj, rj.start, lay.block_start[bi], best_own[rj], None)
+                _store_side(entries, records, near, side, bj, rj.start, lay.block_start[bi], best_own[rj], None)
             if progress:
                 progress(step + 1, f"similarity block {step + 1}/{len(pairs)}")
     finally:
         if pool is not None:
             pool.shutdown()
-    return _PassResult(v, best_own, records)
+    return _PassResult(v, best_own, records, near)
 
 
-def _store_side(entries: _Entries, records: _Records, side: dict, row_block: int, row0: int, place0: int,
-                best: np.ndarray, own: np.ndarray | None) -> None:
-    """File one side's entries; record the wrong places whose second best already reaches b.
+def _store_side(entries: _Entries, records: _Records, near: _NearSlots, side: dict, row_block: int, row0: int,
+                place0: int, best: np.ndarray, own: np.ndarray | None) -> None:
+    """File one side's entries; record the wrong places whose second best already ties b.
 
     ``row0`` and ``place0`` turn the side's local rows and places into layout rows and place
     indices; ``best`` is b of the side's rows; ``own`` their own place (local), on a diagonal block.
@@ -672,11 +721,15 @@ def _store_side(entries: _Entries, records: _Records, side: dict, row_block: int
     r = side["row"]
     entries.put(row_block, {**side, "place": place0 + side["place"]})
     b = best[r]
-    sel = (side["t2"] >= b) & np.isfinite(b)
+    tied = b.astype(np.float64) - _TIE
+    sel = (side["t2"] >= tied) & np.isfinite(b)
     if own is not None:
         sel &= side["place"] != own[r]
     if sel.any():
-        records.add(row0 + r[sel], place0 + side["place"][sel], side["vals"][sel] >= b[sel][:, None])
+        records.add(row0 + r[sel], place0 + side["place"][sel], side["vals"][sel] >= tied[sel][:, None])
+    amb = side["near"].astype(bool)
+    if amb.any():
+        near.add(row0 + r[amb], place0 + side["place"][amb], side["vals"][amb])
 
 
 # --------------------------------------------------------------------------- per split
@@ -880,9 +933,10 @@ def _make_exact(sd: _SplitData, places: np.ndarray, d: np.ndarray, lay: Layout, 
 
 
 def _first_argmax(score: np.ndarray, seg: np.ndarray, seg_of: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per segment: the largest score and the first element reaching it (−1 where all are −inf)."""
+    """Per segment: the largest score and the first element within the tie tolerance of it
+    (−1 where all are −inf)."""
     top = np.maximum.reduceat(score, seg)
-    idx = np.where(score == top[seg_of], np.arange(len(score)), len(score))
+    idx = np.where(score >= top[seg_of] - _TIE, np.arange(len(score)), len(score))
     first = np.minimum.reduceat(idx, seg)
     first[~np.isfinite(top)] = -1
     return top, first
@@ -897,18 +951,19 @@ def _candidate_cutoff(b: np.ndarray, own: np.ndarray, th_s: np.ndarray, th_w: np
         th_s, th_w: ``(P,)`` simple and weighted θ per place index; unc_w: the weighted θ's
             error bounds (step 6).
     Returns:
-        ``(n,)`` float32, rounded down. Places at or above b count for the baselines and the
-        global θs. Under a per-place θ, with the own place kept (b ≥ θ_own) a place counts
-        if its margin reaches the own one, raw ≥ θ_p + (b − θ_own); with it dropped, any kept
-        place may be the answer, raw ≥ θ_p. Both are at least min θ + max(b − θ_own, 0). The
+        ``(n,)`` float32, rounded down. Places at or above b − tie count for the baselines and
+        the global θs. Under a per-place θ, with the own place kept (b ≥ θ_own) a place counts
+        if its margin ties or beats the own one, raw ≥ θ_p + (b − θ_own) − tie; with it
+        dropped, any kept place may be the answer, raw ≥ θ_p. Both are at least
+        min θ + max(b − θ_own, 0) − tie. The
         weighted θs enter at their bounds' lowest θ_p and highest θ_own, so that a place
         below the cutoff matters under no θ within the bounds, and the near-tie check sees
         every place that might.
     """
     cut = b
     for low, high in ((th_s, th_s), (th_w - unc_w, th_w + unc_w)):
-        cut = np.minimum(cut, float(np.min(low)) + np.maximum(b - high[own], 0.0) - 1e-12)
-    return _round_down32(cut)
+        cut = np.minimum(cut, float(np.min(low)) + np.maximum(b - high[own], 0.0))
+    return _round_down32(cut - _TIE - 1e-12)
 
 
 #: The methods scored per block, in the reference's order (the global θs follow in ``_assemble``).
@@ -925,7 +980,10 @@ class _Candidates:
     query's first): ``query`` (position in the block), ``place`` (place index), ``t1``/``t2``
     the place's best and second-best score over all its images, ``held`` its held-out slot,
     ``hit`` whether its best image is the held-out one, ``raw`` raw_p in this split (``t2`` on
-    a hit, else ``t1``) and ``image`` the training image reaching it.
+    a hit, else ``t1``) and ``image`` the lowest-index training image within the tie tolerance
+    of it. ``near`` indexes the candidates whose place has images within the tolerance of
+    each other, ``slots`` their ``(len(near), m)`` slot scores (held-out and padding ``-inf``)
+    and ``near_images`` the training image of each of those slots.
     """
 
     own: np.ndarray
@@ -940,18 +998,21 @@ class _Candidates:
     hit: np.ndarray
     raw: np.ndarray
     image: np.ndarray
+    near: np.ndarray
+    slots: np.ndarray
+    near_images: np.ndarray
 
     @property
     def is_own(self) -> np.ndarray:
         return self.place == self.own[self.query]
 
 
-def _candidates(ent: dict[str, np.ndarray], blk: int, sd: _SplitData, lay: Layout, b_all: np.ndarray,
+def _candidates(ent: dict[str, np.ndarray], blk: int, sd: _SplitData, lay: Layout, pas: _PassResult,
                 th_s: np.ndarray, th_w: np.ndarray) -> _Candidates:
     """The table entries of the block's queries at or above their cutoffs, with raw_p of the split."""
     own = np.arange(lay.block_start[blk], lay.block_start[blk + 1])  # the block's places = its queries
     qrow = lay.row_of(own, sd.held[own])
-    b = b_all[qrow].astype(np.float64)
+    b = pas.best_own[qrow].astype(np.float64)
     cut32 = _candidate_cutoff(b, own, th_s, th_w, sd.uncertainty)
     local = qrow - lay.rows(blk).start
     start, count = ent["ptr"][local], ent["ptr"][local + 1] - ent["ptr"][local]
@@ -967,8 +1028,21 @@ def _candidates(ent: dict[str, np.ndarray], blk: int, sd: _SplitData, lay: Layou
     held = sd.held[pc]
     hit = a1 == held  # the best image of that place is the one held out: its second counts
     raw = np.where(hit, t2, t1).astype(np.float64)
-    image = lay.image_of_row[lay.row_of(pc, np.where(hit, a2, a1).astype(np.int64))]
-    return _Candidates(own, qrow, b, qi, seg, pc, t1, t2, held, hit, raw, image)
+    slot = np.where(hit, a2, a1).astype(np.int64)
+    near = np.flatnonzero(ent["near"][idx])
+    slots = np.empty((0, lay.slots), dtype=np.float32)
+    near_images = np.empty((0, lay.slots), dtype=np.int64)
+    if len(near):  # several images of the place within the tolerance: raw_p and its image from every slot
+        slots = pas.near.lookup(qrow[qi[near]], pc[near]).copy()
+        slots[np.arange(len(near)), held[near]] = -np.inf
+        top = slots.max(axis=1)
+        raw[near] = top
+        slot[near] = np.argmax(slots >= top[:, None].astype(np.float64) - _TIE, axis=1)
+        m = lay.slots
+        near_images = lay.image_of_row[lay.row_of(np.repeat(pc[near], m), np.tile(np.arange(m), len(near)))]
+        near_images = near_images.reshape(len(near), m)
+    image = lay.image_of_row[lay.row_of(pc, slot)]
+    return _Candidates(own, qrow, b, qi, seg, pc, t1, t2, held, hit, raw, image, near, slots, near_images)
 
 
 def _score_place_level(c: _Candidates, th_s: np.ndarray, th_w: np.ndarray, places: np.ndarray,
@@ -983,7 +1057,8 @@ def _score_place_level(c: _Candidates, th_s: np.ndarray, th_w: np.ndarray, place
         o["place"][own] = np.where(first >= 0, places[pc[np.maximum(first, 0)]], -1)
         o["image"][own] = np.where(first >= 0, c.image[np.maximum(first, 0)], -1)
 
-    rank_base = np.where(np.isfinite(c.b), 1.0 + np.add.reduceat((raw >= bq) & ~is_own, seg), np.inf)
+    tied = bq - _TIE
+    rank_base = np.where(np.isfinite(c.b), 1.0 + np.add.reduceat((raw >= tied) & ~is_own, seg), np.inf)
     top, first = _first_argmax(raw, seg, qi)
     put("place-baseline", rank_base, first)
     for name, th in (("simple", th_s), ("weighted", th_w)):
@@ -992,11 +1067,12 @@ def _score_place_level(c: _Candidates, th_s: np.ndarray, th_w: np.ndarray, place
         kept_own = c.b >= th[own]
         score = np.where(kept, raw, -np.inf)
         _, f = _first_argmax(score, seg, qi)
-        put(f"raw-{name}", np.where(kept_own, 1.0 + np.add.reduceat((score >= bq) & ~is_own, seg), np.inf), f)
+        put(f"raw-{name}", np.where(kept_own, 1.0 + np.add.reduceat((score >= tied) & ~is_own, seg), np.inf), f)
         margin = np.where(kept, raw - thc, -np.inf)
         _, f = _first_argmax(margin, seg, qi)
         m_own = (c.b - th[own])[qi]
-        put(f"margin-{name}", np.where(kept_own, 1.0 + np.add.reduceat((margin >= m_own) & ~is_own, seg), np.inf), f)
+        put(f"margin-{name}",
+            np.where(kept_own, 1.0 + np.add.reduceat((margin >= m_own - _TIE) & ~is_own, seg), np.inf), f)
     return top
 
 
@@ -1004,40 +1080,53 @@ def _near_tie_places(c: _Candidates, th_w: np.ndarray, uncertainty: np.ndarray) 
     """Places whose weighted θ must be exact before these outcomes can be trusted (step 6).
 
     A comparison is doubtful when the θs' error bounds could overturn it: a candidate's keep
-    test, its margin against the own place's (the rank), or against the top answer's; and
-    the own place's keep test. Every place of a doubtful comparison is returned.
+    test, its margin against the own place's less the tie tolerance (the rank), or against
+    the top margin less the tolerance (the answer, the lowest place within it); and the own
+    place's keep test. Every place of a doubtful comparison is returned.
     """
     qi, seg, pc, own = c.query, c.start, c.place, c.own
     unc = uncertainty[pc]
     u_own = uncertainty[own]
     m_all = c.raw - th_w[pc]
     m_own = (c.b - th_w[own])[qi]
-    top_w, f_w = _first_argmax(np.where(c.raw >= th_w[pc], m_all, -np.inf), seg, qi)
-    u_top = np.where(f_w >= 0, unc[np.maximum(f_w, 0)], 0.0)[qi]
+    kept_m = np.where(c.raw >= th_w[pc], m_all, -np.inf)
+    top_w, f_w = _first_argmax(kept_m, seg, qi)
+    idx = np.where(kept_m == top_w[qi], np.arange(len(pc)), len(pc))  # the place reaching the top itself
+    p_top = np.minimum.reduceat(idx, seg)
+    p_top[~np.isfinite(top_w)] = -1
+    u_top = np.where(p_top >= 0, unc[np.maximum(p_top, 0)], 0.0)[qi]
     with np.errstate(invalid="ignore"):  # −inf − −inf: NaN, never near
         near = (np.abs(m_all) <= unc) & (unc > 0)  # kept or not
-        near |= (np.abs(m_all - m_own) <= unc + u_own[qi]) & (unc + u_own[qi] > 0) & ~c.is_own
-        near |= ((np.abs(m_all - top_w[qi]) <= unc + u_top) & (unc + u_top > 0)
-                 & (np.arange(len(pc)) != f_w[qi]) & np.isfinite(top_w[qi]))
+        near |= (np.abs(m_all - (m_own - _TIE)) <= unc + u_own[qi]) & (unc + u_own[qi] > 0) & ~c.is_own
+        near |= ((np.abs(m_all - (top_w[qi] - _TIE)) <= unc + u_top) & (unc + u_top > 0)
+                 & (np.arange(len(pc)) != p_top[qi]) & np.isfinite(top_w[qi]))
         flagged = (np.add.reduceat(near, seg) > 0) | ((np.abs(c.b - th_w[own]) <= u_own) & (u_own > 0))
     if not flagged.any():
         return np.empty(0, np.int64)
     top_place = np.where(f_w >= 0, pc[np.maximum(f_w, 0)], own)
-    return np.unique(np.concatenate([pc[near & flagged[qi]], own[flagged], top_place[flagged]]))
+    peak_place = np.where(p_top >= 0, pc[np.maximum(p_top, 0)], own)
+    return np.unique(np.concatenate([pc[near & flagged[qi]], own[flagged], top_place[flagged], peak_place[flagged]]))
 
 
 def _score_image_level(c: _Candidates, top: np.ndarray, records: _Records, slots: int,
                        out: dict[str, dict[str, np.ndarray]]) -> None:
     """The image-level baseline into ``out`` (its answered place is filled in by ``_assemble``).
 
-    The top image is the lowest-index image of the places tied at the top; the rank counts
-    the wrong training images reaching b, resolved up to ``records.cap``.
+    The top image is the lowest-index training image within the tie tolerance of the top
+    score; the rank counts the wrong training images within it of b or above, resolved up to
+    ``records.cap``.
     """
     qi, seg, pc = c.query, c.start, c.place
-    bq, finite = c.b[qi], np.isfinite(c.b)
+    bq, finite = c.b[qi] - _TIE, np.isfinite(c.b)
     cap = records.cap
-    tied = (c.raw == top[qi]) & np.isfinite(top[qi])
-    img_top = np.minimum.reduceat(np.where(tied, c.image, np.iinfo(np.int64).max), seg)
+    floor_top = top[qi] - _TIE
+    tied = (c.raw >= floor_top) & np.isfinite(top[qi])
+    image = c.image.copy()  # outside the near-duplicate places only raw_p's image can reach the top
+    if len(c.near):
+        ok = c.slots >= floor_top[c.near][:, None]
+        slot = np.argmax(ok, axis=1)
+        image[c.near] = np.where(ok.any(axis=1), c.near_images[np.arange(len(c.near)), slot], c.image[c.near])
+    img_top = np.minimum.reduceat(np.where(tied, image, np.iinfo(np.int64).max), seg)
     img_top[~np.isfinite(top)] = -1
     above = (c.t1 >= bq) & ~c.is_own & finite[qi]
     contrib = np.where(above & (c.t2 < bq), (~c.hit).astype(np.int64), 0)  # one image reaches b: unless held out
@@ -1069,7 +1158,7 @@ def _score_block(ent: dict[str, np.ndarray], blk: int, sd: _SplitData, lay: Layo
     """
     th_s = np.asarray(sd.thresholds["simple"], dtype=np.float64)[lay.places]
     th_w = np.asarray(sd.thresholds["weighted"], dtype=np.float64)[lay.places]
-    c = _candidates(ent, blk, sd, lay, pas.best_own, th_s, th_w)
+    c = _candidates(ent, blk, sd, lay, pas, th_s, th_w)
     top = _score_place_level(c, th_s, th_w, lay.places, out)
     _score_image_level(c, top, pas.records, lay.slots, out)
     return top, _near_tie_places(c, th_w, sd.uncertainty)
@@ -1183,8 +1272,8 @@ def scale_splits(
         seed: the protocol's seed (split r's automatic threshold samples with seed + r).
         max_k: image-level ranks beyond it are reported as ``max_k + 1``.
         block, table_memory, spill_dir, threads: see ``fast_paper_protocol``.
-        progress: ``progress(done, total, message)`` over the pass's block pairs, then the
-            scoring's row blocks.
+        progress: ``progress(done, total, message)`` over the splits (their automatic θ), the
+            pass's block pairs, then the scoring's row blocks.
     Returns:
         One ``SplitScores`` per split, with the reference's outcomes and thresholds. Its
         per-query matrices ``raw``/``best``/``correct`` are empty ``(0, n_places)`` (they
@@ -1205,6 +1294,10 @@ def scale_splits(
     for r, sp in enumerate(splits):
         mu = _split_mu(r, lay.row_of_image[sp.train], lay, sums, held[r])[0]
         mu_lo, mu_hi = min(mu_lo, float(mu.min())), max(mu_hi, float(mu.max()))
+    runs = len(splits)
+    n_pairs = lay.n_blocks * (lay.n_blocks + 1) // 2
+    steps = runs + n_pairs + lay.n_blocks  # per split (automatic θ), per block pair, per row block
+    report = (lambda done, what: progress(done, steps, what)) if progress else None
     # automatic θ (step 4): the reference's exact branch as is; its sampled pairs located for the pass
     autos: dict[int, float] = {}
     sampled = []
@@ -1212,24 +1305,28 @@ def scale_splits(
         n = len(sp.train)
         if n * (n - 1) // 2 <= AUTO_MAX_PAIRS:
             autos[r] = auto_global_threshold(training_pair_scores(d[sp.train], seed=seed + r))
+            if report:
+                report(r + 1, f"split {r + 1}/{runs}: automatic θ")
         else:
             sampled.append(r)
+    plans = {}
     with ThreadPoolExecutor(threads) as pool:  # numpy frees the GIL: splits side by side
-        plans = dict(zip(sampled, pool.map(lambda r: _pair_plan(splits[r].train, lay, seed + r), sampled)))
+        for r, plan in zip(sampled, pool.map(lambda r: _pair_plan(splits[r].train, lay, seed + r), sampled)):
+            plans[r] = plan
+            if report:
+                report(len(autos) + len(plans), f"split {r + 1}/{runs}: automatic θ pairs located")
     row_traversal = None
     if cross_condition:
         _, codes = np.unique(image_traversal, return_inverse=True)
         row_traversal = np.full(lay.n_rows, -1, dtype=np.int64)
         real = lay.image_of_row >= 0
         row_traversal[real] = codes.ravel()[lay.image_of_row[real]]
-    n_pairs = lay.n_blocks * (lay.n_blocks + 1) // 2
-    steps = n_pairs + lay.n_blocks
-    report = (lambda done, what: progress(done, steps, what)) if progress else None
+    pass_report = (lambda done, what: report(runs + done, what)) if report else None
     entries = _Entries(lay, table_memory, spill_dir)
     try:
         x = _as_layout32(d, lay)
         pas = _blocked_pass(x, lay, query_rows, row_traversal, entries, plans, max_k, (mu_lo, mu_hi), sums.centre,
-                            threads, report)
+                            threads, pass_report)
         del x
         if plans:
             eps = _score_bound(d, lay)
@@ -1242,7 +1339,7 @@ def scale_splits(
         kappa = _error_scale(d, lay, sums, data, seed)
         for sd in data:
             sd.uncertainty = _uncertainty(sd, lay, kappa)
-        outs, tops = _score_splits(entries, data, lay, pas, d, sums, report, n_pairs)
+        outs, tops = _score_splits(entries, data, lay, pas, d, sums, report, runs + n_pairs)
     finally:
         entries.close()
     return [_assemble(sd, outs[r], tops[r], pas.best_own[query_rows[r]].astype(np.float64), image_place,
@@ -1266,6 +1363,9 @@ def fast_paper_protocol(
     table_memory: int = TABLE_MEMORY,
     spill_dir: str | os.PathLike | None = None,
     threads: int | None = None,
+    tolerance: int = 0,
+    image_frame: np.ndarray | None = None,
+    frame_place: np.ndarray | None = None,
 ) -> Evaluation:
     """``evaluation.paper_protocol`` through one blocked pass: the same ``Evaluation``.
 
@@ -1278,11 +1378,22 @@ def fast_paper_protocol(
         table_memory: bytes of top-2 table entries kept in RAM before spilling to a file.
         spill_dir: folder for that temporary file (default: the system's temporary folder).
         threads: threads for the elementwise work of the pass (default: CPU count, at most 8).
+        tolerance, image_frame, frame_place: as for ``paper_protocol``. When the tolerance
+            makes a neighbouring place right for some query (places closer than the
+            tolerance), this path, built on one right place per query, hands the run to
+            ``paper_protocol`` and says so in the notes.
     """
     t0 = time.perf_counter()
     d, image_place, image_traversal, ks = _check_common(descriptors, image_place, image_traversal, runs, ks)
     if cross_condition and len(np.unique(image_traversal[image_place >= 0])) < 2:
         raise VPRInputError("cross_condition needs at least 2 traversals")
+    if pooled_truth(image_place, image_frame, frame_place, tolerance, n_places) is not None:
+        ev = paper_protocol(d, image_place, image_traversal, n_places, runs=runs, seed=seed,
+                            cross_condition=cross_condition, user_theta=user_theta, ks=ks, progress=progress,
+                            settings=settings, tolerance=tolerance, image_frame=image_frame, frame_place=frame_place)
+        note = (f"a frame tolerance of {tolerance} makes neighbouring places right: scored by the straightforward "
+                "protocol (one right place per query is what the blocked pass assumes)")
+        return dataclasses.replace(ev, notes=(*ev.notes, note), seconds=time.perf_counter() - t0)
     splits = draw_splits(image_place, n_places, runs=runs, seed=seed)
     scored = scale_splits(
         d, image_place, image_traversal, n_places, splits, cross_condition=cross_condition, user_theta=user_theta,
@@ -1296,7 +1407,7 @@ def fast_paper_protocol(
     return Evaluation(
         protocol=Protocol.PAPER,
         settings={**(settings or {}), "runs": runs, "seed": seed, "cross_condition": cross_condition,
-                  "queries_per_run": len(scored[0].known)},
+                  "tolerance": int(tolerance), "queries_per_run": len(scored[0].known)},
         ks=ks, rows=_summarise(scored, ks, own_traversal=True), notes=tuple(notes),
         seconds=time.perf_counter() - t0,
     )

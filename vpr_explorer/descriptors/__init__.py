@@ -13,7 +13,7 @@ own models with :func:`register_extractor` or a ``VPR_EXPLORER_MODELS`` settings
 
 from vpr_explorer.descriptors.base import Extractor
 from vpr_explorer.descriptors.cache import CacheHits, DescriptorCache, DescriptorCacheWarning
-from vpr_explorer.descriptors.extract import extract_descriptors, fingerprint
+from vpr_explorer.descriptors.extract import ExtractionInterrupted, extract_descriptors, fingerprint
 from vpr_explorer.descriptors.registry import (
     EXTRACTOR_NAMES,
     available_extractors,
@@ -28,6 +28,7 @@ __all__ = [
     "CacheHits",
     "DescriptorCache",
     "DescriptorCacheWarning",
+    "ExtractionInterrupted",
     "Extractor",
     "available_extractors",
     "extract_descriptors",

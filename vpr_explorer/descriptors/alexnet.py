@@ -13,8 +13,8 @@ The recipe of stschubert/VPR_Tutorial ``feature_extraction/feature_extractor_hol
   4096), float32)`` with each row then scaled to unit length; ``d = f @ P``.
 
 ``P`` is regenerated from the seed in each process (a few seconds, 1 GB), never stored,
-and is bit-identical to VPR_Tutorial's, so the descriptors match the tutorial's up to
-JPEG draft decoding. The extraction pipeline L2-normalises them.
+and is bit-identical to VPR_Tutorial's, so the descriptors match the tutorial's. Images
+are decoded exactly (no JPEG draft decoding). The extraction pipeline L2-normalises them.
 """
 
 from __future__ import annotations
@@ -48,7 +48,8 @@ FLAT_DIM = 384 * 13 * 13  # 64,896
 PROJECTION_DIM = 4096
 PROJECTION_SEED = 0
 # Bumped when the recipe changes; the weights' hash and the seed are in the version too.
-RECIPE_VERSION = "1"
+# 2: 16-bit greyscale is scaled by its bit depth (1 clipped it to a white image).
+RECIPE_VERSION = "2"
 
 
 @functools.lru_cache(maxsize=1)

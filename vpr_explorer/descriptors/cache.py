@@ -1,6 +1,8 @@
 """On-disk descriptor cache, keyed by extractor and image content.
 
-Layout: ``ROOT/<cache_key>/<shard>.npy`` + ``<shard>.json``. A shard is one write: an
+Layout: ``ROOT/descriptors/<cache_key>/<shard>.npy`` + ``<shard>.json``, where ``ROOT`` is
+the cache folder (``--cache-dir`` or ``VPR_EXPLORER_CACHE``: the same folder is the same
+cache whichever names it). A shard is one write: an
 ``(N, D)`` matrix and a manifest holding the N images' content hashes (sha256 of the file
 bytes) in row order, the dtype, the shape and the sha256 of the ``.npy`` bytes. Keying by
 content means renaming, reordering or regrouping images never recomputes, and an edited
@@ -12,7 +14,12 @@ Why it is safe with several readers and writers (Streamlit sessions, a CLI run):
 * each file is written to a hidden temporary in the same folder, fsynced, then
   ``os.replace``d into place (atomic on POSIX); the manifest goes last, and readers only
   look at manifests, so a half-written shard is invisible;
-* two writers of the same images make two shards with equal rows; either is right.
+* two writers of the same images make two shards with equal rows; either is right;
+* a writer killed mid-write (SIGKILL, power loss) leaves a temporary, or a ``.npy``
+  whose manifest never came; both carry the writer's host and pid in their names, and
+  :meth:`DescriptorCache.remove_stale` deletes them once that process is gone (or, for
+  another machine's files, after ``STALE_AFTER_S``). A live writer's files are never
+  touched.
 
 A shard that fails any check (manifest unreadable, ``.npy`` missing, truncated, of
 another shape or dtype, checksum mismatch) is reported with ``warnings.warn``
@@ -31,6 +38,7 @@ import io
 import json
 import os
 import re
+import time
 import uuid
 import warnings
 from collections.abc import Sequence
@@ -49,6 +57,14 @@ _HASH = re.compile(r"^[0-9a-f]{64}$")
 # Rows are copied out of a shard this many bytes at a time, so a lookup's only large
 # allocation is its result (no temporary the size of a shard, let alone of the result).
 GATHER_BYTES = 1 << 20
+# A leftover whose writer is known dead is removed once this old: a margin for a
+# writer in another pid namespace that shares this host name (containers).
+DEAD_WRITER_GRACE_S = 60
+# A leftover whose writer cannot be checked (another machine, an older version's name)
+# is removed once this old: writing a shard takes seconds.
+STALE_AFTER_S = 3600
+# Shard file stems: ``<32 hex>.<host>.<pid>`` (older versions: ``<32 hex>``).
+_SHARD_STEM = re.compile(r"^[0-9a-f]{32}\.(?P<host>[A-Za-z0-9-]{1,32})\.(?P<pid>[0-9]{1,10})$")
 
 
 class DescriptorCacheWarning(UserWarning):
@@ -111,7 +127,7 @@ def hash_file(path: Path) -> str:
 
 def _atomic_write(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` so that readers see all of it or nothing."""
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+    tmp = path.with_name(settings.temporary_name(path.name))
     try:
         with open(tmp, "wb") as fh:
             fh.write(data)
@@ -120,6 +136,40 @@ def _atomic_write(path: Path, data: bytes) -> None:
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def _writer_gone(host: str, pid: int) -> bool | None:
+    """True when process ``pid`` of this machine has exited, False while it runs, None when unknown."""
+    if host != settings.host_tag():
+        return None  # another machine's process: its pid means nothing here
+    if pid == os.getpid():
+        return False
+    try:
+        os.kill(pid, 0)  # signal 0: only asks whether the process exists
+    except ProcessLookupError:
+        return True
+    except PermissionError:
+        return False  # exists, owned by another user
+    except (OSError, OverflowError):
+        return None
+    return False
+
+
+def _is_stale(path: Path, owner: tuple[str, int] | None, now: float) -> bool:
+    """Whether a leftover of an unfinished write may be deleted (see the module docstring)."""
+    gone = _writer_gone(*owner) if owner is not None else None
+    if gone is False:
+        return False  # a live writer's file, whatever its age
+    try:
+        age = now - path.stat().st_mtime
+    except OSError:
+        return False  # already gone
+    return age >= (DEAD_WRITER_GRACE_S if gone else STALE_AFTER_S)
+
+
+def _shard_owner(stem: str) -> tuple[str, int] | None:
+    match = _SHARD_STEM.match(stem)
+    return (match["host"], int(match["pid"])) if match else None
 
 
 def _fsync_dir(folder: Path) -> None:
@@ -137,8 +187,8 @@ class DescriptorCache:
     """Descriptor vectors by ``(cache_key, image content hash)``, in immutable shards.
 
     Args:
-        root: cache folder; default ``settings.cache_root() / "descriptors"``, created
-            on first write.
+        root: the cache folder, default ``settings.cache_root()``; shards live under
+            ``root/descriptors/`` (:attr:`folder`), created on first write.
         dtype: storage dtype of the shards this cache writes, ``"float32"`` (exact) or
             ``"float16"`` (half the disk, ~1e-3 relative error). It does not decide what
             :meth:`lookup` returns (its own ``dtype``, float32 by default). A float16 cache
@@ -148,12 +198,21 @@ class DescriptorCache:
 
     def __init__(self, root: Path | None = None, *, dtype: str = "float32") -> None:
         self.dtype = check_dtype(dtype, "dtype", "cache storage type")
-        self.root = Path(root).expanduser() if root is not None else settings.cache_root() / "descriptors"
+        self.root = Path(root).expanduser() if root is not None else settings.cache_root()
+        self.folder = settings.descriptor_folder(self.root)
 
     def __repr__(self) -> str:
         return f"DescriptorCache(root={str(self.root)!r}, dtype={self.dtype!r})"
 
     hash_file = staticmethod(hash_file)
+
+    def check_writable(self) -> None:
+        """Make sure shards can be written here (:func:`settings.check_cache_root`).
+
+        Raises:
+            VPRInputError: naming the folder and the fix (``--cache-dir``, ``VPR_EXPLORER_CACHE``).
+        """
+        settings.check_cache_root(self.root)
 
     # ---------------------------------------------------------------- writing
 
@@ -165,6 +224,10 @@ class DescriptorCache:
 
         Returns:
             The new shard's manifest path, or ``None`` when ``hashes`` is empty.
+
+        Raises:
+            VPRInputError: bad arguments, or the folder cannot be written (disk full,
+                permissions), naming it.
         """
         folder = self._folder(cache_key)
         hashes = list(hashes)
@@ -192,12 +255,19 @@ class DescriptorCache:
             "shape": list(data.shape),
             "sha256": hashlib.sha256(npy_bytes).hexdigest(),
         }
-        folder.mkdir(parents=True, exist_ok=True)
-        shard = uuid.uuid4().hex
-        _atomic_write(folder / f"{shard}.npy", npy_bytes)
-        # The manifest is what makes a shard visible, so it goes last.
-        _atomic_write(folder / f"{shard}.json", json.dumps(manifest).encode())
-        _fsync_dir(folder)
+        # The writer in the name: a .npy whose manifest never came is cleaned up once it is gone.
+        shard = f"{uuid.uuid4().hex}.{settings.host_tag()}.{os.getpid()}"
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            _atomic_write(folder / f"{shard}.npy", npy_bytes)
+            # The manifest is what makes a shard visible, so it goes last.
+            _atomic_write(folder / f"{shard}.json", json.dumps(manifest).encode())
+            _fsync_dir(folder)
+        except OSError as exc:
+            raise VPRInputError(
+                f"cache folder {self.root}: cannot write a descriptor shard ({exc.strerror or exc}); free space, "
+                f"or choose a writable folder with --cache-dir (command line) or {settings.CACHE_ENV}"
+            ) from exc
         return folder / f"{shard}.json"
 
     # ---------------------------------------------------------------- reading
@@ -310,6 +380,42 @@ class DescriptorCache:
             except OSError:
                 pass  # not empty: holds files the cache did not write; leave them
 
+    def remove_stale(self, cache_key: str | None = None) -> int:
+        """Delete what killed writers left behind in ``cache_key``'s folder (all keys when ``None``).
+
+        That is hidden temporaries (``.*.tmp``) and ``.npy`` files without a manifest.
+        One is stale when its writer, named in the file name, is a process of this
+        machine that has exited (and the file is ``DEAD_WRITER_GRACE_S`` old); when the
+        writer cannot be checked (another machine, an older version's file name), when
+        it is ``STALE_AFTER_S`` old. A running writer's files are never deleted.
+
+        Returns:
+            How many files were deleted.
+        """
+        folders = [self._folder(cache_key)] if cache_key is not None else self._key_folders()
+        now = time.time()
+        removed = 0
+        for folder in folders:
+            try:
+                names = {entry.name for entry in os.scandir(folder) if entry.is_file(follow_symlinks=False)}
+            except OSError:
+                continue  # missing or unreadable: nothing of ours to clean
+            for name in names:
+                path = folder / name
+                if name.startswith(".") and name.endswith(".tmp"):
+                    owner = settings.temporary_owner(name)
+                elif not name.startswith(".") and name.endswith(".npy") and f"{name[:-4]}.json" not in names:
+                    owner = _shard_owner(name[:-4])
+                else:
+                    continue
+                if _is_stale(path, owner, now):
+                    try:
+                        path.unlink()
+                        removed += 1
+                    except OSError:
+                        pass  # another cleaner was first, or a read-only cache: lookups never read it anyway
+        return removed
+
     def stats(self, cache_key: str | None = None) -> dict[str, int]:
         """``{"shards", "vectors", "bytes"}`` over ``cache_key`` or all keys (manifests only, unverified)."""
         folders = [self._folder(cache_key)] if cache_key is not None else self._key_folders()
@@ -338,12 +444,12 @@ class DescriptorCache:
                 f"cache_key={cache_key!r} is not a valid cache key: use letters, digits and . _ + - "
                 "(Extractor.cache_key is)"
             )
-        return self.root / cache_key
+        return self.folder / cache_key
 
     def _key_folders(self) -> list[Path]:
-        if not self.root.is_dir():
+        if not self.folder.is_dir():
             return []
-        return sorted(p for p in self.root.iterdir() if p.is_dir() and _KEY.match(p.name))
+        return sorted(p for p in self.folder.iterdir() if p.is_dir() and _KEY.match(p.name))
 
     @staticmethod
     def _manifests(folder: Path) -> list[Path]:

@@ -117,10 +117,12 @@ def hub_checkpoint(spec: WeightsSpec) -> Path:
 
 
 def _where_to_get(spec: WeightsSpec) -> str:
+    # What works from the command line and the app comes first: a file in a folder or an
+    # environment variable. The keyword options only exist for Python callers.
     return (
-        f"expected {spec.file_name} ({spec.label}, published at {spec.url}); put it at {hub_checkpoint(spec)}, "
-        f"or set {spec.env} to the file (or to a folder holding it), or pass weights=PATH; "
-        "download=True fetches it when online"
+        f"expected {spec.file_name} ({spec.label}): download {spec.url} and put it at {hub_checkpoint(spec)}, "
+        f"or set the environment variable {spec.env} to the file (or to a folder holding it) before "
+        "starting the command or the app (from Python, the weights=PATH and download=True options also work)"
     )
 
 

@@ -52,6 +52,9 @@ _VERSION = re.compile(r"^[A-Za-z0-9._-]{0,32}$")
 _ENTRY_POINT = re.compile(r"^(?P<module>[A-Za-z_][\w.]*|.+\.py):(?P<function>[A-Za-z_]\w*)$")
 _SETTINGS_FIELDS = ("model", "input_size", "normalisation", "dim", "version")
 INPUT_SIDE_RANGE = (8, 4096)
+# Part of every user model's cache key, bumped when the shared preprocessing changes.
+# 2: 16-bit greyscale is scaled by its bit depth (1 clipped it to a white image).
+RECIPE_VERSION = "2"
 
 
 @dataclass(frozen=True)
@@ -307,7 +310,7 @@ def _build(spec: CustomModel, device, precision) -> Extractor:
     width, height = spec.input_size
     extractor = TorchExtractor(
         name=spec.name,
-        version=f"{width}x{height}.{spec.normalisation.value}.{model_digest(spec)[:12]}",
+        version=f"{RECIPE_VERSION}.{width}x{height}.{spec.normalisation.value}.{model_digest(spec)[:12]}",
         dim=spec.dim or 0,
         model=model,
         load=functools.partial(load_squashed, size=spec.input_size, normalisation=spec.normalisation),

@@ -32,6 +32,10 @@ ARCHITECTURE = "tf_efficientnet_lite0"
 # a place's identity, and the aspect change is the same for every image of a route.
 INPUT_SIZE = 224
 FEATURE_DIM = 1280
+# Bumped when the descriptors change. 2: 16-bit greyscale is scaled by its bit depth
+# (version 1 clipped it to a white image), and JPEGs are decoded exactly (version 1
+# decoded them at a reduced DCT scale, PIL's draft mode: cosine 0.996 to the exact recipe).
+VERSION = "2"
 
 
 def pair_state_dicts(
@@ -118,7 +122,7 @@ class EfficientNetLite0Extractor(TorchExtractor):
             model = copy.deepcopy(model).to(device)
         super().__init__(
             name="efficientnet-lite0",
-            version="1",
+            version=VERSION,
             dim=FEATURE_DIM,
             model=model,
             load=self._load_image,
@@ -129,7 +133,7 @@ class EfficientNetLite0Extractor(TorchExtractor):
 
     @staticmethod
     def _load_image(path: Path) -> np.ndarray:
-        image = open_image(path, "RGB", (INPUT_SIZE, INPUT_SIZE)).resize((INPUT_SIZE, INPUT_SIZE), Image.BILINEAR)
+        image = open_image(path, "RGB").resize((INPUT_SIZE, INPUT_SIZE), Image.BILINEAR)
         return to_unit_range(np.asarray(image))
 
     def load(self, path: Path) -> np.ndarray:

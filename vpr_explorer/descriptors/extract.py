@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
+import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -23,9 +25,14 @@ from vpr_explorer.errors import VPRInputError
 # the cores to the decoders, which then should never wait. Memory stays at a few batches (a 224x224 float32 image is 0.6 MB).
 PREFETCH_BATCHES = 1
 PREFETCH_BATCHES_GPU = 3
-# New vectors are written in shards of this many once the whole run has succeeded:
-# nothing is cached from a failed run (issue: a failed run must never leave state behind).
+# New vectors are cached as the run goes, so that an interrupted run resumes where it
+# stopped: a shard is written when this many wait, or when the oldest has waited
+# FLUSH_SECONDS (a kill loses at most that much work; a Ctrl-C or an error loses only
+# the batch in flight, the finished ones are written before it propagates). Only
+# vectors that passed the checks are written, keyed by content, so they are right
+# whatever happens later in the run.
 SHARD_SIZE = 4096
+FLUSH_SECONDS = 10.0
 # Default decoding threads: one per core this process may use, up to this many. On a
 # small CPU they share the cores with the model; beside a GPU they are what feeds it.
 MAX_DEFAULT_WORKERS = 8
@@ -35,6 +42,73 @@ MIN_NORM = 1e-12
 RENORMALISE_BYTES = 1 << 20
 NAMED_IN_ERRORS = 3
 HASH_CHUNK = 256
+
+
+class ExtractionInterrupted(KeyboardInterrupt):
+    """Ctrl-C during extraction, raised once the finished batches are in the cache.
+
+    A ``KeyboardInterrupt``, so whatever stops on Ctrl-C still does; its message is the
+    one line to show, e.g. ``"160 of 600 descriptors cached; run the same command again
+    to resume"``.
+
+    Attributes:
+        cached: images of the run whose descriptors are now in the cache (hits included).
+        total: images of the run.
+    """
+
+    def __init__(self, cached: int, total: int, *, with_cache: bool = True) -> None:
+        self.cached = cached
+        self.total = total
+        if with_cache:
+            message = f"{cached} of {total} descriptors cached; run the same command again to resume"
+        else:
+            message = f"stopped before all {total} descriptors were computed; no cache was used, nothing is kept"
+        super().__init__(message)
+
+
+class _Pending:
+    """New vectors not yet in the cache; written as shards while the run goes on.
+
+    Rows are dropped once stored, so a write cut short (Ctrl-C inside it) is simply
+    retried by the next :meth:`flush`.
+    """
+
+    def __init__(self, cache: DescriptorCache, cache_key: str) -> None:
+        self.cache = cache
+        self.cache_key = cache_key
+        self.hashes: list[str] = []
+        self.images: list[int] = []  # how many of the run's images each hash stands for
+        self.vectors: list[np.ndarray] = []
+        self.saved_images = 0
+        self.broken = False  # a write failed: never try again in this run
+        self.since = time.monotonic()
+
+    def add(self, hashes: list[str], images: list[int], vectors: np.ndarray) -> None:
+        if not self.hashes:
+            self.since = time.monotonic()
+        self.hashes.extend(hashes)
+        self.images.extend(images)
+        self.vectors.append(vectors)
+        if len(self.hashes) >= SHARD_SIZE or time.monotonic() - self.since >= FLUSH_SECONDS:
+            self.flush()
+
+    def flush(self) -> None:
+        if self.broken or not self.hashes:
+            return
+        rows = np.concatenate(self.vectors) if len(self.vectors) > 1 else self.vectors[0]
+        self.vectors = [rows]
+        while self.hashes:
+            n = min(SHARD_SIZE, len(self.hashes))
+            try:
+                self.cache.store(self.cache_key, self.hashes[:n], rows[:n])
+            except VPRInputError:
+                self.broken = True
+                raise
+            self.saved_images += sum(self.images[:n])
+            del self.hashes[:n], self.images[:n]
+            rows = rows[n:]
+            self.vectors = [rows]
+        self.vectors = []
 
 
 def fingerprint(descriptors: np.ndarray) -> str:
@@ -147,8 +221,13 @@ def extract_descriptors(
     (``PREFETCH_BATCHES_GPU`` for a model on a GPU) ahead of the forward pass, which
     runs in the calling thread, ``batch_size`` images at a time (split by image shape
     when an extractor keeps the aspect ratio).
-    New vectors reach the cache only after every batch passed the checks, in shards of
-    ``SHARD_SIZE``; a failing run writes nothing.
+
+    With a cache, the cache folder is checked first (before any image is read), then
+    cleared of what killed writers left in it (:meth:`DescriptorCache.remove_stale`).
+    New vectors reach it as the run goes: a shard every ``SHARD_SIZE`` vectors or
+    ``FLUSH_SECONDS``, and the finished batches before any error or interruption
+    propagates, so running again computes only what is missing. Only vectors that
+    passed the checks are cached.
 
     New vectors are normalised in float32 and then stored in the result as ``dtype``;
     what reaches the cache is the float32 vectors (the cache's own ``dtype`` decides how
@@ -163,7 +242,8 @@ def extract_descriptors(
     Args:
         paths: image files; repeats allowed.
         workers: decoding threads; default :func:`default_workers` (2 on a 2-core machine).
-        progress: ``progress(done, total)`` in images; cache hits count as done at once.
+        progress: ``progress(done, total)`` in images. The first call's ``done`` is the
+            number of images found in the cache (not computed in this run).
         dtype: ``"float32"`` (default) or ``"float16"``: the result's dtype. float16
             halves its memory, at ~1e-3 relative error in the entries.
 
@@ -172,8 +252,10 @@ def extract_descriptors(
         precision for float16).
 
     Raises:
-        VPRInputError: no paths, a bad option (named, ``dtype`` included), an unreadable
-            image (named), or images whose descriptor is zero or not finite (named).
+        VPRInputError: no paths, a bad option (named, ``dtype`` included), a cache folder
+            that cannot be written (named, before any work), an unreadable image
+            (named), or images whose descriptor is zero or not finite (named).
+        ExtractionInterrupted: on Ctrl-C, saying how many descriptors are cached.
     """
     if isinstance(paths, (str, Path)):
         raise VPRInputError(f"paths={str(paths)!r}: give a list of image files, not a single path")
@@ -181,6 +263,9 @@ def extract_descriptors(
     workers = default_workers() if workers is None else workers
     _check_options(paths, batch_size, workers)
     dtype = check_dtype(dtype)
+    if cache is not None:
+        cache.check_writable()
+        cache.remove_stale(extractor.cache_key)
     total = len(paths)
     out: np.ndarray | None = None
 
@@ -219,14 +304,12 @@ def extract_descriptors(
                 done = len(index)
         if out is None:
             out = np.empty((total, extractor.dim), dtype=dtype)
-        if progress is not None:
-            progress(done, total)
 
         todo = list(groups)  # content still to compute, first image of each stands for it
         batches = [todo[i : i + batch_size] for i in range(0, len(todo), batch_size)]
         pending: deque[list[Future[np.ndarray]]] = deque()
-        unsaved_hashes: list[str] = []
-        unsaved_vectors: list[np.ndarray] = []
+        unsaved = _Pending(cache, extractor.cache_key) if cache is not None else None
+        hits = done
 
         submitted = 0
 
@@ -239,6 +322,8 @@ def extract_descriptors(
         on_gpu = str(getattr(extractor, "device", "cpu")).startswith("cuda")
         ahead = PREFETCH_BATCHES_GPU if on_gpu else PREFETCH_BATCHES
         try:
+            if progress is not None:
+                progress(done, total)
             for b, batch in enumerate(batches):
                 # Batches b+1 .. b+ahead decode while this one is forwarded.
                 submit_up_to(b + 1 + ahead)
@@ -249,21 +334,26 @@ def extract_descriptors(
                 for h, v in zip(batch, vectors):
                     out[groups[h]] = v
                     done += len(groups[h])
-                if cache is not None:
-                    unsaved_hashes.extend(batch)
-                    unsaved_vectors.append(vectors)
+                if unsaved is not None:
+                    unsaved.add(batch, [len(groups[h]) for h in batch], vectors)
                 if progress is not None:
                     progress(done, total)
-        except BaseException:
+            if unsaved is not None:
+                unsaved.flush()
+        except BaseException as exc:
             # Stop decoding what no one will use; the pool's exit waits for running loads.
             for futures in pending:
                 for f in futures:
                     f.cancel()
+            if unsaved is not None:
+                # The finished batches, so that a new run starts after them. Should the
+                # write fail too, the error that stopped the run is still the one to report.
+                with contextlib.suppress(VPRInputError):
+                    unsaved.flush()
+            if isinstance(exc, KeyboardInterrupt) and not isinstance(exc, ExtractionInterrupted):
+                cached = hits + unsaved.saved_images if unsaved is not None else 0
+                raise ExtractionInterrupted(cached, total, with_cache=unsaved is not None) from None
             raise
-        if cache is not None and unsaved_hashes:
-            new = np.concatenate(unsaved_vectors)
-            for lo in range(0, len(unsaved_hashes), SHARD_SIZE):
-                cache.store(extractor.cache_key, unsaved_hashes[lo : lo + SHARD_SIZE], new[lo : lo + SHARD_SIZE])
 
     out.setflags(write=False)
     return out

@@ -58,7 +58,9 @@ DEFAULT_BACKBONE = "ResNet50"
 DEFAULT_DIM = 2048
 SHORT_SIDE = 480
 SHORT_SIDE_RANGE = (32, 4096)
-RECIPE_VERSION = "1"
+# Bumped when the recipe changes. 2: 16-bit greyscale is scaled by its bit depth (1
+# clipped it to a white image).
+RECIPE_VERSION = "2"
 
 
 class L2Norm(torch.nn.Module):

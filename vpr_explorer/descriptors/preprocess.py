@@ -64,7 +64,7 @@ def short_side_size(width: int, height: int, short: int) -> tuple[int, int]:
 
 def load_squashed(path: Path, size: tuple[int, int], normalisation: Normalisation) -> np.ndarray:
     """``(3, H, W)``: the whole frame resized (bilinear, aspect not kept) to ``size = (W, H)``."""
-    image = open_image(path, "RGB", size).resize(size, Image.BILINEAR)
+    image = open_image(path, "RGB").resize(size, Image.BILINEAR)
     return to_chw(np.asarray(image), normalisation)
 
 
@@ -75,8 +75,7 @@ def load_short_side(path: Path, short: int, normalisation: Normalisation) -> np.
     image does (it calls the same function). Frames of another aspect come out another
     shape; ``extract_descriptors`` batches equal shapes together.
     """
-    # The JPEG draft keeps the aspect, so the size can be computed from the drafted frame.
-    image = open_image(path, "RGB", (short, short))
+    image = open_image(path, "RGB")
     size = short_side_size(image.width, image.height, short)
     if size != image.size:
         image = image.resize(size, Image.BILINEAR)
