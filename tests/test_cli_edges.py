@@ -109,10 +109,10 @@ def test_record_bad_numbers_are_one_error_line(args, fragments, tmp_path, capsys
 
 
 @pytest.mark.parametrize("protocol, args, option, owner", [
-    ("paper", ["--database", "day"], "--database", "traversal protocol"),
-    ("paper", ["--queries", "night"], "--queries", "traversal protocol"),
-    ("open-set", ["--database", "day", "snow"], "--database", "traversal protocol"),
-    ("open-set", ["--queries", "night"], "--queries", "traversal protocol"),
+    ("paper", ["--database", "day"], "--database", "traversal and database-queries protocols"),
+    ("paper", ["--queries", "night"], "--queries", "traversal and database-queries protocols"),
+    ("open-set", ["--database", "day", "snow"], "--database", "traversal and database-queries protocols"),
+    ("open-set", ["--queries", "night"], "--queries", "traversal and database-queries protocols"),
     ("traversal", ["--runs", "3"], "--runs", "paper and open-set protocols"),
     ("traversal", ["--seed", "4"], "--seed", "paper and open-set protocols"),
     ("traversal", ["--cross-condition"], "--cross-condition", "paper and open-set protocols"),

@@ -64,11 +64,40 @@ def _bar(desc: str):
     return update
 
 
+def _number(text: str) -> int | float:
+    """A group/step value: a whole number of frames, or metres (which may have a fraction)."""
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    return int(value) if value.is_integer() and abs(value) < 2**63 else value
+
+
 def add_dataset_args(p: argparse.ArgumentParser) -> None:
     """Arguments shared by every sub-command that reads a dataset."""
-    p.add_argument("--dataset", required=True, help="dataset folder, or 'demo' for the built-in route")
-    p.add_argument("--group", type=int, default=3, help="consecutive frames per place (default 3)")
-    p.add_argument("--step", type=int, default=10, help="frames from one place to the next (default 10)")
+    from vpr_explorer.layouts import Layout
+    from vpr_explorer.places import PlaceGeometry
+
+    p.add_argument("--dataset", required=True,
+                   help="dataset folder (or a manifest .csv), or 'demo' for the built-in route")
+    p.add_argument("--layout", choices=[x.value for x in Layout], default=Layout.AUTO.value,
+                   help="how the dataset is laid out (default: detected): aligned traversal folders, prepared "
+                        "Place####_Cond##_G## images, database/ + queries/ with @UTM@ names, VPR-Bench ref/ + query/ "
+                        "+ ground_truth_new.npy, traversal folders with positions.csv, or a manifest CSV")
+    p.add_argument("--radius", type=float, default=None,
+                   help="position-tagged layouts: a database image within this many metres is right (default 25)")
+    p.add_argument("--geometry", choices=[g.value for g in PlaceGeometry], default=None,
+                   help="database/queries layouts: group/step count database images in order (frames), or metres "
+                        "along the route (route) or of a lattice over the plane (lattice); default route or lattice "
+                        "where the layout has positions, else frames")
+    p.add_argument("--group", type=_number, default=3,
+                   help="consecutive frames (or metres, see --geometry) per place (default 3)")
+    p.add_argument("--step", type=_number, default=10,
+                   help="frames (or metres) from one place to the next (default 10)")
     p.add_argument("--reading", choices=[r.value for r in Reading], default=Reading.STRIDE.value,
                    help="stride: a place starts every STEP frames (authors' code); skip: take GROUP, skip STEP (paper text)")
     p.add_argument("--descriptor", default="efficientnet-lite0", help="descriptor name (default efficientnet-lite0)")
@@ -86,8 +115,8 @@ PROTOCOL_OPTIONS = {
     "cross_condition": ((Protocol.PAPER, Protocol.OPEN_SET), False),
     "unknown_share": ((Protocol.OPEN_SET,), 0.3),
     "k": ((Protocol.OPEN_SET,), list(K_GRID)),
-    "database": ((Protocol.TRAVERSAL,), None),
-    "queries": ((Protocol.TRAVERSAL,), None),
+    "database": ((Protocol.TRAVERSAL, Protocol.DATABASE), None),
+    "queries": ((Protocol.TRAVERSAL, Protocol.DATABASE), None),
 }
 
 
@@ -108,10 +137,90 @@ def _protocol_options(args: argparse.Namespace) -> dict:
     return values
 
 
+def _benchmark(args: argparse.Namespace):
+    """The dataset when ``--dataset``/``--layout`` name a database/queries layout, else ``None``."""
+    from vpr_explorer.layouts import RETRIEVAL_LAYOUTS, Layout, detect_layout
+
+    if args.dataset == "demo":
+        layout = Layout(args.layout)
+    else:
+        path = Path(args.dataset).expanduser()
+        layout = detect_layout(path) if args.layout == Layout.AUTO.value and path.exists() else Layout(args.layout)
+    if layout not in RETRIEVAL_LAYOUTS:
+        for option in ("radius", "geometry"):
+            if getattr(args, option) is not None:
+                raise VPRInputError(f"--{option} applies to database/queries layouts; {args.dataset} is read as "
+                                    f"{'traversal folders' if layout is Layout.AUTO else layout.value}")
+        return None
+    from vpr_explorer.pipeline import open_dataset
+
+    return open_dataset(args.dataset, layout.value, radius=args.radius, database=getattr(args, "database", None),
+                        queries=getattr(args, "queries", None))
+
+
+def _places_spec(args: argparse.Namespace, dataset):
+    """``(PlaceSpec, MetricPlaceSpec)`` for a database/queries dataset: one of them, from --geometry."""
+    from vpr_explorer.places import MetricPlaceSpec, PlaceGeometry
+
+    geometry = args.geometry
+    if geometry is None:
+        geometry = ("frames" if dataset.database_xy is None else "route" if dataset.ordered else "lattice")
+    if PlaceGeometry(geometry) is PlaceGeometry.FRAMES:
+        return PlaceSpec(args.group, args.step, args.reading), None
+    return None, MetricPlaceSpec(args.group, args.step, args.reading, geometry)
+
+
+def _evaluate_benchmark(args: argparse.Namespace, dataset) -> int:
+    from vpr_explorer.pipeline import dataset_descriptors, evaluate_retrieval
+    from vpr_explorer.report import render
+    from vpr_explorer.settings import check_cache_root
+
+    protocol = Protocol(args.protocol or Protocol.DATABASE.value)
+    if protocol is not Protocol.DATABASE:
+        raise VPRInputError(f"--protocol {protocol.value}: {dataset.name} is a {dataset.layout.value} layout, whose "
+                            f"queries are given: use --protocol {Protocol.DATABASE.value} (the default for it)")
+    args.protocol = protocol.value
+    _protocol_options(args)
+    if args.tolerance:
+        raise VPRInputError("--tolerance counts frames of aligned traversals; a database/queries layout says which "
+                            "images are right by its ground truth (position-tagged: --radius)")
+    spec, metric = _places_spec(args, dataset)
+    check_cache_root(args.cache_dir)
+    desc = dataset_descriptors(dataset, args.descriptor, cache_root=args.cache_dir, progress=_bar("descriptors"),
+                               dtype=args.dtype)
+    ev = evaluate_retrieval(dataset, desc, spec=spec, metric=metric, user_theta=args.theta,
+                            settings={"descriptor": args.descriptor, "dtype": args.dtype},
+                            progress=_bar("queries"))
+    print(dataset.describe())
+    for note in dataset.notes:
+        print(note)
+    print(render(ev))
+    _write_json(args, ev)
+    return 0
+
+
+def _write_json(args: argparse.Namespace, ev) -> None:
+    if args.json:
+        try:
+            args.json.write_text(json.dumps(ev.to_dict(), indent=2, allow_nan=False, default=_json_default))
+        except OSError as exc:
+            raise VPRInputError(f"--json {args.json}: cannot write ({exc.strerror}); pick a writable path") from exc
+        print(f"wrote {args.json}")
+
+
 def _evaluate(args: argparse.Namespace) -> int:
     from vpr_explorer.pipeline import evaluate_dataset
     from vpr_explorer.report import render
 
+    dataset = _benchmark(args)
+    if dataset is not None:
+        return _evaluate_benchmark(args, dataset)
+    if args.protocol is None:
+        args.protocol = Protocol.PAPER.value
+    elif Protocol(args.protocol) is Protocol.DATABASE:
+        raise VPRInputError(f"--protocol {Protocol.DATABASE.value} needs a database/queries layout (database/ + "
+                            "queries/, VPR-Bench, traversals with positions.csv, or a manifest); "
+                            f"{args.dataset} holds aligned traversals: use paper, traversal or open-set")
     o = _protocol_options(args)
     ev = evaluate_dataset(
         args.dataset, PlaceSpec(args.group, args.step, args.reading), args.descriptor, args.protocol,
@@ -121,12 +230,21 @@ def _evaluate(args: argparse.Namespace) -> int:
         k_grid=o["k"], progress=_bar(f"{args.protocol} protocol"),
     )
     print(render(ev))
-    if args.json:
+    _write_json(args, ev)
+    return 0
+
+
+def _list(args: argparse.Namespace) -> int:
+    """Every image of the dataset in the order descriptors are computed (rows of a ``.npy`` to bring)."""
+    from vpr_explorer.pipeline import open_dataset
+
+    dataset = open_dataset(args.dataset, args.layout, radius=args.radius)
+    root = dataset.root
+    for p in dataset.image_paths:
         try:
-            args.json.write_text(json.dumps(ev.to_dict(), indent=2, allow_nan=False, default=_json_default))
-        except OSError as exc:
-            raise VPRInputError(f"--json {args.json}: cannot write ({exc.strerror}); pick a writable path") from exc
-        print(f"wrote {args.json}")
+            print(Path(p).relative_to(root).as_posix())
+        except ValueError:
+            print(Path(p).as_posix())
     return 0
 
 
@@ -153,7 +271,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     ev = sub.add_parser("evaluate", help="run a protocol and print the paper's kind of table")
     add_dataset_args(ev)
-    ev.add_argument("--protocol", choices=[p.value for p in Protocol], default=Protocol.PAPER.value)
+    ev.add_argument("--protocol", choices=[p.value for p in Protocol], default=None,
+                    help=f"default: paper for aligned traversals, {Protocol.DATABASE.value} for a database/queries "
+                         "layout")
     ev.add_argument("--runs", type=int, default=None,
                     help=f"paper and open-set protocols: random splits, at most {MAX_RUNS} (default and paper: 50)")
     ev.add_argument("--seed", type=int, default=None, help="paper and open-set protocols: seed of the splits (default 0)")
@@ -186,6 +306,12 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--k", type=float, default=0.0, help="thresholds θ_p + k·s_p (default 0: the paper's)")
     rec.add_argument("--tolerance", type=int, default=0, help="frames of slack for a right place (default 0)")
     rec.set_defaults(func=_record)
+
+    ls = sub.add_parser("list", help="print the dataset's images in descriptor order (the rows of a .npy to bring)")
+    ls.add_argument("--dataset", required=True, help="dataset folder (or a manifest .csv), or 'demo'")
+    ls.add_argument("--layout", default="auto", help="as for evaluate (default: detected)")
+    ls.add_argument("--radius", type=float, default=None, help=argparse.SUPPRESS)
+    ls.set_defaults(func=_list)
     return parser
 
 

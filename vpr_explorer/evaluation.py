@@ -718,9 +718,10 @@ def retrieval_protocol(
         image_correct = ground_truth.dense(rows)
         img_scores = np.asarray(sims, dtype=np.float64)
         img = top_answer(img_scores)
+        # the image level answers with a database image, in a place or not: its "place" here is that image
         parts.setdefault("image-baseline", []).append(Outcome(
-            METHODS_BY_KEY["image-baseline"], pessimistic_rank(img_scores, image_correct),
-            np.where(img >= 0, database_place[np.maximum(img, 0)], -1), img, np.full(len(rows), len(db))))
+            METHODS_BY_KEY["image-baseline"], pessimistic_rank(img_scores, image_correct), img, img,
+            np.full(len(rows), len(db))))
         tops.append(raw.max(axis=1))
         bests.append(np.where(correct, raw, -np.inf).max(axis=1))
         base_right.append(out["place-baseline"].rank == 1)
