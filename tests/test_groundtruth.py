@@ -42,3 +42,15 @@ def test_bad_relations_are_named():
     with pytest.raises(VPRInputError, match="finite"):
         GroundTruth.from_positions(np.array([[np.nan, 0]]), np.zeros((1, 2)))
     assert GroundTruth.from_lists([[2, 0, 2]], 3, "given").positives(0).tolist() == [0, 2]
+
+
+@pytest.mark.parametrize("tolerance", [0, 1, 2, 5])
+def test_the_frame_rule_of_aligned_traversals_is_this_relation(tolerance):
+    from vpr_explorer.evaluation import query_truth
+    from vpr_explorer.places import PlaceSpec, frame_places
+
+    frame_place = frame_places(60, PlaceSpec(3, 7))
+    queries = np.arange(60)
+    gt = GroundTruth.from_frames(queries, np.arange(60), tolerance)
+    np.testing.assert_array_equal(gt.places(frame_place, int(frame_place.max()) + 1),
+                                  query_truth(queries, frame_place, tolerance))

@@ -100,7 +100,12 @@ def add_dataset_args(p: argparse.ArgumentParser) -> None:
                    help="frames (or metres) from one place to the next (default 10)")
     p.add_argument("--reading", choices=[r.value for r in Reading], default=Reading.STRIDE.value,
                    help="stride: a place starts every STEP frames (authors' code); skip: take GROUP, skip STEP (paper text)")
-    p.add_argument("--descriptor", default="efficientnet-lite0", help="descriptor name (default efficientnet-lite0)")
+    p.add_argument("--descriptor", default=None, help="descriptor name (default efficientnet-lite0)")
+    p.add_argument("--descriptors", type=Path, default=None, metavar="FILE",
+                   help="descriptors computed elsewhere: .npz (names, descriptors), .npy (rows in `vpr-explorer list` "
+                        "order, or names in FILE.txt) or an hloc global-feature .h5; named by the file's stem")
+    p.add_argument("--names", type=Path, default=None, metavar="FILE",
+                   help="with a .npy --descriptors: the file naming its rows (one image path per line)")
     p.add_argument("--cache-dir", type=Path, default=None, help="descriptor cache (default $VPR_EXPLORER_CACHE)")
     p.add_argument("--dtype", choices=["float32", "float16"], default="float32",
                    help="descriptor precision in memory and in the cache: float16 halves the descriptor memory "
@@ -171,7 +176,7 @@ def _places_spec(args: argparse.Namespace, dataset):
 
 
 def _evaluate_benchmark(args: argparse.Namespace, dataset) -> int:
-    from vpr_explorer.pipeline import dataset_descriptors, evaluate_retrieval
+    from vpr_explorer.pipeline import dataset_descriptors, evaluate_retrieval, imported_descriptors
     from vpr_explorer.report import render
     from vpr_explorer.settings import check_cache_root
 
@@ -185,11 +190,18 @@ def _evaluate_benchmark(args: argparse.Namespace, dataset) -> int:
         raise VPRInputError("--tolerance counts frames of aligned traversals; a database/queries layout says which "
                             "images are right by its ground truth (position-tagged: --radius)")
     spec, metric = _places_spec(args, dataset)
-    check_cache_root(args.cache_dir)
-    desc = dataset_descriptors(dataset, args.descriptor, cache_root=args.cache_dir, progress=_bar("descriptors"),
-                               dtype=args.dtype)
+    descriptor = _descriptor(args)
+    if args.descriptors is not None:
+        imp = imported_descriptors(dataset, args.descriptors, names_file=args.names, dtype=args.dtype)
+        desc, descriptor = imp.descriptors, imp.name
+        for note in imp.notes:
+            print(f"{args.descriptors.name}: {note}")
+    else:
+        check_cache_root(args.cache_dir)
+        desc = dataset_descriptors(dataset, descriptor, cache_root=args.cache_dir, progress=_bar("descriptors"),
+                                   dtype=args.dtype)
     ev = evaluate_retrieval(dataset, desc, spec=spec, metric=metric, user_theta=args.theta,
-                            settings={"descriptor": args.descriptor, "dtype": args.dtype},
+                            settings={"descriptor": descriptor, "dtype": args.dtype},
                             progress=_bar("queries"))
     print(dataset.describe())
     for note in dataset.notes:
@@ -197,6 +209,18 @@ def _evaluate_benchmark(args: argparse.Namespace, dataset) -> int:
     print(render(ev))
     _write_json(args, ev)
     return 0
+
+
+def _descriptor(args: argparse.Namespace) -> str:
+    """The extractor's name; refused beside ``--descriptors FILE`` (the file names the descriptor)."""
+    if args.descriptors is not None:
+        if args.descriptor is not None:
+            raise VPRInputError(f"--descriptor {args.descriptor} and --descriptors {args.descriptors}: give one "
+                                "(a file of descriptors computed elsewhere, or an extractor to compute them here)")
+        return args.descriptors.stem
+    if args.names is not None:
+        raise VPRInputError("--names goes with a .npy --descriptors FILE")
+    return args.descriptor or "efficientnet-lite0"
 
 
 def _write_json(args: argparse.Namespace, ev) -> None:
@@ -223,8 +247,9 @@ def _evaluate(args: argparse.Namespace) -> int:
                             f"{args.dataset} holds aligned traversals: use paper, traversal or open-set")
     o = _protocol_options(args)
     ev = evaluate_dataset(
-        args.dataset, PlaceSpec(args.group, args.step, args.reading), args.descriptor, args.protocol,
+        args.dataset, PlaceSpec(args.group, args.step, args.reading), _descriptor(args), args.protocol,
         cache_root=args.cache_dir, extract_progress=_bar("descriptors"), dtype=args.dtype,
+        layout=args.layout, descriptors_file=args.descriptors, names_file=args.names,
         runs=o["runs"], seed=o["seed"], cross_condition=o["cross_condition"], unknown_share=o["unknown_share"],
         database=o["database"], queries=o["queries"], tolerance=args.tolerance, user_theta=args.theta,
         k_grid=o["k"], progress=_bar(f"{args.protocol} protocol"),
@@ -238,13 +263,11 @@ def _list(args: argparse.Namespace) -> int:
     """Every image of the dataset in the order descriptors are computed (rows of a ``.npy`` to bring)."""
     from vpr_explorer.pipeline import open_dataset
 
+    from vpr_explorer.descriptors.imported import relative_names
+
     dataset = open_dataset(args.dataset, args.layout, radius=args.radius)
-    root = dataset.root
-    for p in dataset.image_paths:
-        try:
-            print(Path(p).relative_to(root).as_posix())
-        except ValueError:
-            print(Path(p).as_posix())
+    for name in relative_names(dataset.image_paths, dataset.root):  # the names a descriptor file matches
+        print(name)
     return 0
 
 
@@ -252,9 +275,10 @@ def _record(args: argparse.Namespace) -> int:
     from vpr_explorer.recording import record_dataset
 
     playback = record_dataset(
-        args.dataset, PlaceSpec(args.group, args.step, args.reading), args.descriptor,
+        args.dataset, PlaceSpec(args.group, args.step, args.reading), _descriptor(args),
         database=args.database, queries=args.queries, out=args.out, k=args.k, tolerance=args.tolerance,
         cache_root=args.cache_dir, extract_progress=_bar("descriptors"), progress=_bar("frames"), dtype=args.dtype,
+        descriptors_file=args.descriptors, names_file=args.names,
     )
     print(playback.describe())
     print(f"wrote {playback.rrd}: watch it with `rerun {playback.rrd}` (or `rerun --web-viewer {playback.rrd}`)")

@@ -587,7 +587,12 @@ def open_set_protocol(
 
 
 def query_truth(query_frames: np.ndarray, frame_place: np.ndarray, tolerance: int) -> np.ndarray:
-    """``(n_queries, n_places)`` bool: the places holding a frame within ``tolerance`` of each query frame."""
+    """``(n_queries, n_places)`` bool: the places holding a frame within ``tolerance`` of each query frame.
+
+    The aligned-traversal case of the ground-truth relation, vectorised over offsets: the
+    same as ``GroundTruth.from_frames(query_frames, frames, tolerance).places(frame_place)``
+    (``tests/test_groundtruth.py`` checks they agree).
+    """
     n_places = int(frame_place.max()) + 1
     truth = np.zeros((len(query_frames), n_places), dtype=bool)
     for off in range(-tolerance, tolerance + 1):

@@ -255,22 +255,46 @@ def evaluate_dataset(
     extract_progress: Callable[[int, int], None] | None = None,
     dtype: str = "float32",
     storage: str | None = None,
+    layout: str = "auto",
+    descriptors_file: Path | None = None,
+    names_file: Path | None = None,
     **options,
 ) -> Evaluation:
     """Everything from a dataset path (or ``"demo"``) to an ``Evaluation``.
 
     ``dtype`` and ``storage`` go to :func:`dataset_descriptors`, the other options to
-    :func:`run_protocol`.
+    :func:`run_protocol`. With ``descriptors_file``, descriptors computed elsewhere are read
+    from it (:func:`imported_descriptors`) instead of ``descriptor``'s extraction, and the
+    file's stem names the descriptor.
     """
-    check_cache_root(cache_root)  # an unusable cache folder fails before the dataset is read or the demo drawn
-    dataset = resolve_dataset(source)
+    if descriptors_file is None:
+        check_cache_root(cache_root)  # an unusable cache folder fails before the dataset is read or the demo drawn
+    dataset = open_dataset(source, layout) if layout != "auto" else resolve_dataset(source)
+    if not isinstance(dataset, Dataset):
+        raise VPRInputError(f"{source} is a {dataset.layout.value} layout: evaluate it with evaluate_retrieval")
     places = make_places(dataset, spec)
     check_options(protocol, dataset, **options)
-    desc = dataset_descriptors(
-        dataset, descriptor, cache_root=cache_root, progress=extract_progress, dtype=dtype, storage=storage
-    )
+    if descriptors_file is not None:
+        imp = imported_descriptors(dataset, descriptors_file, names_file=names_file, dtype=dtype)
+        desc, descriptor = imp.descriptors, imp.name
+    else:
+        desc = dataset_descriptors(
+            dataset, descriptor, cache_root=cache_root, progress=extract_progress, dtype=dtype, storage=storage
+        )
     return run_protocol(protocol, dataset, places, desc, settings={"descriptor": descriptor, "dtype": str(desc.dtype)},
                         **options)
+
+
+def imported_descriptors(dataset, path: Path, *, names_file: Path | None = None, dtype: str = "float32"):
+    """Descriptors computed elsewhere, read from ``path`` in ``dataset``'s image order (:mod:`.descriptors.imported`).
+
+    Works for a ``Dataset`` and a ``layouts.RetrievalDataset`` alike (both list ``image_paths``
+    and a ``root``); the result's ``name`` (the file's stem) names the descriptor, its
+    ``key`` (a content hash) keys any cache of results.
+    """
+    from vpr_explorer.descriptors.imported import load_descriptor_file
+
+    return load_descriptor_file(path, dataset.image_paths, dataset.root, names_file=names_file, dtype=dtype)
 
 
 # --------------------------------------------------------------------------- benchmark layouts (database and queries)

@@ -708,22 +708,32 @@ def record_dataset(
     extract_progress: Progress | None = None,
     progress: Progress | None = None,
     dtype: str = "float32",
+    descriptors_file: Path | None = None,
+    names_file: Path | None = None,
 ) -> Playback:
     """Everything from a dataset path (or ``"demo"``) to a recorded ``.rrd`` (``record_playback``).
 
     The output path is checked first, before any descriptor is computed. ``dtype`` is the
-    descriptors' precision (``pipeline.dataset_descriptors``).
+    descriptors' precision (``pipeline.dataset_descriptors``). With ``descriptors_file``,
+    descriptors computed elsewhere (for the whole dataset) are read from it instead.
     """
     rid = recording_id or uuid.uuid4().hex
     out = check_output(out if out is not None else playback_dir() / f"{rid}.rrd")
-    check_cache_root(cache_root)  # an unusable cache folder fails before the dataset is read or the demo drawn
+    if descriptors_file is None:
+        check_cache_root(cache_root)  # an unusable cache folder fails before the dataset is read or the demo drawn
     dataset = load_traversals(source, database, queries)
     check_record_options(dataset, k=k, tolerance=tolerance)
     make_places(dataset, spec)  # group/step that leave too few places fail before any descriptor is computed
 
-    from vpr_explorer.pipeline import dataset_descriptors
+    from vpr_explorer.pipeline import dataset_descriptors, imported_descriptors, resolve_dataset
 
-    descriptors = dataset_descriptors(dataset, descriptor, cache_root=cache_root, progress=extract_progress,
-                                      dtype=dtype)
+    if descriptors_file is not None:  # the file covers the whole dataset: take the recorded traversals' rows
+        full = resolve_dataset(source)
+        imp = imported_descriptors(full, descriptors_file, names_file=names_file, dtype=dtype)
+        row = {p: i for i, p in enumerate(full.image_paths)}
+        descriptors, descriptor = imp.descriptors[[row[p] for p in dataset.image_paths]], imp.name
+    else:
+        descriptors = dataset_descriptors(dataset, descriptor, cache_root=cache_root, progress=extract_progress,
+                                          dtype=dtype)
     return record_playback(dataset, descriptors, spec, database=database, queries=queries, out=out, serve=serve, k=k,
                            tolerance=tolerance, descriptor=descriptor, recording_id=rid, progress=progress)

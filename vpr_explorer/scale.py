@@ -31,9 +31,11 @@ together; the functions doing each step are named at its end.
    reference (same inputs, same operations: their margins tie exactly).
    ``_full_sums``, ``_split_mu``, ``_sigma``; twins: ``_content_classes``, ``_twins``.
 2. **One blocked pass** over the block pairs I ≤ J of a place-major layout (``Layout``).
-   S = X_I X_Jᵀ is the float32 sgemm the reference ranks with (syrk on the diagonal, as
-   ``d @ d.T``; this relies on the BLAS summing over D in one order whatever the shapes,
-   as OpenBLAS does). Each block gives, for its rows and, by symmetry, its columns:
+   S = X_I X_Jᵀ in float32. Its scores may differ from the reference's in the last bits
+   (the BLAS kernel, block shape and threads change the summation order): every tie and
+   answer is therefore decided with ``retrieval.TIE_TOLERANCE``, which such differences
+   never cross, so the outcomes are the reference's. Each block gives, for its rows and,
+   by symmetry, its columns:
 
    * V (above): ((S − c)∘(S − c)) @ M, same-place pairs zeroed, with M the (N × R) query
      indicator: float32 products over chunks of ``_W_CHUNK`` rows of M (one nonzero term
@@ -41,7 +43,11 @@ together; the functions doing each step are named at its end.
    * the **top-2 table**: per (image, place) the best and second-best score and the slots
      reaching them. In split r, raw_p of a query is p's best score unless p's held-out
      image is that best, then the second (on a tie the second equals the best). A query is
-     held out of its own place, so its best correct score b_q is split-independent;
+     held out of its own place, so its best correct score b_q is split-independent. Where
+     two of a place's images score within the tie tolerance (t2 ≥ t1 − tol or
+     t3 ≥ t2 − tol: near-duplicate images, rare), the entry keeps all its slot scores
+     (``_NearSlots``), from which raw_p and its image (the lowest slot within the
+     tolerance) follow exactly in every split;
    * the scores of the automatic threshold's sampled pairs (4);
    * for the image-level baseline, the places where two or more images reach b_q, with
      the slots that do (at most max(ks) per image: more, and the rank is beyond every K).
@@ -79,9 +85,10 @@ together; the functions doing each step are named at its end.
    such comparison is left. ``_error_scale``, ``_uncertainty``, ``_near_tie_places``,
    ``_make_exact``, ``_score_splits``.
 
-Ranks, ties and answers follow ``retrieval``: ties count against the query, answers are
-the first best (lowest place id; lowest image index within a place; lowest image index
-across places at the image level), cross-condition queries see other traversals only.
+Ranks, ties and answers follow ``retrieval``: scores within ``TIE_TOLERANCE`` tie, ties
+count against the query, answers are the lowest index within the tolerance of the best
+(place id; image index within a place; image index across places at the image level),
+cross-condition queries see other traversals only.
 Image-level ranks beyond max(ks) are reported as max(ks) + 1 (Recall@K never needs more).
 """
 

@@ -8,12 +8,21 @@ images, not places: regrouping never recomputes them.
 Built in: ``pixels``, ``efficientnet-lite0`` and the paper's ``alexnet-conv3``,
 ``cosplace`` and ``eigenplaces`` (their weights: :mod:`.checkpoints`); users add their
 own models with :func:`register_extractor` or a ``VPR_EXPLORER_MODELS`` settings file
-(:mod:`.custom`).
+(:mod:`.custom`). Descriptors computed elsewhere come in through
+:func:`load_descriptor_file` (:mod:`.imported`).
 """
 
 from vpr_explorer.descriptors.base import Extractor
 from vpr_explorer.descriptors.cache import CacheHits, DescriptorCache, DescriptorCacheWarning
 from vpr_explorer.descriptors.extract import ExtractionInterrupted, extract_descriptors, fingerprint
+from vpr_explorer.descriptors.imported import (
+    DescriptorFormat,
+    ImportedDescriptors,
+    descriptor_format,
+    load_descriptor_file,
+    relative_names,
+    write_descriptor_file,
+)
 from vpr_explorer.descriptors.registry import (
     EXTRACTOR_NAMES,
     available_extractors,
@@ -28,13 +37,19 @@ __all__ = [
     "CacheHits",
     "DescriptorCache",
     "DescriptorCacheWarning",
+    "DescriptorFormat",
     "ExtractionInterrupted",
     "Extractor",
+    "ImportedDescriptors",
     "available_extractors",
+    "descriptor_format",
     "extract_descriptors",
     "extractor_names",
     "fingerprint",
     "get_extractor",
+    "load_descriptor_file",
     "register_extractor",
+    "relative_names",
     "unregister_extractor",
+    "write_descriptor_file",
 ]
