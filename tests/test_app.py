@@ -8,6 +8,8 @@ descriptors keeps most tests to a second or two; ``realdata`` tests use GardensP
 from __future__ import annotations
 
 import base64
+import csv
+import io
 import json
 import sys
 from pathlib import Path
@@ -62,6 +64,31 @@ def navigation_mode(monkeypatch):
         PagesManager.uses_pages_directory = False
 
     monkeypatch.setattr(PagesManager, "__init__", init_after_navigation)
+
+
+@pytest.fixture
+def downloads(monkeypatch):
+    """``downloads(button) -> bytes``: what a download button serves.
+
+    AppTest stores the files in an in-memory media storage made for each run and dropped
+    after it; this keeps the latest one so that a button's URL can be read back.
+    """
+    from streamlit.testing.v1 import app_test
+
+    stores = []
+
+    class Kept(app_test.MemoryMediaFileStorage):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            stores.append(self)
+
+    monkeypatch.setattr(app_test, "MemoryMediaFileStorage", Kept)
+
+    def served(button) -> bytes:
+        assert button.proto.url, f"{button.proto.label!r} serves no file (a deferred download?)"
+        return stores[-1].get_file(button.proto.url.rsplit("/", 1)[-1]).content
+
+    return served
 
 
 @pytest.fixture
@@ -330,7 +357,7 @@ def test_inspector_opens_a_pair_picked_in_the_similarity_matrix(app, demo):
 # --------------------------------------------------------------------------- evaluation
 
 
-def test_evaluation_paper_protocol_table_equals_the_library(app, demo, demo_pixels):
+def test_evaluation_paper_protocol_table_equals_the_library(app, demo, demo_pixels, downloads):
     at = page(app.run(), "evaluation")
     assert_clean(at)
     ev = run_protocol(Protocol.PAPER, demo, make_places(demo, DEMO_SPEC), demo_pixels, runs=20, seed=0)
@@ -340,10 +367,21 @@ def test_evaluation_paper_protocol_table_equals_the_library(app, demo, demo_pixe
     spec = figure(at, "recall")
     np.testing.assert_allclose(trace(spec, "R@1")["y"], [r.recall[1][0] for r in ev.rows])
     np.testing.assert_allclose(trace(spec, "R@3")["error_y"]["array"], [r.recall[3][1] for r in ev.rows])
-    csv = next(b for b in at.get("download_button") if b.proto.label == "Download CSV")
-    assert csv is not None
     assert "top-1 from own traversal" in table.columns
-    assert method_csv(ev).splitlines()[0].startswith("protocol,method")
+    # The CSV the button serves: the fixed columns, one row per method in the table's order, the table's numbers.
+    button = next(b for b in at.get("download_button") if b.proto.label == "Download CSV")
+    served = downloads(button).decode()
+    assert served == method_csv(ev)
+    rows = list(csv.DictReader(io.StringIO(served)))
+    assert list(rows[0]) == ["protocol", "method", "label", "R@1 mean", "R@1 std", "R@3 mean", "R@3 std", "R@5 mean",
+                             "R@5 std", "R@10 mean", "R@10 std", "accepted", "precision", "unknown_rejection",
+                             "own_traversal_top1"]
+    assert [r["method"] for r in rows] == [r.key for r in ev.rows] and len(rows) == 8
+    assert [r["label"] for r in rows] == list(table["method"]) and {r["protocol"] for r in rows} == {"paper"}
+    for column, shown in [("R@1 mean", "R@1"), ("R@5 std", "R@5 ±"), ("R@10 mean", "R@10"), ("accepted", "accepted"),
+                          ("precision", "precision"), ("own_traversal_top1", "top-1 from own traversal")]:
+        np.testing.assert_allclose([100 * float(r[column]) for r in rows], table[shown], err_msg=column)
+    assert all(r["unknown_rejection"] == "" for r in rows)  # a closed-set protocol has no unknown places
 
 
 def test_evaluation_open_set_and_traversal_protocols(app, demo, demo_pixels):

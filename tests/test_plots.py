@@ -268,8 +268,25 @@ def test_evaluation_rows_and_strict_json(open_set):
     text = evaluation_json(open_set)
     data = json.loads(text, parse_constant=lambda c: pytest.fail(f"non-JSON constant {c}"))
     assert data["protocol"] == "open-set" and len(data["tradeoff"]) == len(open_set.tradeoff)
-    auto = next(m for m in data["methods"] if m["key"] == "global-auto")
-    assert auto["precision"]["mean"] is None or math.isfinite(auto["precision"]["mean"])
+    methods = {m["key"]: m for m in data["methods"]}
+    assert list(methods) == [r.key for r in open_set.rows]
+    for r in open_set.rows:  # every number is the library's
+        m = methods[r.key]
+        assert (m["recall"]["1"]["mean"], m["recall"]["10"]["std"]) == (r.recall[1][0], r.recall[10][1])
+        assert [m[name]["mean"] for name in ("accepted", "precision", "unknown_rejection", "own_traversal_top1")] \
+            == [r.accepted[0], r.precision[0], r.unknown_rejection[0], r.own_traversal[0]]
+    # The automatic θ accepts 1 query in 12 (0.0833; none at all in some splits), and each of those is right:
+    # precision 1 in every split that accepts, and those without accepted queries are left out, not NaN.
+    auto = methods["global-auto"]
+    assert auto["accepted"]["mean"] == pytest.approx(1 / 12) and auto["accepted"]["std"] > 0
+    assert auto["precision"] == {"mean": 1.0, "std": 0.0}
+    # A θ of the sweep above every query's best score accepts none in any split: its precision is
+    # undefined in the library (NaN) and null in the strict JSON.
+    none_accepted = [t for t in open_set.tradeoff if t.accepted[0] == 0]
+    assert none_accepted and all(math.isnan(t.precision[0]) for t in none_accepted)
+    for t, j in zip(open_set.tradeoff, data["tradeoff"]):
+        assert j["precision"] == ({"mean": None, "std": None} if t.accepted[0] == 0 else
+                                  {"mean": t.precision[0], "std": t.precision[1]})
 
 
 def test_recall_figure_bars_and_error_bars_are_the_rows(open_set):

@@ -157,9 +157,21 @@ def test_decision_record_ranks_and_wording():
 
 
 def test_similarity_orientation():
+    """Row i is query i against every database image, column j database image j: ``(n_queries, n_database)``."""
+    from vpr_explorer.errors import VPRInputError
     from vpr_explorer.retrieval import similarity
 
-    q, db = np.eye(3)[:2], np.eye(3)
-    assert similarity(q, db).shape == (2, 3)
-    with pytest.raises(Exception, match="database columns"):
+    q = np.array([[1.0, 0.0, 0.0], [0.0, 0.6, 0.8]])  # 2 queries
+    db = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.6, 0.8, 0.0]])  # 4 database images
+    by_hand = np.array([
+        [0.0, 1.0, 0.0, 0.6],  # query 0 = e0: the database images' first components
+        [0.6, 0.0, 0.8, 0.48],  # query 1: 0.6·1, 0, 0.8·1, 0.6·0.8
+    ])
+    s = similarity(q, db)
+    assert s.shape == (2, 4) and s.dtype == np.float32
+    np.testing.assert_allclose(s, by_hand, atol=1e-7)
+    loops = [[sum(q[i, d] * db[j, d] for d in range(3)) for j in range(4)] for i in range(2)]
+    np.testing.assert_allclose(s, loops, atol=1e-7)
+    assert np.argmax(s[0]) == 1 and np.argmax(s[1]) == 2  # each query's nearest database image
+    with pytest.raises(VPRInputError, match="database columns"):
         place_scores(np.zeros((1, 3)), np.array([0, 1]), 2)
