@@ -11,7 +11,6 @@ import base64
 import csv
 import io
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +19,7 @@ import streamlit as st
 from PIL import Image
 from streamlit.testing.v1 import AppTest
 
+from vpr_explorer.app import ENTRY, PAGES as PAGE_FILES
 from vpr_explorer.database import explain_query
 from vpr_explorer.evaluation import Protocol
 from vpr_explorer.pipeline import run_protocol
@@ -28,8 +28,6 @@ from vpr_explorer.report import method_csv
 from vpr_explorer.views import place_detail, regroup, top_candidates
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:  # the app imports its top-level ``ui`` package, as ``streamlit run`` allows
-    sys.path.insert(0, str(ROOT))
 
 TIMEOUT = 60
 PAGES = ("places", "thresholds", "inspector", "evaluation")
@@ -48,12 +46,12 @@ def fresh_caches():
 
 @pytest.fixture(autouse=True)
 def navigation_mode(monkeypatch):
-    """Route every run through ``app.py``'s ``st.navigation``, as a running server does.
+    """Route every run through the entry script's ``st.navigation``, as a running server does.
 
-    With a ``pages/`` folder beside ``app.py``, Streamlit starts in its older multipage
+    With a ``pages/`` folder beside the entry script, Streamlit starts in its older multipage
     mode (pages found in the folder, each run on its own) and leaves it for good at the
     first ``st.navigation`` call. AppTest resets that flag before every run, so without
-    this each page would run without ``app.py`` (and ``ui.routing`` would send it back).
+    this each page would run without the entry script (and ``routing`` would send it back).
     """
     from streamlit.runtime.pages_manager import PagesManager
 
@@ -93,12 +91,12 @@ def downloads(monkeypatch):
 
 @pytest.fixture
 def app() -> AppTest:
-    at = AppTest.from_file(str(ROOT / "app.py"), default_timeout=TIMEOUT)
+    at = AppTest.from_file(str(ENTRY), default_timeout=TIMEOUT)  # the packaged app, as `vpr-explorer app` runs it
     return at
 
 
 def page(at: AppTest, name: str) -> AppTest:
-    return at.switch_page(f"pages/{name}.py").run()
+    return at.switch_page(str(PAGE_FILES / f"{name}.py")).run()  # the packaged page, whichever entry script runs
 
 
 def assert_clean(at: AppTest, *, errors: bool = False) -> None:
@@ -224,11 +222,11 @@ def test_places_slider_moves_recompute_and_go_into_the_url(app, demo, demo_pixel
 
 def test_slider_moves_never_re_extract(app, monkeypatch):
     """Descriptors are per image: a group/step move relabels images and refits the statistics only."""
-    import ui.cache
+    from vpr_explorer.app.ui import cache
 
     calls = []
-    extract = ui.cache.dataset_descriptors
-    monkeypatch.setattr(ui.cache, "dataset_descriptors", lambda *a, **k: calls.append(a) or extract(*a, **k))
+    extract = cache.dataset_descriptors
+    monkeypatch.setattr(cache, "dataset_descriptors", lambda *a, **k: calls.append(a) or extract(*a, **k))
     at = page(app.run(), "places")
     assert len(calls) == 1
     for group, step in ((2, 4), (4, 6), (1, 1), (3, 5)):

@@ -202,7 +202,7 @@ def _evaluate_benchmark(args: argparse.Namespace, dataset) -> int:
                                    dtype=args.dtype)
     ev = evaluate_retrieval(dataset, desc, spec=spec, metric=metric, user_theta=args.theta,
                             settings={"descriptor": descriptor, "dtype": args.dtype},
-                            progress=_bar("queries"))
+                            progress=_bar("queries"), pr=args.pr)
     print(dataset.describe())
     for note in dataset.notes:
         print(note)
@@ -252,7 +252,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         layout=args.layout, descriptors_file=args.descriptors, names_file=args.names,
         runs=o["runs"], seed=o["seed"], cross_condition=o["cross_condition"], unknown_share=o["unknown_share"],
         database=o["database"], queries=o["queries"], tolerance=args.tolerance, user_theta=args.theta,
-        k_grid=o["k"], progress=_bar(f"{args.protocol} protocol"),
+        k_grid=o["k"], progress=_bar(f"{args.protocol} protocol"), pr=args.pr,
     )
     print(render(ev))
     _write_json(args, ev)
@@ -318,6 +318,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="frames of slack: a place is right when one of its frames is within this many frames "
                          "of the query's (default 0; the authors count ±2)")
     ev.add_argument("--theta", type=float, default=None, help="also evaluate this global threshold (a finite number)")
+    ev.add_argument("--pr", action="store_true",
+                    help="also precision–recall per method (AUC, recall at 100%% and 99%% precision, max F1), pooled "
+                         "over runs: the global θ swept over the top scores, the per-place methods over θ_p + k·s_p")
     ev.add_argument("--json", type=Path, default=None,
                     help="write the numbers, and every setting that shaped them, to this JSON file")
     ev.set_defaults(func=_evaluate)
@@ -336,6 +339,12 @@ def build_parser() -> argparse.ArgumentParser:
     ls.add_argument("--layout", default="auto", help="as for evaluate (default: detected)")
     ls.add_argument("--radius", type=float, default=None, help=argparse.SUPPRESS)
     ls.set_defaults(func=_list)
+
+    from vpr_explorer.app import launch
+
+    app = sub.add_parser("app", help="open the explorer: Streamlit on the packaged app, from any directory")
+    launch.add_arguments(app)
+    app.set_defaults(func=launch.run)
     return parser
 
 

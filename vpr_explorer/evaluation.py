@@ -19,12 +19,13 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import StrEnum
 
 import numpy as np
 
 from vpr_explorer.errors import VPRInputError
+from vpr_explorer.precision_recall import PRCurve, PRRow, PRSplit, pr_rows
 from vpr_explorer.retrieval import (
     METHODS_BY_KEY,
     Method,
@@ -49,6 +50,9 @@ from vpr_explorer.thresholds import (
 )
 
 KS = (1, 3, 5, 10)
+#: The database/queries protocol keeps every query's raw_p (float32, exact) for the per-place
+#: precision–recall curves up to this many query × place cells (200 MB), and leaves them out above.
+PR_RAW_CELLS = 50_000_000
 K_GRID = (-1.0, -0.5, 0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
 Progress = Callable[[int, int, str], None]
 
@@ -120,6 +124,10 @@ class Evaluation:
     tradeoff: tuple[TradeoffRow, ...] = ()
     notes: tuple[str, ...] = ()
     seconds: float = 0.0
+    #: precision–recall per method, pooled over runs (``split_pr``); empty unless asked for (``pr=True``)
+    pr: tuple[PRRow, ...] = ()
+    #: the curves those rows sit on, by name ("global θ", "θ_p(k) weighted, raw" …)
+    pr_curves: dict[str, PRCurve] = field(default_factory=dict, compare=False, repr=False)
 
     def row(self, key: str) -> MethodRow:
         return next(r for r in self.rows if r.key == key)
@@ -169,6 +177,8 @@ class Evaluation:
                 for t in self.tradeoff
             ],
             "notes": list(self.notes),
+            **({"pr": [r.to_dict() for r in self.pr],
+                "pr_curves": {name: c.to_dict() for name, c in self.pr_curves.items()}} if self.pr else {}),
         }
 
 
@@ -189,6 +199,7 @@ class SplitScores:
     thresholds: dict[str, np.ndarray | float]
     spread: np.ndarray  # (P,) s_p
     k_adaptive: np.ndarray  # (P,)
+    top: np.ndarray | None = None  # (nq,) top raw score, where raw is not kept (the blocked pass)
 
 
 def oracle_global_threshold(top_raw: np.ndarray, right_if_accepted: np.ndarray, known: np.ndarray) -> float:
@@ -271,6 +282,21 @@ def _place_outcome(raw, best, theta, rule: Rule, correct) -> Outcome:
 
 
 # --------------------------------------------------------------------------- summaries
+
+
+def split_pr(splits: Sequence[SplitScores]) -> tuple[tuple[PRRow, ...], dict[str, PRCurve]]:
+    """Precision–recall rows and curves pooled over the splits (``precision_recall.pr_rows``).
+
+    Pooled, not averaged: one θ (or k) applied to every split, each split with its own
+    training thresholds; a mean of per-split R@100P would let every split pick its own θ.
+    The per-place family curves need every query's raw_p, which a split of the blocked
+    pass (``scale``) does not keep: there only the global and image-level curves come.
+    """
+    return pr_rows([
+        PRSplit(s.outcomes, s.known, s.raw.max(axis=1) if s.raw.size else s.top,
+                s.raw if s.raw.size else None, s.correct if s.raw.size else None, s.thresholds, s.spread)
+        for s in splits
+    ])
 
 
 def _rates(o: Outcome, known: np.ndarray) -> dict[str, float]:
@@ -511,6 +537,7 @@ def paper_protocol(
     tolerance: int = 0,
     image_frame: np.ndarray | None = None,
     frame_place: np.ndarray | None = None,
+    pr: bool = False,
 ) -> Evaluation:
     """The paper's closed-set protocol over ``runs`` seeded splits.
 
@@ -521,6 +548,7 @@ def paper_protocol(
         tolerance: frames of slack: a place holding a frame within ``tolerance`` frames of
             the query's frame is right too (the authors count ±2); needs ``image_frame``
             ``(n_images,)`` and ``frame_place`` ``(n_frames,)``.
+        pr: also the precision–recall rows and curves (``split_pr``).
     """
     t0 = time.perf_counter()
     d, image_place, image_traversal, ks = _check_common(descriptors, image_place, image_traversal, runs, ks)
@@ -532,12 +560,13 @@ def paper_protocol(
     if not cross_condition:
         notes.append("queries are matched against all traversals, their own included: see the own-traversal "
                      "share, and the cross-condition variant")
+    pr_rows_, pr_curves = split_pr(splits) if pr else ((), {})
     return Evaluation(
         protocol=Protocol.PAPER,
         settings={**(settings or {}), "runs": runs, "seed": seed, "cross_condition": cross_condition,
                   "tolerance": int(tolerance), "queries_per_run": len(splits[0].known)},
         ks=ks, rows=_summarise(splits, ks, own_traversal=True), notes=tuple(notes),
-        seconds=time.perf_counter() - t0,
+        seconds=time.perf_counter() - t0, pr=pr_rows_, pr_curves=pr_curves,
     )
 
 
@@ -559,6 +588,7 @@ def open_set_protocol(
     tolerance: int = 0,
     image_frame: np.ndarray | None = None,
     frame_place: np.ndarray | None = None,
+    pr: bool = False,
 ) -> Evaluation:
     """Open set: ``unknown_share`` of the places are held out of the database in each split.
 
@@ -575,6 +605,7 @@ def open_set_protocol(
                             unknown_share=unknown_share, cross_condition=cross_condition,
                             user_theta=user_theta, progress=progress, extra_truth=extra)
     n_unknown = int((~splits[0].known).sum())
+    pr_rows_, pr_curves = split_pr(splits) if pr else ((), {})
     return Evaluation(
         protocol=Protocol.OPEN_SET,
         settings={**(settings or {}), "runs": runs, "seed": seed, "unknown_share": unknown_share,
@@ -582,7 +613,7 @@ def open_set_protocol(
                   "cross_condition": cross_condition, "tolerance": int(tolerance), "k_grid": list(k_grid)},
         ks=ks, rows=_summarise(splits, ks, own_traversal=True), tradeoff=_tradeoff(splits, k_grid),
         notes=("the oracle global θ is chosen knowing which queries are unknown: an upper bound, not a method",),
-        seconds=time.perf_counter() - t0,
+        seconds=time.perf_counter() - t0, pr=pr_rows_, pr_curves=pr_curves,
     )
 
 
@@ -618,6 +649,7 @@ def traversal_protocol(
     ks: tuple[int, ...] = KS,
     traversal_names: Sequence[str] | None = None,
     settings: dict | None = None,
+    pr: bool = False,
 ) -> Evaluation:
     """Database traversal(s) against a query traversal; thresholds from the database only.
 
@@ -644,12 +676,14 @@ def traversal_protocol(
     split = run_split(d[db], image_place[db], image_traversal[db], similarity(d[qs], d[db]), truth,
                       image_traversal[qs], n_places, user_theta=user_theta)
     names = list(traversal_names) if traversal_names else None
+    pr_rows_, pr_curves = split_pr([split]) if pr else ((), {})
     return Evaluation(
         protocol=Protocol.TRAVERSAL,
         settings={**(settings or {}), "database": [names[t] for t in database] if names else database,
                   "queries": names[query] if names else query, "tolerance": tolerance, "queries_scored": int(len(qs)),
                   "queries_between_places": int((~keep).sum())},
         ks=ks, rows=_summarise([split], ks, own_traversal=False), seconds=time.perf_counter() - t0,
+        pr=pr_rows_, pr_curves=pr_curves,
     )
 
 
@@ -668,6 +702,7 @@ def retrieval_protocol(
     settings: dict | None = None,
     block: int = 2048,
     progress: Progress | None = None,
+    pr: bool = False,
 ) -> Evaluation:
     """A database against queries with ground truth as a relation (``groundtruth.GroundTruth``).
 
@@ -684,6 +719,8 @@ def retrieval_protocol(
         database_place: ``(n_database,)`` place of each database image, ``-1`` outside places.
         ground_truth: a ``GroundTruth`` of ``n_queries`` rows over ``n_database`` images.
         block: queries scored at a time (memory: block × n_database float32).
+        pr: also the precision–recall rows and curves; the per-place family curves only up to
+            ``PR_RAW_CELLS`` queries × places (they need every query's raw_p).
     """
     from vpr_explorer.groundtruth import GroundTruth
 
@@ -711,6 +748,8 @@ def retrieval_protocol(
                           if m.level == "place" and m.key != "global-oracle" and (m.threshold is None or m.threshold in th))
     parts: dict[str, list[Outcome]] = {}
     tops, bests, base_right, place_known = [], [], [], []
+    keep_raw = pr and len(q) * n_places <= PR_RAW_CELLS
+    raws, corrects, image_tops = [], [], []
     for lo in range(0, len(q), block):
         rows = np.arange(lo, min(lo + block, len(q)))
         sims = similarity(q[rows], db)
@@ -729,6 +768,11 @@ def retrieval_protocol(
             np.full(len(rows), len(db))))
         tops.append(raw.max(axis=1))
         bests.append(np.where(correct, raw, -np.inf).max(axis=1))
+        if pr:
+            image_tops.append(img_scores.max(axis=1))
+        if keep_raw:  # raw_p is a float32 score: exact in float32
+            raws.append(raw.astype(np.float32))
+            corrects.append(correct)
         base_right.append(out["place-baseline"].rank == 1)
         place_known.append(correct.any(axis=1))
         if progress:
@@ -764,13 +808,25 @@ def retrieval_protocol(
                              o.n_kept[scored]) for k, o in outcomes.items()}
     rows_ = list(summary(place_outs, known[scored]))
     rows_[0] = summary(outcomes, ground_truth.known)[0]  # the image level counts every query
+    pr_rows_, pr_curves, notes = (), {}, []
+    if pr:
+        image_rows, image_curves = pr_rows([PRSplit({"image-baseline": outcomes["image-baseline"]}, ground_truth.known,
+                                                    np.concatenate(image_tops))])
+        place_rows, place_curves = pr_rows([PRSplit(
+            {k: o for k, o in place_outs.items() if k != "image-baseline"}, known[scored], top[scored],
+            np.concatenate(raws)[scored] if keep_raw else None, np.concatenate(corrects)[scored] if keep_raw else None,
+            th, spread)])
+        pr_rows_, pr_curves = (*image_rows, *place_rows), {**image_curves, **place_curves}
+        if not keep_raw:
+            notes.append(f"precision–recall of the per-place methods left out: {len(q):,} queries × {n_places:,} "
+                         f"places exceed {PR_RAW_CELLS:,} raw_p cells")
     return Evaluation(
         protocol=Protocol.DATABASE,
         settings={**(settings or {}), "ground_truth": ground_truth.description, "queries": int(len(q)),
                   "database_images": int(len(db)), "database_images_in_places": int(len(placed)),
                   "queries_without_positive": int(ground_truth.n_unknown),
                   "queries_between_places": int((~scored).sum())},
-        ks=ks, rows=tuple(rows_), seconds=time.perf_counter() - t0,
+        ks=ks, rows=tuple(rows_), seconds=time.perf_counter() - t0, pr=pr_rows_, pr_curves=pr_curves,
         notes=("image level: a query counts at K when one of its top K database images is a positive; place "
-               "level: when the top K places hold one",),
+               "level: when the top K places hold one", *notes),
     )

@@ -203,6 +203,7 @@ def run_protocol(
     k_grid: Sequence[float] = K_GRID,
     progress: Progress | None = None,
     settings: dict | None = None,
+    pr: bool = False,
 ) -> Evaluation:
     """Run one protocol of ``evaluation`` on a dataset's descriptors.
 
@@ -231,10 +232,10 @@ def run_protocol(
         return traversal_protocol(
             descriptors, places.image_place, dataset.image_traversal, dataset.image_frame, places.frame_place,
             database=db, query=q, tolerance=tolerance, traversal_names=dataset.traversals, user_theta=user_theta,
-            settings=settings,
+            settings=settings, pr=pr,
         )
     pooled = dict(runs=runs, seed=seed, cross_condition=cross_condition, user_theta=user_theta, settings=settings,
-                  tolerance=tolerance, image_frame=dataset.image_frame, frame_place=places.frame_place)
+                  tolerance=tolerance, image_frame=dataset.image_frame, frame_place=places.frame_place, pr=pr)
     if protocol is Protocol.PAPER:
         # evaluation.paper_protocol's numbers (tests/test_scale.py) in one pass over the image pairs
         return fast_paper_protocol(descriptors, places.image_place, dataset.image_traversal, places.n_places,
@@ -370,6 +371,7 @@ def evaluate_retrieval(
     user_theta: float | None = None,
     settings: dict | None = None,
     progress: Progress | None = None,
+    pr: bool = False,
 ) -> Evaluation:
     """The database/queries protocol on a ``RetrievalDataset`` with its descriptors (database rows first)."""
     from vpr_explorer.evaluation import retrieval_protocol
@@ -385,7 +387,7 @@ def evaluate_retrieval(
     d = np.asarray(descriptors)
     return retrieval_protocol(
         d[:dataset.n_database], d[dataset.n_database:], place, n_places, dataset.ground_truth,
-        user_theta=user_theta, progress=progress,
+        user_theta=user_theta, progress=progress, pr=pr,
         settings={"dataset": dataset.name, "layout": dataset.layout.value, "places": f"{n_places} places ({how})",
                   **({"theta": user_theta} if user_theta is not None else {}), **(settings or {})},
     )

@@ -21,6 +21,7 @@ import plotly.graph_objects as go
 from plotly.subplots import make_subplots
 
 from vpr_explorer.evaluation import Evaluation
+from vpr_explorer.precision_recall import PRCurve, PRPoint
 from vpr_explorer.retrieval import METHODS_BY_KEY, QueryDecision
 from vpr_explorer.stats import mixture_pdf
 from vpr_explorer.views import PlaceDetail, SimilarityGrid
@@ -394,6 +395,49 @@ def tradeoff_figure(ev: Evaluation, rule: str = "margin") -> go.Figure:
                       yaxis=dict(title="known-place Recall@1", tickformat=".0%", range=[-0.03, 1.03]),
                       height=460, margin=_MARGIN, legend=dict(orientation="h", y=-0.25))
     return fig
+
+
+def pr_figure(curves: Mapping[str, PRCurve], operating_points: Mapping[str, PRPoint], *,
+              curve_of: Mapping[str, str] | None = None, title: str = "Precision–recall") -> go.Figure:
+    """Precision (y) against recall (x): one line per curve, one marker per method at its own threshold.
+
+    Curve traces (``meta`` = the curve's name) carry ``customdata`` = the θ or k of each
+    point (``None`` at the start point, nothing accepted); their names give the AUC and the
+    unknown-place queries, counted as false positives when accepted. Operating points
+    (``meta = "own <label>"``) take the colour of their curve when ``curve_of`` maps the
+    label to it.
+    """
+    fig = go.Figure()
+    colours = {}
+    for i, (name, c) in enumerate(curves.items()):
+        colours[name] = PALETTE[i % len(PALETTE)]
+        auc = "—" if math.isnan(c.auc) else f"{c.auc:.3f}"
+        fig.add_trace(go.Scatter(
+            x=c.recall, y=c.precision, mode="lines", name=f"{name}: AUC {auc}, {c.n_unknown:,} unknown", meta=name,
+            line=dict(color=colours[name], width=2),
+            customdata=[float(t) if np.isfinite(t) else None for t in c.threshold],
+            hovertemplate=(f"{c.param}=%{{customdata:.3f}}: recall %{{x:.1%}}, precision %{{y:.1%}}"
+                           f"<extra>{name}</extra>"),
+        ))
+    for label, p in operating_points.items():
+        colour = colours.get((curve_of or {}).get(label), "#333")
+        fig.add_trace(go.Scatter(
+            x=[p.recall], y=[p.precision], mode="markers", meta=f"own {label}",
+            name=f"{label}: P {p.precision:.0%}, R {p.recall:.0%}",
+            marker=dict(size=11, symbol="circle-open", color=colour, line=dict(width=3)),
+            hovertemplate=f"{label}: recall %{{x:.1%}}, precision %{{y:.1%}}<extra></extra>",
+        ))
+    fig.update_layout(title=title, xaxis=dict(title="recall (of known-place queries)", tickformat=".0%",
+                                              range=[-0.02, 1.02]),
+                      yaxis=dict(title="precision of accepted top-1", tickformat=".0%", range=[-0.02, 1.04]),
+                      height=460, margin=_MARGIN, legend=dict(orientation="h", y=-0.25))
+    return fig
+
+
+def evaluation_pr_figure(ev: Evaluation) -> go.Figure:
+    """``pr_figure`` of an evaluation run with ``pr=True``: its curves and every method's own point."""
+    return pr_figure(ev.pr_curves, {r.label: r.own for r in ev.pr}, curve_of={r.label: r.curve for r in ev.pr},
+                     title="Precision–recall, pooled over runs")
 
 
 def similarity_heatmap(grid: SimilarityGrid, *, query: str, database: Sequence[str],

@@ -56,6 +56,26 @@ def tradeoff_table(ev: Evaluation, rule: str = "margin") -> str:
     return _grid(header, rows)
 
 
+def _rate(x: float) -> str:
+    return "—" if x is None or math.isnan(x) else f"{100 * x:5.1f}"
+
+
+def pr_table(ev: Evaluation) -> str:
+    """Precision–recall per method, pooled over runs: the curve it sits on, AUC, R@100P, R@99P, max F1, its own point.
+
+    AUC is the trapezoid ∫ P dR over the curve; rates in %; "at" is the θ or k of max F1.
+    """
+    header = ["method", "curve", "AUC", "R@100P", "R@99P", "max F1", "at", "own P", "own R", "known", "unknown"]
+    rows = []
+    for r in ev.pr:
+        at = ("—" if math.isnan(r.max_f1_at)
+              else f"k={r.max_f1_at:+.2f}" if r.param == "k" else f"θ={r.max_f1_at:.3f}")
+        rows.append([r.label, r.curve, "—" if math.isnan(r.auc) else f"{r.auc:.3f}", _rate(r.r_at_100p),
+                     _rate(r.r_at_99p), _rate(r.max_f1), at, _rate(r.own.precision if r.own.accepted else math.nan),
+                     _rate(r.own.recall), f"{r.n_known:,}", f"{r.n_unknown:,}"])
+    return _grid(header, rows)
+
+
 #: Settings the header line leaves out: the k grid is the trade-off table's rows, group/step/reading are in
 #: "places", and the traversal protocol's direction has a line of its own.
 _NOT_IN_HEADER = frozenset({"k_grid", "group", "step", "reading", "direction"})
@@ -73,6 +93,11 @@ def render(ev: Evaluation) -> str:
     parts += ["", method_table(ev)]
     if ev.protocol is Protocol.OPEN_SET:
         parts += ["", "trade-off over θ_p(k) = θ_p + k·s_p (k = 0 is the paper) and global θ:", "", tradeoff_table(ev)]
+    if ev.pr:
+        runs = ev.settings.get("runs", 1)
+        pooled = f", pooled over {runs} runs" if runs > 1 else ""
+        parts += ["", f"precision–recall (an accepted unknown-place query is a false positive; recall over known "
+                      f"queries{pooled}):", "", pr_table(ev)]
     parts += ["", *(f"note: {n}" for n in ev.notes), f"({ev.seconds:.1f} s)"]
     return "\n".join(parts)
 

@@ -119,6 +119,7 @@ from vpr_explorer.evaluation import (
     oracle_global_threshold,
     paper_protocol,
     pooled_truth,
+    split_pr,
 )
 from vpr_explorer.retrieval import METHODS_BY_KEY, TIE_TOLERANCE, Outcome
 from vpr_explorer.stats import SIGMA_FLOOR, NegativeStats, mixture_moments
@@ -134,6 +135,9 @@ from vpr_explorer.thresholds import (
 
 #: Default rows per block of the pass: a 4,096 × 4,096 float32 block is 64 MiB.
 BLOCK_ROWS = 4096
+#: ``pr=True`` hands runs × places² up to this to ``paper_protocol`` (the per-place PR curves
+#: score every query against every place at each of ~200 k: about 60 s at this size).
+PR_FAMILY_CELLS = 10_000_000
 #: Bytes of top-2 table entries kept in RAM; beyond, entries go to a temporary file.
 TABLE_MEMORY = 2 * 1024**3
 #: Rows of M per float32 product of the second-moment downdate: each float32 sum has one
@@ -1245,7 +1249,7 @@ def _assemble(sd: _SplitData, out: dict[str, dict[str, np.ndarray]], top: np.nda
     return SplitScores(
         outcomes=outcomes, raw=empty, best=empty.astype(np.int64), correct=empty.astype(bool), known=known,
         query_traversal=image_traversal[sp.queries], train_traversal=image_traversal[sp.train],
-        thresholds=th, spread=sd.spread, k_adaptive=sd.k_adaptive,
+        thresholds=th, spread=sd.spread, k_adaptive=sd.k_adaptive, top=top,
     )
 
 
@@ -1373,6 +1377,7 @@ def fast_paper_protocol(
     tolerance: int = 0,
     image_frame: np.ndarray | None = None,
     frame_place: np.ndarray | None = None,
+    pr: bool = False,
 ) -> Evaluation:
     """``evaluation.paper_protocol`` through one blocked pass: the same ``Evaluation``.
 
@@ -1389,18 +1394,27 @@ def fast_paper_protocol(
             makes a neighbouring place right for some query (places closer than the
             tolerance), this path, built on one right place per query, hands the run to
             ``paper_protocol`` and says so in the notes.
+        pr: also the precision–recall rows and curves. The per-place family curves need every
+            query's raw_p, which the pass does not keep: up to ``PR_FAMILY_CELLS`` runs × places²
+            the run goes to ``paper_protocol`` (the same numbers), above it they are left out.
     """
     t0 = time.perf_counter()
     d, image_place, image_traversal, ks = _check_common(descriptors, image_place, image_traversal, runs, ks)
     if cross_condition and len(np.unique(image_traversal[image_place >= 0])) < 2:
         raise VPRInputError("cross_condition needs at least 2 traversals")
+    straight = None
     if pooled_truth(image_place, image_frame, frame_place, tolerance, n_places) is not None:
+        straight = (f"a frame tolerance of {tolerance} makes neighbouring places right: scored by the straightforward "
+                    "protocol (one right place per query is what the blocked pass assumes)")
+    elif pr and runs * n_places**2 <= PR_FAMILY_CELLS:
+        straight = ("precision–recall of the per-place methods needs every query's raw_p: scored by the "
+                    "straightforward protocol (the same numbers)")
+    if straight is not None:
         ev = paper_protocol(d, image_place, image_traversal, n_places, runs=runs, seed=seed,
                             cross_condition=cross_condition, user_theta=user_theta, ks=ks, progress=progress,
-                            settings=settings, tolerance=tolerance, image_frame=image_frame, frame_place=frame_place)
-        note = (f"a frame tolerance of {tolerance} makes neighbouring places right: scored by the straightforward "
-                "protocol (one right place per query is what the blocked pass assumes)")
-        return dataclasses.replace(ev, notes=(*ev.notes, note), seconds=time.perf_counter() - t0)
+                            settings=settings, tolerance=tolerance, image_frame=image_frame, frame_place=frame_place,
+                            pr=pr)
+        return dataclasses.replace(ev, notes=(*ev.notes, straight), seconds=time.perf_counter() - t0)
     splits = draw_splits(image_place, n_places, runs=runs, seed=seed)
     scored = scale_splits(
         d, image_place, image_traversal, n_places, splits, cross_condition=cross_condition, user_theta=user_theta,
@@ -1411,10 +1425,14 @@ def fast_paper_protocol(
     if not cross_condition:
         notes.append("queries are matched against all traversals, their own included: see the own-traversal "
                      "share, and the cross-condition variant")
+    pr_rows, pr_curves = split_pr(scored) if pr else ((), {})
+    if pr:
+        notes.append(f"precision–recall of the per-place methods left out: {runs} runs × {n_places:,}² places "
+                     f"exceed {PR_FAMILY_CELLS:,} cells (the blocked pass keeps no raw_p)")
     return Evaluation(
         protocol=Protocol.PAPER,
         settings={**(settings or {}), "runs": runs, "seed": seed, "cross_condition": cross_condition,
                   "tolerance": int(tolerance), "queries_per_run": len(scored[0].known)},
         ks=ks, rows=_summarise(scored, ks, own_traversal=True), notes=tuple(notes),
-        seconds=time.perf_counter() - t0,
+        seconds=time.perf_counter() - t0, pr=pr_rows, pr_curves=pr_curves,
     )

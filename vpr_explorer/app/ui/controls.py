@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import streamlit as st
 
-from ui import state
-from ui.state import K_RANGE, THETA_RANGE
+from vpr_explorer.app.ui import state
+from vpr_explorer.app.ui.state import K_RANGE, THETA_RANGE
 
 
 def threshold_controls(container=st) -> tuple[float, float | None]:

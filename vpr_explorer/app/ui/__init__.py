@@ -1,4 +1,4 @@
 """Streamlit helpers of the explorer app: the view state, the caches, error and progress display.
 
-Only ``app.py`` and ``pages/`` import this package; the library (``vpr_explorer``) never does.
+Only the app's entry script and pages import this package; the library never does.
 """

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import streamlit as st
 
+from vpr_explorer.app import started_view
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.places import PlaceSpec, Reading
 from vpr_explorer.pipeline import DEMO
@@ -135,9 +136,13 @@ def _parse(name: str, text: str) -> object:
 
 
 def view() -> View:
-    """The session's view; on the first run of a session, read from the URL."""
+    """The session's view; on the first run of a session, read from the URL.
+
+    What the URL leaves out comes from what the app was started on (``vpr-explorer app
+    --dataset``), else from ``View``'s defaults.
+    """
     if _KEY not in st.session_state:
-        v, ignored = View.from_params({k: st.query_params[k] for k in st.query_params})
+        v, ignored = View.from_params({**started_view(), **{k: st.query_params[k] for k in st.query_params}})
         st.session_state[_KEY] = v
         if ignored:
             st.session_state["url_ignored"] = ignored
@@ -170,7 +175,7 @@ def bind(widget_key: str, field: str, value: object, *, validate: Callable[[obje
     ``value`` is the field's effective value (the default resolved). The widget's state is
     set to it before the widget is drawn; on change the new value is committed to the
     view, unless ``validate`` raises, in which case the view is unchanged and the error
-    is kept for ``ui.feedback.show_rejected`` to display.
+    is kept for ``feedback.show_rejected`` to display.
     """
     st.session_state[widget_key] = value
     return dict(key=widget_key, on_change=_commit, args=(widget_key, field, validate))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import streamlit as st
 
-from ui import state
+from vpr_explorer.app.ui import state
 
 
 def render() -> None:

@@ -9,9 +9,9 @@ import streamlit as st
 from vpr_explorer.places import PlaceSpec
 from vpr_explorer.views import default_step, split_traversals
 
-from ui import cache, state
-from ui.feedback import DATASET_HINT, PLACES_HINT, fixed_on
-from ui.state import DEFAULT_GROUP, View
+from vpr_explorer.app.ui import cache, state
+from vpr_explorer.app.ui.feedback import DATASET_HINT, PLACES_HINT, fixed_on
+from vpr_explorer.app.ui.state import DEFAULT_GROUP, View
 
 
 @dataclass(frozen=True, eq=False)
@@ -47,7 +47,7 @@ def current() -> Current:
     with a warning saying so.
 
     Raises:
-        ``ui.feedback.FixOn`` (a ``VPRInputError``) naming the page where the input at fault is set.
+        ``feedback.FixOn`` (a ``VPRInputError``) naming the page where the input at fault is set.
     """
     v = state.view()
     with fixed_on(DATASET_HINT):

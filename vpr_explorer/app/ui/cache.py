@@ -1,6 +1,7 @@
 """Every Streamlit cache of the app, in one place, chained like the data flow.
 
-dataset (listing) -> descriptors (extraction, on-disk cache) -> fitted (places, database
+dataset (listing) -> descriptors (extraction, on-disk cache; or a descriptor file the app
+was started with) -> fitted (places, database
 thresholds) -> place detail / query decision / next rejected frame, and -> regrouped (the
 query frames decided: the overview, sampled on big datasets) / similarity grid / evaluation.
 Pages that show one place or one query only need ``fitted``: they never compute query ×
@@ -38,13 +39,14 @@ import streamlit as st
 from PIL import Image
 
 from vpr_explorer import settings
+from vpr_explorer.app import descriptor_files
 from vpr_explorer.database import QueryDecision, explain_query
 from vpr_explorer.datasets import Dataset, load_dataset
 from vpr_explorer.descriptors import extract_descriptors, fingerprint, get_extractor
 from vpr_explorer.descriptors.base import open_image
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.evaluation import Evaluation
-from vpr_explorer.pipeline import DEMO, dataset_descriptors, resolve_dataset, run_protocol
+from vpr_explorer.pipeline import DEMO, dataset_descriptors, imported_descriptors, resolve_dataset, run_protocol
 from vpr_explorer.places import PlaceSpec
 from vpr_explorer.views import (
     Fitted,
@@ -58,7 +60,7 @@ from vpr_explorer.views import (
     similarity_grid,
 )
 
-from ui.feedback import progress_reporter
+from vpr_explorer.app.ui.feedback import progress_reporter
 
 MEMO_ENTRIES = 8
 # Seconds a cache-folder check is trusted: it writes a probe file, so not on every rerun.
@@ -71,15 +73,17 @@ class Loaded:
 
     Attributes:
         dataset: the dataset.
-        descriptor: extractor name.
+        descriptor: extractor name, or a descriptor file's stem.
         descriptors: ``(n_images, D)`` L2-normalised, read-only.
         key: content key (dataset files + descriptor fingerprint) for the caches below.
+        notes: what reading a descriptor file decided (format, name matches), one sentence each.
     """
 
     dataset: Dataset
     descriptor: str
     descriptors: np.ndarray
     key: str
+    notes: tuple[str, ...] = ()
 
 
 # --------------------------------------------------------------------------- memo with progress
@@ -208,14 +212,40 @@ def _files_key(ds: Dataset) -> str:
     return h.hexdigest()
 
 
+def _load_key(descriptor: str, files: str) -> tuple:
+    """What ``load``'s result depends on: the images' ``files`` key, and the descriptor file or the cache mode."""
+    path = descriptor_files().get(descriptor)
+    if path is not None:
+        try:
+            s = path.stat()
+            stamp = f"{s.st_size}|{s.st_mtime_ns}"
+        except OSError:
+            stamp = "missing"
+        return ("imported", descriptor, str(path), stamp, files)
+    # on_disk in the key: a cache folder that stops (or starts) being writable is not
+    # stuck with a failure (or an in-memory result) remembered under the other mode.
+    return ("descriptors", descriptor, files, disk_cache_problem() is None)
+
+
 def load(source: str, descriptor: str) -> Loaded:
     """The dataset and its descriptors, computed with a progress bar and time estimate if not in memory.
 
-    Through the on-disk cache, or in memory only when the cache folder cannot be written.
+    Through the on-disk cache, or in memory only when the cache folder cannot be written;
+    a descriptor named by a file the app was started with (``descriptor_files``) is read
+    from that file instead.
     """
     ds = dataset(source)
     files = _files_key(ds)
-    on_disk = disk_cache_problem() is None
+    key = _load_key(descriptor, files)
+    path = descriptor_files().get(descriptor)
+    if path is not None:
+        def read(_progress):
+            imp = imported_descriptors(ds, path)
+            return Loaded(ds, descriptor, imp.descriptors, f"{files[:16]}-{imp.key[:24]}", imp.notes)
+
+        return _memoised(key, f"Reading {path.name} for {ds.n_images} images", read)
+
+    on_disk = key[-1]
 
     def compute(progress):
         if on_disk:
@@ -228,17 +258,13 @@ def load(source: str, descriptor: str) -> Loaded:
             d.setflags(write=False)
         return Loaded(ds, descriptor, d, f"{files[:16]}-{fingerprint(d)[:24]}")
 
-    # on_disk in the key: a cache folder that stops (or starts) being writable is not
-    # stuck with a failure (or an in-memory result) remembered under the other mode.
-    return _memoised(("descriptors", descriptor, files, on_disk), f"Computing {descriptor} descriptors of "
-                     f"{ds.n_images} images", compute)
+    return _memoised(key, f"Computing {descriptor} descriptors of {ds.n_images} images", compute)
 
 
 def loaded_in_memory(source: str, descriptor: str) -> bool:
     """True when ``load`` would return at once (descriptors already in this server's memory)."""
     try:
-        key = ("descriptors", descriptor, _files_key(dataset(source)), disk_cache_problem() is None)
-        return _memo().get(key) is not None
+        return _memo().get(_load_key(descriptor, _files_key(dataset(source)))) is not None
     except VPRInputError:
         return False
 

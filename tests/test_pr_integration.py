@@ -1,0 +1,104 @@
+"""Precision–recall through the protocols, the report, the figure and the command line."""
+import json
+
+import numpy as np
+
+from reference import unit_rows
+from vpr_explorer import scale
+from vpr_explorer.cli import main
+from vpr_explorer.evaluation import open_set_protocol, paper_protocol, retrieval_protocol, traversal_protocol
+from vpr_explorer.groundtruth import GroundTruth
+from vpr_explorer.plots import evaluation_pr_figure
+from vpr_explorer.precision_recall import GLOBAL_CURVE
+from vpr_explorer.report import render
+
+
+def _synthetic(seed=0, n_places=12, per_place=6, dim=32, noise=0.9, n_trav=3):
+    rng = np.random.default_rng(seed)
+    centres = unit_rows(rng, n_places, dim)
+    labels = np.repeat(np.arange(n_places), per_place)
+    d = centres[labels] + noise * rng.normal(size=(len(labels), dim)) / np.sqrt(dim)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    trav = np.tile(np.arange(per_place) % n_trav, n_places)
+    return d.astype(np.float32), labels, trav
+
+
+def test_paper_and_fast_paper_agree(monkeypatch):
+    d, lab, trav = _synthetic()
+    ev = paper_protocol(d, lab, trav, 12, runs=4, pr=True, user_theta=0.3)
+    assert len(ev.pr) == len(ev.rows)
+    fast = scale.fast_paper_protocol(d, lab, trav, 12, runs=4, pr=True, user_theta=0.3)
+    assert [r.to_dict() for r in fast.pr] == [r.to_dict() for r in ev.pr]
+    monkeypatch.setattr(scale, "PR_FAMILY_CELLS", 0)
+    blocked = scale.fast_paper_protocol(d, lab, trav, 12, runs=4, pr=True, user_theta=0.3)
+    globals_ = {"image-baseline", "place-baseline", "global-auto", "global-oracle", "global-user"}
+    assert {r.key for r in blocked.pr} == globals_  # the blocked pass keeps no raw_p: no family curves
+    by = {r.key: r for r in ev.pr}
+    for r in blocked.pr:
+        assert r.to_dict() == by[r.key].to_dict(), r.key
+    assert any("left out" in n for n in blocked.notes)
+    json.dumps(ev.to_dict(), allow_nan=False)
+    text = render(ev)
+    assert "precision–recall" in text and "R@100P" in text
+    fig = evaluation_pr_figure(ev)
+    assert {t.meta for t in fig.data} >= {GLOBAL_CURVE, "own raw, weighted θ"}
+    fig.to_json()
+    # no pr: unchanged
+    plain = paper_protocol(d, lab, trav, 12, runs=4, user_theta=0.3)
+    assert plain.pr == () and "pr" not in plain.to_dict() and plain.same_numbers(ev)
+
+
+def test_open_set_and_traversal():
+    d, lab, trav = _synthetic(1)
+    ev = open_set_protocol(d, lab, trav, 12, runs=3, pr=True)
+    assert all(r.n_unknown > 0 for r in ev.pr)
+    # a route: 3 traversals of 24 frames, place = frame // 2
+    n_frames = 24
+    image_trav = np.repeat(np.arange(3), n_frames)
+    image_frame = np.tile(np.arange(n_frames), 3)
+    frame_place = np.arange(n_frames) // 2
+    rng = np.random.default_rng(0)
+    c = unit_rows(rng, 12, 16)
+    dd = c[frame_place[image_frame]] + 0.5 * rng.normal(size=(72, 16)) / 4
+    dd /= np.linalg.norm(dd, axis=1, keepdims=True)
+    tv = traversal_protocol(dd, frame_place[image_frame], image_trav, image_frame, frame_place, database=[0, 1],
+                            query=2, pr=True)
+    assert len(tv.pr) == len(tv.rows)
+
+
+def test_retrieval_protocol(monkeypatch):
+    rng = np.random.default_rng(2)
+    db = unit_rows(rng, 40, 16).astype(np.float32)
+    place = np.repeat(np.arange(10), 4)
+    place[-2:] = -1
+    q_idx = rng.integers(0, 40, 25)
+    q = db[q_idx] + 0.3 * rng.normal(size=(25, 16)).astype(np.float32) / 4
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    lists = [[int(i)] if k % 5 else [] for k, i in enumerate(q_idx)]
+    gt = GroundTruth.from_lists(lists, 40, "test")
+    ev = retrieval_protocol(db, q, place, 10, gt, pr=True, block=7)
+    keys = [r.key for r in ev.pr]
+    assert keys[0] == "image-baseline" and "margin-weighted" in keys
+    img = ev.pr[0]
+    assert img.n_known + img.n_unknown == 25
+    import vpr_explorer.evaluation as evm
+    monkeypatch.setattr(evm, "PR_RAW_CELLS", 0)
+    ev2 = evm.retrieval_protocol(db, q, place, 10, gt, pr=True, block=7)
+    assert "margin-weighted" not in [r.key for r in ev2.pr] and any("left out" in n for n in ev2.notes)
+    b = {r.key: r for r in ev.pr}
+    for r in ev2.pr:
+        assert r.to_dict() == b[r.key].to_dict()
+
+
+def test_cli_pr(tmp_path, capsys):
+    out = tmp_path / "e.json"
+    code = main(["evaluate", "--dataset", "demo", "--descriptor", "pixels", "--group", "2", "--step", "4",
+                 "--runs", "3", "--pr", "--json", str(out)])
+    text = capsys.readouterr().out
+    assert code == 0, text
+    data = json.loads(out.read_text())
+    assert data["pr"] and GLOBAL_CURVE in data["pr_curves"]
+    code = main(["evaluate", "--dataset", "demo", "--descriptor", "pixels", "--group", "2", "--step", "4",
+                 "--protocol", "open-set", "--runs", "3", "--pr"])
+    text = capsys.readouterr().out
+    assert code == 0

@@ -1,0 +1,128 @@
+"""``vpr-explorer app``: serve the packaged explorer with Streamlit, from any directory.
+
+``plan`` turns the command's options into a ``streamlit run`` of the packaged entry
+script (``ENTRY``) and the environment it needs; ``run`` prints the URL and becomes that
+server. The project's Streamlit settings travel as command-line flags (``SETTINGS``),
+since Streamlit reads a ``.streamlit/config.toml`` only from the current directory; the
+server binds 127.0.0.1 unless told otherwise. The dataset and a descriptor file reach the
+app through the environment (``DATASET_ENV``, ``DESCRIPTORS_ENV``): every session opens
+them when its link names nothing else, the browser that Streamlit opens included.
+
+Imports no streamlit: the server is another program.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from urllib.parse import urlencode
+
+from vpr_explorer.app import DATASET_ENV, DESCRIPTORS_ENV, ENTRY, started_view
+from vpr_explorer.errors import VPRInputError
+
+DEFAULT_PORT = 8501
+DEFAULT_ADDRESS = "127.0.0.1"
+SETTINGS = {
+    # No first-run e-mail prompt: the command must start the app unattended.
+    "server.showEmailPrompt": "false",
+    # Send nothing: the machines this runs on reach no network but the package registries.
+    "browser.gatherUsageStats": "false",
+    # An installed app does not change while it runs; a watcher would only poll site-packages.
+    "server.fileWatcherType": "none",
+}
+"""Streamlit settings passed as ``--name value``; those of the checkout's ``.streamlit/config.toml`` among them."""
+
+
+@dataclass(frozen=True)
+class Launch:
+    """What ``run`` starts.
+
+    Attributes:
+        argv: the server's command line (``python -m streamlit run ENTRY --flag value …``).
+        env: variables added to the caller's environment for the server.
+        url: the address to open, with the dataset and descriptor in its query.
+    """
+
+    argv: tuple[str, ...]
+    env: Mapping[str, str]
+    url: str
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``app`` sub-command's options."""
+    p.add_argument("--dataset", default=None,
+                   help="dataset folder the app opens (or 'demo'); default: the demo route, another one is picked "
+                        "on the Dataset page")
+    p.add_argument("--descriptors", type=Path, default=None, metavar="FILE",
+                   help="descriptors computed elsewhere (.npz, .npy, hloc .h5), offered beside the extractors and "
+                        "opened first; named by the file's stem")
+    p.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"port to serve on (default {DEFAULT_PORT})")
+    p.add_argument("--address", default=DEFAULT_ADDRESS,
+                   help=f"address to bind (default {DEFAULT_ADDRESS}: this machine only; 0.0.0.0 for every interface)")
+    p.add_argument("--headless", action="store_true",
+                   help="do not open a browser (Streamlit's --server.headless true)")
+
+
+def _dataset(text: str) -> str:
+    if text == "demo":
+        return text
+    path = Path(text).expanduser()
+    if not path.exists():
+        raise VPRInputError(f"--dataset {text}: no such folder; give a dataset folder (one sub-folder per "
+                            "traversal, or Place####_Cond##_G## images) or 'demo'")
+    return str(path.resolve())  # the server's sessions and the printed link do not depend on this directory
+
+
+def _descriptors(path: Path) -> Path:
+    from vpr_explorer.descriptors.imported import descriptor_format
+    from vpr_explorer.descriptors.registry import EXTRACTOR_NAMES
+
+    descriptor_format(path)  # an unknown extension is refused here, not in every session
+    if not path.expanduser().is_file():
+        raise VPRInputError(f"--descriptors {path}: no such file; give a .npz, .npy or hloc .h5 file")
+    if path.stem in EXTRACTOR_NAMES:
+        raise VPRInputError(f"--descriptors {path}: its stem {path.stem!r} names a built-in descriptor; rename the "
+                            "file (its stem names the descriptor in the app)")
+    return path.expanduser().resolve()
+
+
+def plan(*, dataset: str | None = None, descriptors: Path | None = None, port: int = DEFAULT_PORT,
+         address: str = DEFAULT_ADDRESS, headless: bool = False) -> Launch:
+    """The server ``vpr-explorer app`` starts for these options.
+
+    Raises:
+        VPRInputError: a dataset folder or descriptor file that is not there, a descriptor file
+            without its dataset, or a bad port.
+    """
+    if not 1 <= port <= 65535:
+        raise VPRInputError(f"--port {port}: choose a port from 1 to 65535")
+    env = {}
+    if dataset is not None:
+        env[DATASET_ENV] = _dataset(dataset)
+    if descriptors is not None:
+        if dataset is None:
+            raise VPRInputError(f"--descriptors {descriptors}: give the --dataset its rows describe too")
+        env[DESCRIPTORS_ENV] = str(_descriptors(Path(descriptors)))
+    flags = {**SETTINGS, "server.address": address, "server.port": str(port)}
+    if headless:
+        flags["server.headless"] = "true"
+    argv = (sys.executable, "-m", "streamlit", "run", str(ENTRY),
+            *(part for name, value in flags.items() for part in (f"--{name}", value)))
+    host = DEFAULT_ADDRESS if address in ("", "0.0.0.0", "::") else address
+    host = f"[{host}]" if ":" in host else host
+    query = urlencode(started_view(env))
+    return Launch(argv, env, f"http://{host}:{port}/" + (f"?{query}" if query else ""))
+
+
+def run(args: argparse.Namespace) -> int:
+    """``vpr-explorer app``: print the URL, then become the Streamlit server (until Ctrl-C)."""
+    launch = plan(dataset=args.dataset, descriptors=args.descriptors, port=args.port, address=args.address,
+                  headless=args.headless)
+    print(f"VPR Threshold Explorer: {launch.url}\n  (serving {ENTRY.parent})", flush=True)
+    # exec, not a child process: Ctrl-C and a supervisor's SIGTERM reach the server itself.
+    os.execve(launch.argv[0], list(launch.argv), {**os.environ, **launch.env})
+    return 0  # not reached

@@ -1,0 +1,120 @@
+"""Query inspector: one query, its candidate places under every method, and the answer in words."""
+
+import pandas  # noqa: F401  # before plotly: plotly.py#2433
+import streamlit as st
+
+from vpr_explorer import plots
+from vpr_explorer.errors import VPRInputError
+from vpr_explorer.retrieval import METHODS_BY_KEY
+from vpr_explorer.views import FIND_KINDS, LIVE_METHODS, top_candidates
+
+from vpr_explorer.app.ui import cache, state
+from vpr_explorer.app.ui.controls import threshold_controls
+from vpr_explorer.app.ui.current import current
+from vpr_explorer.app.ui.feedback import PLACES_HINT, stop_on_input_error
+from vpr_explorer.app.ui.routing import ensure_routed
+
+ensure_routed(__file__)
+
+PER_ROW = 3
+SHOWN_CANDIDATES = 8
+BEST_IMAGES = 4
+
+st.title("Query inspector")
+with stop_on_input_error():
+    cur = current()
+with stop_on_input_error(hint=PLACES_HINT):
+    r = cache.fitted(cur.data, cur.spec, cur.query)
+ds, model = cur.data.dataset, r.model
+v = state.view()
+frame = v.frame if v.frame is not None and 0 <= v.frame < ds.n_frames else r.first_scored_frame()
+if v.frame is not None and v.frame != frame:
+    st.warning(f"frame={v.frame} is not a frame of {ds.name!r} (0 to {ds.n_frames - 1}): showing frame {frame} "
+               "instead.", icon=":material/warning:")
+    state.update(frame=None)
+
+top = st.columns([2, 3, 2])
+top[0].selectbox("Query traversal (database: every other one)", list(ds.traversals),
+                 **state.bind("w_query", "query", cur.query))
+top[1].slider("Query frame", 0, ds.n_frames - 1, **state.bind("w_frame", "frame", frame))
+with top[2]:
+    k, user_theta = threshold_controls()
+
+methods = [*LIVE_METHODS, *(["global-user"] if user_theta is not None else [])]
+finder = st.columns([2, 2, 1, 3])
+kind = finder[0].selectbox("Find queries that were", list(FIND_KINDS), key="w_find_kind")
+under = finder[1].selectbox("under", methods, index=methods.index("margin-weighted"), key="w_find_method",
+                            format_func=lambda key: METHODS_BY_KEY[key].label)
+
+
+def jump() -> None:
+    """Move to the next query frame (after the current one, wrapping) that ``under`` rejected / got wrong."""
+    try:
+        found, last = cache.find(cur.data, cur.spec, cur.query, after=frame, kind=kind, method=under, k=k,
+                                 user_theta=user_theta)
+    except VPRInputError as exc:
+        st.session_state["find_none"] = str(exc)
+        return
+    label = METHODS_BY_KEY[under].label
+    if found is not None:
+        state.update(frame=found)
+    elif last == frame:
+        st.session_state["find_none"] = f"no query frame was {kind} under {label}; try raising k or another method"
+    else:  # the search budget ran out: move on, so that the next press searches on
+        state.update(frame=last)
+        st.session_state["find_none"] = (f"no query frame {kind} under {label} from frame {(frame + 1) % ds.n_frames} "
+                                         f"to {last}; moved to frame {last}, press next again to search on")
+
+
+finder[2].button("next ▶", key="w_find_next", on_click=jump, help="Jump to the next such query frame")
+note = st.session_state.pop("find_none", None)
+if note:
+    finder[3].info(note)
+
+image = ds.image_index(cur.query, frame)
+with stop_on_input_error(hint="Change k or your global θ above, or group/step on the **Places** page."):
+    dec = cache.decision(cur.data, cur.spec, cur.query, image, k=k, user_theta=user_theta)
+cands = top_candidates(dec, SHOWN_CANDIDATES)
+
+left, right = st.columns([1, 2])
+with left:
+    st.image(cache.thumbnail(ds.image_paths[image], 240), width="stretch",
+             caption=f"query: {cur.query} · frame {frame}")
+    if len(dec.true_places):
+        st.markdown(f"**Right place:** {', '.join(f'P{p}' for p in dec.true_places)} (frame {frame} is in it).")
+    else:
+        st.markdown(f"**Frame {frame} lies between places** (skipped by group/step): no place is right, so the "
+                    "right answer is to reject it.")
+    pair = st.session_state.get("picked_pair")
+    if pair and pair[0] == image:
+        db = pair[1]
+        db_place = int(r.places.image_place[db])
+        st.caption(f"Opened from the similarity matrix: database image {ds.traversals[ds.image_traversal[db]]} · "
+                   f"frame {ds.image_frame[db]} ({'place P' + str(db_place) if db_place >= 0 else 'between places'}).")
+with right:
+    st.markdown("**The answer under each method**")
+    lines = []
+    for key in ["image-baseline", *methods]:
+        ok = ":green[:material/check_circle:]" if dec.is_right(key) else ":red[:material/cancel:]"
+        lines.append(f"- {ok} **{METHODS_BY_KEY[key].label}**: {dec.describe(key)}")
+    st.markdown("\n".join(lines))
+
+st.subheader("Candidate places: raw_p, threshold and margin")
+st.caption("Bars: raw_p, the query's best score against the place's database images; green = kept, grey = dropped "
+           "by the method's threshold (red tick); black outline = the answer; ★ = the right place; labels = margin "
+           "raw_p − θ (or raw_p where there is no threshold).")
+for row in range(0, len(methods), PER_ROW):
+    for col, key in zip(st.columns(PER_ROW), methods[row:row + PER_ROW]):
+        with col:
+            st.plotly_chart(plots.candidate_bars(dec, key, cands), key=f"bars_{key}", width="stretch")
+            st.caption(dec.describe(key))
+
+st.subheader("Best candidates beside the query")
+cols = st.columns(BEST_IMAGES + 1)
+cols[0].image(cache.thumbnail(ds.image_paths[image], 160), caption=f"query · frame {frame}", width="stretch")
+for col, p in zip(cols[1:], cands[:BEST_IMAGES]):
+    db_image = int(model.images[dec.best_image[p]])
+    verdict = "right place" if p in dec.true_places else "other place"
+    col.image(cache.thumbnail(ds.image_paths[db_image], 160), width="stretch",
+              caption=f"P{p}, {ds.traversals[ds.image_traversal[db_image]]} · frame {ds.image_frame[db_image]}: "
+                      f"raw_p {dec.raw[p]:.3f} ({verdict})")

@@ -1,0 +1,98 @@
+"""Thresholds page: one place's negative Gaussian mixture, its scores and every threshold."""
+
+import pandas  # noqa: F401  # before plotly: plotly.py#2433
+import numpy as np
+import streamlit as st
+
+from vpr_explorer import plots
+from vpr_explorer.thresholds import THRESHOLD_LABELS, ThresholdMethod
+
+from vpr_explorer.app.ui import cache, state
+from vpr_explorer.app.ui.controls import threshold_controls
+from vpr_explorer.app.ui.current import current
+from vpr_explorer.app.ui.feedback import PLACES_HINT, stop_on_input_error
+from vpr_explorer.app.ui.routing import ensure_routed
+
+ensure_routed(__file__)
+
+st.title("Thresholds: where θ_p sits")
+with stop_on_input_error():
+    cur = current()
+with stop_on_input_error(hint=PLACES_HINT):
+    r = cache.fitted(cur.data, cur.spec, cur.query)
+ds, model = cur.data.dataset, r.model
+theta_w = model.theta["weighted"]
+order = np.argsort(theta_w, kind="stable")
+v = state.view()
+place = v.place if v.place is not None and 0 <= v.place < model.n_places else int(order[len(order) // 2])
+if v.place is not None and v.place != place:
+    st.warning(f"place={v.place} is not a place here ({model.n_places} places, 0 to {model.n_places - 1}): showing "
+               f"place {place} instead.", icon=":material/warning:")
+    state.update(place=None)
+
+
+def pick_from_overview() -> None:
+    points = st.session_state["overview"].selection.points
+    if points and isinstance(points[0].get("customdata"), (int, float)):
+        state.update(place=int(points[0]["customdata"]))
+
+
+controls, overview = st.columns([1, 3])
+with controls:
+    st.selectbox("Place", list(range(model.n_places)),
+                 format_func=lambda p: f"place {p} (θ_p {theta_w[p]:.3f})", **state.bind("w_place", "place", place))
+    st.radio("θ_p(k) built on", [m.value for m in ThresholdMethod], index=1, horizontal=True, key="w_method",
+             format_func=lambda m: f"θ_p {m}")
+    k, user_theta = threshold_controls()
+with overview:
+    st.plotly_chart(plots.places_overview(theta_w, model.positive_mean, model.negative_mean, selected=place),
+                    key="overview", on_select=pick_from_overview, selection_mode="points", width="stretch")
+
+with stop_on_input_error(hint=PLACES_HINT):
+    d = cache.detail(cur.data, cur.spec, cur.query, place)
+method = st.session_state.get("w_method", ThresholdMethod.WEIGHTED.value)
+theta_k = d.theta_k(k, method)
+
+fig_col, img_col = st.columns([5, 3])
+with fig_col:
+    st.plotly_chart(plots.mixture_figure(d, k=k, method=method, user_theta=user_theta), key="mixture",
+                    width="stretch")
+with img_col:
+    st.markdown(f"**Place {place}**: {len(d.images)} database images and {len(d.query_images)} query frames "
+                f"(raw_p: the query frame's best score against the place)")
+    raw_of = dict(zip(d.query_images.tolist(), d.query_raw.tolist()))
+    shown = np.r_[d.images, d.query_images]
+    for t in np.unique(ds.image_traversal[shown]):
+        row = shown[ds.image_traversal[shown] == t]
+        role = "query" if ds.traversals[t] == cur.query else "database"
+        for col, i in zip(st.columns(len(row)), row):
+            extra = f", raw_p {raw_of[int(i)]:.3f}" if int(i) in raw_of else ""
+            col.image(cache.thumbnail(ds.image_paths[i]), width="stretch",
+                      caption=f"{ds.traversals[t]} {ds.image_frame[i]} ({role}{extra})")
+
+st.subheader("The teaching point")
+m = st.columns(4)
+m[0].metric("negative scores ≥ θ_p weighted", f"{d.share_negatives_above(d.theta['weighted']):.0%}",
+            help="Share of this place's negative scores (its images against other places) at or above θ_p.")
+m[1].metric(f"negative scores ≥ θ_p(k={k:g})", f"{d.share_negatives_above(theta_k):.0%}")
+m[2].metric("same-place scores < θ_p weighted", f"{d.share_positives_below(d.theta['weighted']):.0%}",
+            help="Share of same-place score pairs among the database images that fall below θ_p.")
+m[3].metric(f"own query frames dropped at θ_p(k={k:g})", f"{d.share_queries_below(theta_k):.0%}",
+            help="This place's query frames whose raw_p is below θ_p(k): the place would be dropped for them.")
+st.markdown(
+    f"θ_p is a weighted **mean of the negative means μᵢ**: it sits in the *centre* of the scores against other "
+    f"places (here {d.share_negatives_above(d.theta['weighted']):.0%} of them lie above it), not above them. On its "
+    "own it therefore drops few places and rejects almost no query of an unknown place; what it mostly does is "
+    f"shift each place's margin raw_p − θ_p. Moving k up (θ_p + k·s_p, s_p = {d.spread:.3f} here; this place's "
+    f"adaptive k = {d.k_adaptive:.2f}) pushes the threshold into the gap between negatives and same-place scores: "
+    "that is where rejection starts to pay, at the price of dropping some right places."
+)
+st.info(
+    f"**{THRESHOLD_LABELS[ThresholdMethod.SIMPLE]}** (here {d.theta['simple']:.4f}).  \n"
+    f"**{THRESHOLD_LABELS[ThresholdMethod.WEIGHTED]}** (here {d.theta['weighted']:.4f}).  \n"
+    "The weighted form is the *normalised* one: read literally, the paper's eq. 4 divides by Σ τⱼ² but not by the "
+    "weights, so with wᵢ = 1/n the weights sum to 1/n and θ_p would shrink with the number of images instead of "
+    "being a weighted mean of the μᵢ. The authors' code normalises by Σ wⱼτⱼ², which is what is computed here: "
+    "images whose negative scores are tight (small σᵢ) count more.",
+    icon=":material/info:",
+)
