@@ -49,9 +49,12 @@ def data_root(request) -> Path:
         if request.config.getoption("--require-data"):
             pytest.fail(msg)
         pytest.skip(msg)
-    root = Path(value).expanduser()
+    root = Path(value).expanduser().resolve()
     if not (root / "GardensPointWalking").is_dir():
         pytest.fail(f"{DATA_ENV}={root} holds no GardensPointWalking/ folder")
+    # CI gives a relative path (../shared/datasets): servers and commands the tests start in
+    # other folders must see the same one
+    os.environ[DATA_ENV] = str(root)
     return root
 
 

@@ -163,3 +163,14 @@ def loop_protocol(d, labels, trav, n_places, splits, *, cross_condition=False, k
         }
         for key, rs in per.items()
     }
+
+
+def synthetic_places(seed=0, n_places=12, per_place=6, dim=32, noise=0.9, n_trav=3):
+    """Unit descriptors: one random centre per place plus noise; traversal = image index within the place mod n_trav."""
+    rng = np.random.default_rng(seed)
+    centres = unit_rows(rng, n_places, dim)
+    labels = np.repeat(np.arange(n_places), per_place)
+    d = centres[labels] + noise * rng.normal(size=(len(labels), dim)) / np.sqrt(dim)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    trav = np.tile(np.arange(per_place) % n_trav, n_places)
+    return d, labels, trav

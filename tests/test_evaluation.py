@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from reference import loop_protocol, loop_rank, loop_thresholds, pairwise_negative_stats, unit_rows
+from reference import loop_protocol, loop_rank, loop_thresholds, pairwise_negative_stats, synthetic_places
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.evaluation import (
     draw_splits,
@@ -18,14 +18,8 @@ from vpr_explorer.retrieval import similarity
 
 
 def _synthetic(seed=0, n_places=12, per_place=6, dim=32, noise=0.9, n_trav=3):
-    """Places with a shared centre plus noise; traversal = image index within the place mod n_trav."""
-    rng = np.random.default_rng(seed)
-    centres = unit_rows(rng, n_places, dim)
-    labels = np.repeat(np.arange(n_places), per_place)
-    d = centres[labels] + noise * rng.normal(size=(len(labels), dim)) / np.sqrt(dim)
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    trav = np.tile(np.arange(per_place) % n_trav, n_places)
-    return d, labels, trav
+    """Places with a shared centre plus noise (``reference.synthetic_places``)."""
+    return synthetic_places(seed, n_places, per_place, dim, noise, n_trav)
 
 
 def _reference_recall(d, labels, trav, n_places, splits, rule, theta_name, ks=(1, 3, 5, 10)):

@@ -3,7 +3,7 @@ import json
 
 import numpy as np
 
-from reference import unit_rows
+from reference import synthetic_places, unit_rows
 from vpr_explorer import scale
 from vpr_explorer.cli import main
 from vpr_explorer.evaluation import open_set_protocol, paper_protocol, retrieval_protocol, traversal_protocol
@@ -14,12 +14,7 @@ from vpr_explorer.report import render
 
 
 def _synthetic(seed=0, n_places=12, per_place=6, dim=32, noise=0.9, n_trav=3):
-    rng = np.random.default_rng(seed)
-    centres = unit_rows(rng, n_places, dim)
-    labels = np.repeat(np.arange(n_places), per_place)
-    d = centres[labels] + noise * rng.normal(size=(len(labels), dim)) / np.sqrt(dim)
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    trav = np.tile(np.arange(per_place) % n_trav, n_places)
+    d, labels, trav = synthetic_places(seed, n_places, per_place, dim, noise, n_trav)
     return d.astype(np.float32), labels, trav
 
 
