@@ -38,7 +38,7 @@ from vpr_explorer.retrieval import (
     similarity,
     top_answer,
 )
-from vpr_explorer.stats import mixture_moments, negative_stats, positive_means, validate_descriptors
+from vpr_explorer.stats import Precision, mixture_moments, negative_stats, positive_means, validate_descriptors
 from vpr_explorer.thresholds import (
     ThresholdMethod,
     adaptive_k,
@@ -222,7 +222,8 @@ def oracle_global_threshold(top_raw: np.ndarray, right_if_accepted: np.ndarray, 
 
 
 def _thresholds(d_train, lab_train, n_places, *, user_theta, seed):
-    stats = negative_stats(d_train, lab_train, n_places)
+    # the protocols are the reference the blocked pass (scale.py) must equal: σ from float64 products
+    stats = negative_stats(d_train, lab_train, n_places, precision=Precision.FLOAT64)
     th: dict[str, np.ndarray | float] = {
         ThresholdMethod.SIMPLE.value: place_thresholds(stats, ThresholdMethod.SIMPLE),
         ThresholdMethod.WEIGHTED.value: place_thresholds(stats, ThresholdMethod.WEIGHTED),

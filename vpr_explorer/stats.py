@@ -11,12 +11,57 @@ number of negatives:
     μᵢ     = dᵢ·(T − T_p) / n⁻ᵢ
     E[s²]ᵢ = (dᵢᵀ C dᵢ − Σ_{j∈p} (dᵢ·dⱼ)²) / n⁻ᵢ,     σᵢ² = E[s²]ᵢ − μᵢ²
 
-which is O(N·D²) instead of O(N²·D). Sums are accumulated in float64.
+which is O(N·D²) instead of O(N²·D). ``precision="float64"`` computes exactly this in float64.
+
+Float32 products (the default)
+------------------------------
+The two N·D² products, the Gram and the quadratic forms, are float32 GEMMs; all else is
+float64. Taken as above, σᵢ² = E[s²]ᵢ − μᵢ² would cancel: descriptors with a shared
+component score ≈ 0.8 everywhere while σ ≈ 0.01, and a float32 error relative to s² ≈ 0.64
+is ~5e-4 of σ² (|Δσ| ≈ 2.5e-6 measured). So the descriptors are centred before the products. With
+m a float32 vector near the mean descriptor (``_centre``), eⱼ = dⱼ − m, E = Σⱼ eⱼeⱼᵀ and the
+per-image centre score aᵢ = dᵢ·m, for any m exactly:
+
+    Σ_{all j} (sᵢⱼ − aᵢ)²  = dᵢᵀ E dᵢ                      (sᵢⱼ − aᵢ = dᵢ·eⱼ)
+    n⁻ᵢ E⁻[(s − aᵢ)²]      = dᵢᵀ E dᵢ − Σ_{j∈p} (sᵢⱼ − aᵢ)²
+    σᵢ²                    = E⁻[(s − aᵢ)²] − (μᵢ − aᵢ)²
+
+so the float32 error is relative to |dᵢ|·|eⱼ|, not to |sᵢⱼ|, and the last line no longer
+cancels (μᵢ − aᵢ is the gap between the negatives' mean and the all-image mean). μᵢ, aᵢ, dᵢ·T
+and the same-place terms are float64 products (``_place_terms``): μ is exact to float64
+rounding, as before. Three passes: E (``_centred_gram``), the float64 terms place by place
+(``_place_terms``), dᵢᵀEdᵢ (``_quadratic_forms``, (1 + 1/4)·N·D² flops by symmetry).
+
+**Error bound.** u = 2⁻²⁴, γ_k = k·u/(1 − k·u), |·| elementwise, L = min(block, N) the rows
+of one float32 Gram, S = Σⱼ |eⱼ||eⱼ|ᵀ. To first order in u:
+
+1. ẽⱼ = fl32(dⱼ − m) = eⱼ ∘ (1 + δ), |δ| ≤ u: |ẽⱼẽⱼᵀ − eⱼeⱼᵀ| ≤ 2u·|eⱼ||eⱼ|ᵀ;
+2. a block's float32 Gram, inner products of depth L in any order, errs by at most
+   γ_L·Σ_{j∈block} |ẽⱼ||ẽⱼ|ᵀ; summing blocks in float64 adds O(2⁻⁵³): |Ê − E| ≤ (γ_L + 2u)·S;
+3. rounding Ê to float32 (doubling its off-diagonal blocks is exact) adds u·S;
+4. the float32 GEMM dᵢW, depth ≤ D, errs by at most γ_D·|dᵢ||W|, so the quadratic form by
+   γ_D·|dᵢ|ᵀ S |dᵢ| (the row sums ŷ·dᵢ are float64); rounding float64 input to float32 adds 2u.
+
+Hence, with Bᵢ = |dᵢ|ᵀ S |dᵢ| = Σⱼ (|dᵢ|·|eⱼ|)² ≤ ‖dᵢ‖²·Σⱼ ‖eⱼ‖² and ε = γ_L + γ_D + 5u,
+
+    |σ̂ᵢ² − σᵢ²| ≤ ε·Bᵢ / n⁻ᵢ,     |σ̂ᵢ − σᵢ| ≤ min(√(ε·Bᵢ/n⁻ᵢ), ε·Bᵢ / (n⁻ᵢ·σᵢ)),
+
+plus float64 rounding (~1e-16 · dᵢᵀEdᵢ / n⁻ᵢ); ``sigma_sq_error_bound`` evaluates it per image.
+It holds for every order of summing the products, hence for every BLAS kernel (OpenBLAS,
+MKL: none uses Strassen-type products) and thread count: two runs differ by at most twice
+it, and the elementwise parts are cut the same whatever ``threads``.
+It is a worst case: rounding errors of both signs add like √k, and measured |σ̂² − σ²| is
+1e-6 to 1e-2 of it (tests/test_stats.py): |Δσ| ≈ 1e-9 at N = 100,000, D = 1,280, and
+2e-9 to 5e-8 on small or shared-component sets (σ ≈ 0.01 with all scores near 0.8).
 """
 
 from __future__ import annotations
 
+import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
 from scipy import sparse
@@ -26,6 +71,14 @@ from vpr_explorer.errors import VPRInputError
 #: σ below this is treated as this when a weight 1/σ² or a density is needed: a place
 #: whose image has a single negative score (σ = 0) would otherwise divide by zero.
 SIGMA_FLOOR = 1e-6
+
+#: rows per block in ``negative_stats``: 4,096 rows × 1,280 floats keep the float32 GEMMs
+#: near peak rate (fewer rows lose rate, more only lengthen the float32 sums of the bound)
+BLOCK = 4096
+_CENTRE_ROWS = 4096  # rows averaged for the centre m
+_BIG_PLACE = 1024  # places with more images get their same-place scores a band of rows at a time
+_PART = 512  # rows per part of the elementwise work shared out to threads (fixed: see ``_parts``)
+_TRI_BLOCKS = 4  # column blocks of W: the quadratic forms take (1 + 1/4)·N·D² flops instead of 2·N·D²
 
 
 @dataclass(frozen=True, eq=False)
@@ -74,13 +127,17 @@ def validate_descriptors(descriptors: np.ndarray, what: str = "descriptors") -> 
         raise VPRInputError(f"{what}: expected a non-empty (n_images, dim) array, got shape {d.shape}")
     if not np.issubdtype(d.dtype, np.floating):
         d = d.astype(np.float32)
-    bad = ~np.isfinite(d).all(axis=1)
+    # One pass: a NaN or inf makes the row's sum of squares NaN or inf (so does overflow, which
+    # the second look at those rows tells apart). A full isfinite pass cost as much as the stats.
+    sq = np.einsum("ij,ij->i", d, d, dtype=np.promote_types(d.dtype, np.float32))
+    bad = ~np.isfinite(sq)
+    bad[bad] = ~np.isfinite(d[bad]).all(axis=1)
     if bad.any():
         raise VPRInputError(
             f"{what}: rows {_first(bad)} contain NaN or inf; recompute the descriptors (clear the cache) "
             "or remove those images"
         )
-    zero = np.einsum("ij,ij->i", d, d, dtype=np.float64) < 1e-24
+    zero = sq < 1e-24
     if zero.any():
         raise VPRInputError(
             f"{what}: rows {_first(zero)} are all zero, so cosine similarity is undefined; "
@@ -143,8 +200,21 @@ def within_place_sq(d: np.ndarray, labels: np.ndarray, *, block_elems: int = 2**
     return out
 
 
+class Precision(StrEnum):
+    """Arithmetic of the O(N·D²) products in ``negative_stats`` (module docstring)."""
+
+    FLOAT32 = "float32"  # float32 GEMMs of centred descriptors, float64 sums: the default
+    FLOAT64 = "float64"  # everything in float64: the code before issue 13, to compare against
+
+
 def negative_stats(
-    descriptors: np.ndarray, labels: np.ndarray, n_places: int | None = None, *, block: int = 8192
+    descriptors: np.ndarray,
+    labels: np.ndarray,
+    n_places: int | None = None,
+    *,
+    block: int = BLOCK,
+    precision: Precision | str = Precision.FLOAT32,
+    threads: int | None = None,
 ) -> NegativeStats:
     """μᵢ, σᵢ of every training image's negative scores, in closed form.
 
@@ -152,14 +222,40 @@ def negative_stats(
         descriptors: ``(n, D)`` L2-normalised descriptors of the training images.
         labels: ``(n,)`` place id of each image (``>= 0``).
         n_places: number of place ids; defaults to ``labels.max() + 1``.
-        block: rows processed at a time (bounds memory at Nordland scale).
+        block: rows processed at a time (bounds memory at Nordland scale; with float32 also
+            the depth L of the float32 Gram sums in the error bound).
+        precision: ``"float32"``: μ to float64 rounding, σ² within ``sigma_sq_error_bound``
+            (module docstring); ``"float64"``: both to float64 rounding, about 4× the time
+            at N = 100,000, D = 1,280 (benchmarks/bench_negative_stats.py).
+        threads: threads for the elementwise work of the float32 path (default: CPU count, at
+            most 8; BLAS keeps its own). The work is cut into the same parts whatever the
+            count, so the result does not depend on it.
     """
     d = validate_descriptors(descriptors, "training descriptors")
     n, dim = d.shape
     labels, n_places = _check_labels(labels, n, n_places)
+    if isinstance(block, bool) or not isinstance(block, (int, np.integer)) or block < 1:
+        raise VPRInputError(f"block: expected a positive number of rows, got {block!r}")
+    try:
+        closed_form = _CLOSED_FORMS[Precision(precision)]
+    except ValueError:
+        choices = ", ".join(repr(p.value) for p in Precision)
+        raise VPRInputError(f"precision: expected one of {choices}, got {precision!r}") from None
+    threads = min(os.cpu_count() or 1, 8) if threads is None else max(1, int(threads))
     counts = np.bincount(labels, minlength=n_places)
     n_neg = n - counts[labels]
+    mu, var = closed_form(d, labels, counts, n_neg, int(block), threads)
+    # Cancellation can leave -1e-17 where the true variance is 0 (all negatives equal).
+    sigma = np.sqrt(np.clip(var, 0.0, None))
+    return NegativeStats(mu=mu, sigma=sigma, n_neg=n_neg.astype(np.int64), labels=labels, n_places=n_places)
 
+
+def _closed_form_float64(
+    d: np.ndarray, labels: np.ndarray, counts: np.ndarray, n_neg: np.ndarray, block: int, threads: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(mu, var)``, each ``(n,)``: C and dᵢᵀCdᵢ in float64 (the code before issue 13)."""
+    n, dim = d.shape
+    n_places = len(counts)
     total = np.zeros(dim)
     place_sums = np.zeros((n_places, dim))
     gram = np.zeros((dim, dim))
@@ -179,10 +275,191 @@ def negative_stats(
         second[lo : lo + block] = np.einsum("ij,ij->i", x @ gram, x)
     second -= within_place_sq(d, labels)
     mu /= n_neg
-    var = second / n_neg - mu**2
-    # Cancellation can leave -1e-17 where the true variance is 0 (all negatives equal).
-    sigma = np.sqrt(np.clip(var, 0.0, None))
-    return NegativeStats(mu=mu, sigma=sigma, n_neg=n_neg.astype(np.int64), labels=labels, n_places=n_places)
+    return mu, second / n_neg - mu**2
+
+
+def _closed_form_float32(
+    d: np.ndarray, labels: np.ndarray, counts: np.ndarray, n_neg: np.ndarray, block: int, threads: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(mu, var)``, each ``(n,)``: E and dᵢᵀEdᵢ as float32 GEMMs of centred rows, the rest float64.
+
+    Three passes (module docstring): the centred Gram E, the float64 terms place by place,
+    the quadratic forms. Elementwise work runs in ``threads`` threads over fixed parts.
+    """
+    centre = _centre(d)
+    with ThreadPoolExecutor(threads) as pool:
+        gram, total = _centred_gram(d, centre, block, pool)
+        dot_total, a, same, same_sq = _place_terms(d, labels, counts, np.stack([total, centre]), pool)
+        quad = _quadratic_forms(d, gram, block, pool)
+    mu = (dot_total - same) / n_neg  # Σ_{j∉p} sᵢⱼ / n⁻ᵢ
+    # E⁻[(s − aᵢ)²]: Σ_all (sᵢⱼ − aᵢ)² = dᵢᵀEdᵢ, less the same-place terms
+    return mu, (quad - same_sq) / n_neg - (mu - a) ** 2
+
+
+def _centred_gram(
+    d: np.ndarray, centre: np.ndarray, block: int, pool: ThreadPoolExecutor
+) -> tuple[np.ndarray, np.ndarray]:
+    """E = Σⱼ (dⱼ − m)(dⱼ − m)ᵀ ``(D, D)`` and T = Σⱼ dⱼ ``(D,)``, both float64.
+
+    Per block of rows: the centred rows, each rounded once from dⱼ − m itself (so the error
+    is relative to |dⱼ − m|, not |dⱼ|), then one float32 syrk, added to a float64 E. The
+    buffers are reused: a fresh 20 MB array per block costs more in page faults than the sums.
+    """
+    n, dim = d.shape
+    m = centre if d.dtype == np.float32 else centre.astype(np.float64)  # float32 − float32: one rounding
+    gram = np.zeros((dim, dim))
+    gram32 = np.empty((dim, dim), dtype=np.float32)
+    e = np.empty((min(block, n), dim), dtype=np.float32)
+    sums = []
+    for lo in range(0, n, block):
+        x, eb = d[lo : lo + block], e[: min(block, n - lo)]
+
+        def centre_part(sl: slice, x: np.ndarray = x, eb: np.ndarray = eb) -> np.ndarray:
+            np.subtract(x[sl], m, out=eb[sl], casting="same_kind")
+            return x[sl].sum(axis=0, dtype=np.float64)
+
+        sums += _parts(pool, centre_part, len(x))
+        np.matmul(eb.T, eb, out=gram32)  # numpy hands Xᵀ X to syrk: half the products of a GEMM
+        _parts(pool, lambda sl: np.add(gram[sl], gram32[sl], out=gram[sl]), dim)
+    return gram, np.sum(sums, axis=0)  # in part order: the same sum whatever the thread count
+
+
+def _place_terms(
+    d: np.ndarray, labels: np.ndarray, counts: np.ndarray, proj: np.ndarray, pool: ThreadPoolExecutor
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """dᵢ·T, aᵢ = dᵢ·m, Σ_{j∈p} sᵢⱼ and Σ_{j∈p} (sᵢⱼ − aᵢ)², each ``(n,)``, in float64.
+
+    Args:
+        proj: ``(2, D)`` float64 T and m.
+    Parts hold whole places of one size k (``_place_slabs``): each is one batched product of
+    small matrices ``(P, k, D) @ (P, D, k + 2)`` (the place's k images, then T and m), which
+    BLAS runs single-threaded, so the parts run side by side.
+    """
+    n, dim = d.shape
+    order, slabs = _place_slabs(labels, counts, _PART)
+    out = np.empty((4, n))
+
+    def part(slab: tuple[int, int, int]) -> None:
+        lo, hi, k = slab
+        x = np.empty(((hi - lo) // k, k + 2, dim))
+        x[:, :k] = d[order[lo:hi]].reshape(-1, k, dim)
+        x[:, k:] = proj
+        if k <= _BIG_PLACE:
+            out[:, order[lo:hi]] = _terms(x[:, :k] @ x.transpose(0, 2, 1), k)
+        else:  # one large place: a band of rows at a time keeps k × k out of memory
+            rows = max(1, _BIG_PLACE**2 // k)
+            for r in range(0, k, rows):
+                band = slice(r, min(r + rows, k))
+                out[:, order[lo:hi][band]] = _terms(x[0, band] @ x[0].T, k)
+
+    list(pool.map(part, slabs))
+    return out[0], out[1], out[2], out[3]
+
+
+def _terms(g: np.ndarray, k: int) -> np.ndarray:
+    """``(4, m)`` dᵢ·T, aᵢ, Σ_{j∈p} sᵢⱼ, Σ_{j∈p} (sᵢⱼ − aᵢ)² from ``(..., k + 2)`` scores against
+    the place's k images, T and m (leading axes flattened to m rows)."""
+    g = g.reshape(-1, k + 2)
+    a = g[:, k + 1]
+    return np.stack([g[:, k], a, g[:, :k].sum(axis=1), ((g[:, :k] - a[:, None]) ** 2).sum(axis=1)])
+
+
+def _quadratic_forms(d: np.ndarray, gram: np.ndarray, block: int, pool: ThreadPoolExecutor) -> np.ndarray:
+    """``(n,)`` dᵢᵀ E dᵢ: float32 GEMMs with E as float32, float64 row sums.
+
+    E is symmetric, so dᵀEd = dᵀWd with W block upper triangular (``_TRI_BLOCKS`` column
+    blocks: 2·E_IJ above the diagonal blocks, E_JJ on them, exact in float32): column block
+    J of dW is d[:, :J_end] @ W[:J_end, J], (1 + 1/4)·N·D² flops instead of 2·N·D².
+    """
+    n, dim = d.shape
+    edges = np.linspace(0, dim, min(_TRI_BLOCKS, dim) + 1).round().astype(int)
+    cols = list(zip(edges[:-1], edges[1:]))
+    w = [np.asarray(gram[:hi, lo:hi], dtype=np.float32) for lo, hi in cols]
+    for wj, (lo, _) in zip(w, cols):
+        wj[:lo] *= 2
+    x32 = None if d.dtype == np.float32 else np.empty((min(block, n), dim), dtype=np.float32)
+    y = np.empty((min(block, n), dim), dtype=np.float32)
+    quad = np.empty(n)
+    for lo in range(0, n, block):
+        x = d[lo : lo + block]
+        if x32 is not None:  # float64 input rounded once (float16 converts exactly)
+            xb = x32[: len(x)]
+            _parts(pool, lambda sl, x=x, xb=xb: np.copyto(xb[sl], x[sl], casting="same_kind"), len(x))
+            x = xb
+        yb = y[: len(x)]
+        for wj, (c0, c1) in zip(w, cols):
+            np.matmul(x[:, :c1], wj, out=yb[:, c0:c1])
+
+        def rows(sl: slice, lo: int = lo, x: np.ndarray = x, yb: np.ndarray = yb) -> None:
+            quad[lo + sl.start : lo + sl.stop] = np.einsum("ij,ij->i", yb[sl], x[sl], dtype=np.float64)
+
+        _parts(pool, rows, len(x))
+    return quad
+
+
+_CLOSED_FORMS = {Precision.FLOAT32: _closed_form_float32, Precision.FLOAT64: _closed_form_float64}
+
+
+def _parts(pool: ThreadPoolExecutor, fn: Callable[[slice], object], n: int) -> list:
+    """``fn`` on consecutive slices of ``_PART`` rows of ``range(n)``, in the pool (numpy frees the GIL).
+
+    The slices do not depend on the number of threads, so neither does any result.
+    """
+    return list(pool.map(fn, [slice(lo, min(lo + _PART, n)) for lo in range(0, n, _PART)]))
+
+
+def _centre(d: np.ndarray) -> np.ndarray:
+    """``(D,)`` m: the mean of up to ``_CENTRE_ROWS`` evenly spaced rows, rounded to float32.
+
+    Any m gives the exact identity; one near the mean keeps |dⱼ − m|, hence the error, small.
+    """
+    step = max(1, len(d) // _CENTRE_ROWS)
+    return d[::step].mean(axis=0, dtype=np.float64).astype(np.float32)
+
+
+def _place_slabs(labels: np.ndarray, counts: np.ndarray, rows: int) -> tuple[np.ndarray, list[tuple[int, int, int]]]:
+    """Images ordered by place size, then place; and slabs ``(lo, hi, k)`` of that order.
+
+    A slab holds whole places of one size k, at most ``rows`` rows (or one place, if larger),
+    so its same-place scores are one batched product ``(P, k, D) @ (P, D, k + 2)``, no padding.
+    """
+    size = counts[labels]
+    order = np.lexsort((labels, size))
+    sorted_size = size[order]
+    slabs = []
+    lo = 0
+    while lo < len(order):
+        k = int(sorted_size[lo])
+        end = int(np.searchsorted(sorted_size, k, side="right"))
+        step = max(1, rows // k) * k
+        slabs += [(s, min(s + step, end), k) for s in range(lo, end, step)]
+        lo = end
+    return order, slabs
+
+
+def sigma_sq_error_bound(
+    descriptors: np.ndarray, labels: np.ndarray, n_places: int | None = None, *, block: int = BLOCK
+) -> np.ndarray:
+    """``(n,)`` bound on |σ̂ᵢ² − σᵢ²| of ``negative_stats(..., precision="float32")``: ε·Bᵢ/n⁻ᵢ.
+
+    Bᵢ = Σⱼ (|dᵢ|·|dⱼ − m|)² over all n images and ε = γ_L + γ_D + 5u (module docstring),
+    L = min(block, n). Float64 rounding (about 1e-16 · n/n⁻ᵢ) comes on top. O(n·D²) in
+    float64: for tests and benchmarks.
+    """
+    d = validate_descriptors(descriptors, "training descriptors")
+    n, dim = d.shape
+    labels, n_places = _check_labels(labels, n, n_places)
+    n_neg = n - np.bincount(labels, minlength=n_places)[labels]
+    e = np.abs(d.astype(np.float64) - _centre(d))
+    x = np.abs(d.astype(np.float64))
+    b = np.einsum("ij,ij->i", x @ (e.T @ e), x)  # |dᵢ|ᵀ (Σⱼ |eⱼ||eⱼ|ᵀ) |dᵢ|
+    return _epsilon(min(block, n), dim) * b / n_neg
+
+
+def _epsilon(depth: int, dim: int) -> float:
+    """ε = γ_L + γ_D + 5u, with u = 2⁻²⁴ (float32) and γ_k = k·u / (1 − k·u)."""
+    u = 2.0**-24
+    return sum(k * u / (1 - k * u) for k in (depth, dim)) + 5 * u
 
 
 def mixture_moments(stats: NegativeStats) -> tuple[np.ndarray, np.ndarray]:
