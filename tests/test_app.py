@@ -19,6 +19,7 @@ import streamlit as st
 from PIL import Image
 from streamlit.testing.v1 import AppTest
 
+from images import write_noisy_route
 from vpr_explorer.app import ENTRY, PAGES as PAGE_FILES
 from vpr_explorer.database import explain_query
 from vpr_explorer.evaluation import Protocol
@@ -600,16 +601,7 @@ def test_a_folder_without_images_shows_an_error(app, tmp_path):
 
 
 def make_route(root: Path, frames: int = 12, corrupt: str | None = None, names: tuple[str, ...] = ("a", "b")) -> Path:
-    rng = np.random.default_rng(0)
-    base = rng.integers(0, 255, size=(frames, 24, 32, 3), dtype=np.uint8)
-    for t, name in enumerate(names):
-        (root / name).mkdir(parents=True)
-        for f in range(frames):
-            noisy = np.clip(base[f].astype(int) + rng.integers(-20, 20, base[f].shape), 0, 255).astype(np.uint8)
-            Image.fromarray(noisy).save(root / name / f"{f:03d}.png")
-    if corrupt:
-        (root / corrupt).write_bytes(b"\x89PNG\r\n\x1a\n this is not an image")
-    return root
+    return write_noisy_route(root, names, frames, corrupt)
 
 
 def test_a_corrupt_image_shows_an_error_naming_it_and_the_app_recovers(app, tmp_path):

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from streamlit.testing.v1 import AppTest
 
-from images import write_random_png
+from images import write_random_route
 from test_app import ROOT, TIMEOUT, assert_clean, metric, page
 from test_app import fresh_caches, navigation_mode  # noqa: F401  (autouse fixtures: every AppTest here needs them)
 
@@ -34,12 +34,7 @@ FRAMES = 24
 @pytest.fixture
 def route(tmp_path: Path) -> Path:
     """A two-traversal dataset folder of small random PNGs."""
-    root = tmp_path / "route"
-    for t, traversal in enumerate(("day", "night")):
-        (root / traversal).mkdir(parents=True)
-        for f in range(FRAMES):
-            write_random_png(root / traversal / f"frame_{f:02d}.png", seed=100 * t + f, size=(64, 32))
-    return root
+    return write_random_route(tmp_path / "route", FRAMES, (64, 32))
 
 
 @pytest.fixture

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from images import write_random_png
+from images import write_random_route
 from streamlit.testing.v1 import AppTest
 from test_app import ROOT, TIMEOUT, assert_clean, page
 from test_app import fresh_caches, navigation_mode  # noqa: F401  (autouse fixtures: every AppTest here needs them)
@@ -44,12 +44,7 @@ class CountingPixels(PixelsExtractor):
 @pytest.fixture
 def route(tmp_path: Path) -> Path:
     """A two-traversal dataset folder of small random PNGs (frame f of each is spot f)."""
-    root = tmp_path / "route"
-    for t, traversal in enumerate(("day", "night")):
-        (root / traversal).mkdir(parents=True)
-        for f in range(FRAMES):
-            write_random_png(root / traversal / f"frame_{f:02d}.png", seed=100 * t + f, size=(96, 48))
-    return root
+    return write_random_route(tmp_path / "route", FRAMES, (96, 48))
 
 
 def unusable_folders(tmp_path: Path) -> dict[str, Path]:

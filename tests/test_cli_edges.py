@@ -17,10 +17,9 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
-from PIL import Image
 
+from images import write_noisy_route
 from vpr_explorer.cli import main
 
 DEMO = ("--dataset", "demo", "--descriptor", "pixels")
@@ -52,16 +51,7 @@ def assert_one_error_line(r: subprocess.CompletedProcess, *fragments: str) -> st
 
 def write_route(root: Path, names: tuple[str, ...], frames: int = 8, corrupt: str | None = None) -> Path:
     """A small traversal-folder route: one sub-folder of noisy PNG frames per name."""
-    rng = np.random.default_rng(0)
-    base = rng.integers(0, 255, size=(frames, 24, 32, 3), dtype=np.uint8)
-    for name in names:
-        (root / name).mkdir(parents=True)
-        for f in range(frames):
-            noisy = np.clip(base[f].astype(int) + rng.integers(-20, 20, base[f].shape), 0, 255).astype(np.uint8)
-            Image.fromarray(noisy).save(root / name / f"{f:03d}.png")
-    if corrupt:
-        (root / corrupt).write_bytes(b"\x89PNG\r\n\x1a\n this is not an image")
-    return root
+    return write_noisy_route(root, names, frames, corrupt)
 
 
 # --------------------------------------------------------------------------- 1. numbers out of range

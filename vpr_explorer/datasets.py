@@ -173,7 +173,8 @@ class Dataset:
         return t * self.n_frames + int(frame)
 
 
-def _images_in(folder: Path) -> list[Path]:
+def images_in(folder: Path) -> list[Path]:
+    """The images directly in ``folder`` (no hidden files), in natural order of their names."""
     return sorted(
         (p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")),
         key=lambda p: natural_key(p.name),
@@ -229,7 +230,7 @@ def load_traversal_folders(root: Path, traversals: list[str] | None = None) -> D
     found: list[tuple[str, list[Path]]] = []
     notes = []
     for sub in subdirs:
-        frames = _images_in(sub)
+        frames = images_in(sub)
         if frames:
             found.append((sub.name, frames))
         elif traversals is not None:
@@ -264,7 +265,7 @@ def load_traversal_folders(root: Path, traversals: list[str] | None = None) -> D
 def load_prepared_places(root: Path) -> Dataset:
     """Read ``ROOT/Place####_Cond##_G##.<ext>``: conditions become traversals, places are fixed."""
     entries: dict[int, dict[tuple[int, int], Path]] = {}
-    for p in _images_in(root):
+    for p in images_in(root):
         m = PREPARED_NAME.match(p.stem)
         if m is None:
             raise VPRInputError(
@@ -305,7 +306,7 @@ def load_dataset(path: str | Path, traversals: list[str] | None = None) -> Datas
         raise VPRInputError(f"{root}: the dataset folder does not exist; check the path")
     if not root.is_dir():
         raise VPRInputError(f"{root}: is a file, not a dataset folder; give the folder that holds the traversals")
-    flat = _images_in(root)
+    flat = images_in(root)
     if flat and any(PREPARED_NAME.match(p.stem) for p in flat):
         return load_prepared_places(root)
     return load_traversal_folders(root, traversals)

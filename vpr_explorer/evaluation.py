@@ -25,6 +25,7 @@ from enum import StrEnum
 import numpy as np
 
 from vpr_explorer.errors import VPRInputError
+from vpr_explorer.groundtruth import GroundTruth
 from vpr_explorer.precision_recall import PRCurve, PRRow, PRSplit, pr_rows
 from vpr_explorer.retrieval import (
     METHODS_BY_KEY,
@@ -696,7 +697,7 @@ def retrieval_protocol(
     queries: np.ndarray,
     database_place: np.ndarray,
     n_places: int,
-    ground_truth,
+    ground_truth: GroundTruth,
     *,
     user_theta: float | None = None,
     ks: tuple[int, ...] = KS,
@@ -723,8 +724,6 @@ def retrieval_protocol(
         pr: also the precision–recall rows and curves; the per-place family curves only up to
             ``PR_RAW_CELLS`` queries × places (they need every query's raw_p).
     """
-    from vpr_explorer.groundtruth import GroundTruth
-
     t0 = time.perf_counter()
     db = validate_descriptors(database)
     q = validate_descriptors(queries)
@@ -755,8 +754,9 @@ def retrieval_protocol(
         rows = np.arange(lo, min(lo + block, len(q)))
         sims = similarity(q[rows], db)
         correct = ground_truth.places(database_place, n_places, rows)
-        raw, best = place_scores(sims[:, placed], labels, n_places)
-        out = score_queries(sims[:, placed], labels, n_places, th, correct, place_methods, raw_best=(raw, best))
+        sims_placed = sims[:, placed]
+        raw, best = place_scores(sims_placed, labels, n_places)
+        out = score_queries(sims_placed, labels, n_places, th, correct, place_methods, raw_best=(raw, best))
         for key, o in out.items():  # answers as database positions
             img = np.where(o.answer_image >= 0, placed[np.maximum(o.answer_image, 0)], -1)
             parts.setdefault(key, []).append(Outcome(o.method, o.rank, o.answer_place, img, o.n_kept))

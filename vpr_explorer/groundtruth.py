@@ -142,12 +142,18 @@ class GroundTruth:
         """Queries with no right database image (the open set)."""
         return int((~self.known).sum())
 
+    def _pairs(self, queries: np.ndarray | slice | None) -> tuple[int, np.ndarray, np.ndarray]:
+        """Row count, and (row within the block, database position) of every positive of some queries."""
+        rows = np.arange(self.n_queries)[queries] if queries is not None else np.arange(self.n_queries)
+        starts, counts = self.indptr[rows], self.indptr[rows + 1] - self.indptr[rows]
+        offset = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
+        return len(rows), np.repeat(np.arange(len(rows)), counts), self.indices[np.repeat(starts, counts) + offset]
+
     def dense(self, queries: np.ndarray | slice | None = None) -> np.ndarray:
         """``(n_rows, n_database)`` bool positives of some queries (a block; never all of a big set)."""
-        rows = np.arange(self.n_queries)[queries] if queries is not None else np.arange(self.n_queries)
-        out = np.zeros((len(rows), self.n_database), dtype=bool)
-        for i, q in enumerate(rows):
-            out[i, self.indices[self.indptr[q]:self.indptr[q + 1]]] = True
+        n, r, j = self._pairs(queries)
+        out = np.zeros((n, self.n_database), dtype=bool)
+        out[r, j] = True
         return out
 
     def places(self, database_place: np.ndarray, n_places: int,
@@ -159,15 +165,10 @@ class GroundTruth:
         database_place = np.asarray(database_place, dtype=np.int64)
         if database_place.shape != (self.n_database,):
             raise VPRInputError(f"{len(database_place)} database place labels for {self.n_database} database images")
-        rows = np.arange(self.n_queries)[queries] if queries is not None else np.arange(self.n_queries)
-        out = np.zeros((len(rows), n_places), dtype=bool)
-        counts = self.indptr[rows + 1] - self.indptr[rows]
-        flat = np.concatenate([self.indices[self.indptr[q]:self.indptr[q + 1]] for q in rows]) if len(rows) else \
-            np.empty(0, np.int64)
-        r = np.repeat(np.arange(len(rows)), counts)
-        p = database_place[flat]
-        ok = p >= 0
-        out[r[ok], p[ok]] = True
+        n, r, j = self._pairs(queries)
+        p = database_place[j]
+        out = np.zeros((n, n_places), dtype=bool)
+        out[r[p >= 0], p[p >= 0]] = True
         return out
 
     def subset(self, queries: np.ndarray) -> GroundTruth:

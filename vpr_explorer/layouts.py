@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vpr_explorer.datasets import IMAGE_SUFFIXES, natural_key, traversal_roles
+from vpr_explorer.datasets import IMAGE_SUFFIXES, images_in, natural_key, traversal_roles
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.groundtruth import DEFAULT_RADIUS, GroundTruth
 
@@ -284,14 +284,13 @@ def load_traversal_positions(root: Path, radius: float = DEFAULT_RADIUS, databas
     """
     subs = sorted((p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")),
                   key=lambda p: natural_key(p.name))
-    subs = [p for p in subs if _images_below(p)]
-    if len(subs) < 2:
+    listed = [(sub, images_in(sub)) for sub in subs]
+    listed = [(sub, paths) for sub, paths in listed if paths]
+    if len(listed) < 2:
         raise VPRInputError(f"{root}: traversal-positions needs at least 2 traversal folders of images")
-    names = tuple(p.name for p in subs)
+    names = tuple(sub.name for sub, _ in listed)
     frames, xy = [], []
-    for sub in subs:
-        paths = sorted((p for p in sub.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
-                        and not p.name.startswith(".")), key=lambda p: natural_key(p.name))
+    for sub, paths in listed:
         pos_file = sub / POSITIONS_FILE
         if not pos_file.is_file():
             raise VPRInputError(f"{pos_file}: missing; every traversal folder needs its {POSITIONS_FILE} "

@@ -304,8 +304,8 @@ class _NearSlots:
             self._sorted = (keys[order], vals[order])
         keys, vals = self._sorted
         want = rows.astype(np.int64) * self.n_places + places
-        pos = np.searchsorted(keys, want)
-        if len(want) and (pos >= len(keys)).any() or not np.array_equal(keys[np.minimum(pos, len(keys) - 1)], want):
+        pos = np.minimum(np.searchsorted(keys, want), max(len(keys) - 1, 0))
+        if len(want) and (len(keys) == 0 or not np.array_equal(keys[pos], want)):
             raise RuntimeError("internal error: a near-tie entry without its slot scores")  # pragma: no cover
         return vals[pos]
 
