@@ -34,6 +34,7 @@ THETA_RANGE = (-1.0, 1.0)
 """A user's global θ: a cosine similarity."""
 
 _KEY = "view"
+_PAGE_KEY = "page_params"
 _INT_FIELDS = ("group", "step", "place", "frame")
 _FLOAT_FIELDS = ("k", "theta")
 # Changing one of these makes the fields after it meaningless: they are reset.
@@ -142,8 +143,11 @@ def view() -> View:
     --dataset``), else from ``View``'s defaults.
     """
     if _KEY not in st.session_state:
-        v, ignored = View.from_params({**started_view(), **{k: st.query_params[k] for k in st.query_params}})
+        params = {k: st.query_params[k] for k in st.query_params}
+        v, ignored = View.from_params({**started_view(), **params})
         st.session_state[_KEY] = v
+        fields = {f.name for f in dataclasses.fields(View)}
+        st.session_state[_PAGE_KEY] = {k: text for k, text in params.items() if k not in fields}
         if ignored:
             st.session_state["url_ignored"] = ignored
     return st.session_state[_KEY]
@@ -161,9 +165,36 @@ def update(**changes: object) -> View:
     return new
 
 
+def page_params() -> dict[str, str]:
+    """One page's own settings kept in the URL beside the view (e.g. the Evaluation page's protocol).
+
+    A read-only copy of the raw text values: on a session's first run they come from the
+    link it was opened with; a page parses them itself (refusing bad ones with a warning)
+    and writes them back with ``set_page_params``. Names must not be ``View`` fields;
+    prefix them with the page (``eval_runs``).
+    """
+    view()
+    return dict(st.session_state.get(_PAGE_KEY, {}))
+
+
+def set_page_params(**values: object) -> None:
+    """Keep page settings in the URL (``None`` removes one); written by ``sync_url`` with the view."""
+    fields = {f.name for f in dataclasses.fields(View)}
+    current = dict(st.session_state.get(_PAGE_KEY, {}))
+    for name, value in values.items():
+        if name in fields:
+            raise ValueError(f"{name!r} is a View field: change it with update()")
+        if value is None:
+            current.pop(name, None)
+        else:
+            current[name] = str(value)
+    st.session_state[_PAGE_KEY] = current
+
+
 def sync_url() -> None:
-    """Write the view into ``st.query_params`` (only when it changed, to avoid needless history entries)."""
-    wanted = view().to_params()
+    """Write the view and the pages' own settings into ``st.query_params`` (only when they changed,
+    to avoid needless history entries)."""
+    wanted = {**st.session_state.get(_PAGE_KEY, {}), **view().to_params()}
     current = {k: st.query_params[k] for k in st.query_params}
     if current != wanted:
         st.query_params.from_dict(wanted)
