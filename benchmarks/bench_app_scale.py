@@ -15,7 +15,14 @@ from sampled rows), a group/step move.
 
 Side by side, in the same run: deciding every query frame against the database
 (``decide_traversal`` on all 27,591 frames, what a page that ignored the budget would
-compute), and the ratio of each page to it. AppTest runs the scripts, not a browser;
+compute), and the ratio of each page to it.
+
+Against the machine's limit (issue 13): before the pages, a group/step move (``views.regroup``
+at group 4, step 10, as the Places page's slider move) is timed outside the app, split into
+its fit (``views.fit``: closed-form statistics, automatic θ, positive means) and its
+decisions, beside its floor: the flops it needs (``gemm_peak.fit_flops`` + 2·F·N·D) at
+numpy's float32 GEMM peak measured in the same run (``gemm_peak``, which names the BLAS
+kernel). ``--move-only`` stops there. AppTest runs the scripts, not a browser;
 ``--browser`` then also starts a real ``streamlit run`` server and walks the same pages in
 Debian's Chromium (Playwright), timing each from the click to the last Plotly chart drawn,
 and saves a screenshot of each page next to the route.
@@ -80,6 +87,8 @@ def main(argv: list[str] | None = None) -> None:
                         help="descriptor cache (default: <out>-cache, kept so a second run skips extraction)")
     parser.add_argument("--browser", action="store_true",
                         help="also time the pages in Chromium against a real streamlit server")
+    parser.add_argument("--move-only", action="store_true",
+                        help="time the group/step move against its floor, then stop (no pages)")
     args = parser.parse_args(argv)
     print("$ python " + " ".join(shlex.quote(a) for a in [sys.argv[0], *(argv if argv is not None else sys.argv[1:])]))
     print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
@@ -96,6 +105,7 @@ def main(argv: list[str] | None = None) -> None:
     from vpr_explorer.views import fit
 
     sys.path.insert(0, str(ROOT))
+    sys.path.insert(0, str(ROOT / "benchmarks"))
     dataset = resolve_dataset(route)
     print(f"route: {dataset.n_traversals} traversals x {dataset.n_frames:,} frames = {dataset.n_images:,} PNG files"
           + (f", written in {written:.0f} s" if written else " (already written)"))
@@ -103,6 +113,9 @@ def main(argv: list[str] | None = None) -> None:
     descriptors = dataset_descriptors(dataset, "pixels")
     print(f"pixels descriptors {descriptors.shape} through the cache: {time.perf_counter() - start:.1f} s")
 
+    time_move(descriptors, dataset)
+    if args.move_only:
+        return
     # What a page ignoring the budget would compute: every query frame against the database.
     f = fit(descriptors, dataset, None if dataset.prepared_places is not None else _default_spec(dataset))
     start = time.perf_counter()
@@ -151,6 +164,35 @@ def main(argv: list[str] | None = None) -> None:
           "deciding every query frame")
     if args.browser:
         browser_walk(route, args.out, all_pairs)
+
+
+def time_move(descriptors, dataset, group: int = 4, step: int = 10) -> None:
+    """One group/step move (``views.regroup``), its fit and decisions, against the GEMM floor."""
+    from gemm_peak import decision_flops, fit_flops, measure_peak, share
+
+    from vpr_explorer.places import PlaceSpec
+    from vpr_explorer.views import fit, regroup
+
+    dim = descriptors.shape[1]
+    regroup(descriptors, dataset, PlaceSpec(3, step))  # warm-up: imports, thread pools, page cache
+    before = measure_peak(m=4096, k=dim, n=2048)
+    start = time.perf_counter()
+    f = fit(descriptors, dataset, PlaceSpec(group, step))
+    t_fit = time.perf_counter() - start
+    r = regroup(descriptors, dataset, PlaceSpec(group, step), fitted=f)
+    t_move = time.perf_counter() - start
+    n_db, n_q = len(r.model.images), len(r.frames)
+    peak = before.best(measure_peak(m=4096, k=dim, n=2048))  # best of before and after: the load changes
+    for line in peak.lines():
+        print(line)
+    flops_fit, flops_dec = fit_flops(n_db, dim), decision_flops(n_q, n_db, dim)
+    floor = (flops_fit + flops_dec) / peak.float32 / 1e9
+    print(f"group/step move to {group}/{step} (views.regroup: {n_db:,} database images x {dim}, {n_q:,} sampled "
+          f"query frames): {t_move:.2f} s = fit {t_fit:.2f} s + decisions {t_move - t_fit:.2f} s")
+    print(f"  fit:       {share(flops_fit, t_fit, peak.float32)}")
+    print(f"  decisions: {share(flops_dec, t_move - t_fit, peak.float32)}")
+    print(f"summary: move {t_move:.2f} s (goal <= 3 s), floor {floor:.2f} s at the float32 GEMM peak, "
+          f"ratio {t_move / floor:.1f}x; {share(flops_fit + flops_dec, t_move, peak.float32)}", flush=True)
 
 
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",

@@ -9,7 +9,11 @@ For each extractor, on the same GardensPoint images and batch size:
 * **cached**: ``extract_descriptors`` again, every image now a cache hit.
 
 The pipeline's goal is end-to-end >= 0.8x bare forward: decoding should hide behind
-the model. Models whose weights are not installed (AlexNet, CosPlace, EigenPlaces
+the model. Against the machine's limit (issue 13), each torch model's bare forward also
+prints its achieved rate, the convolution and matrix flops torch counts for one batch
+(``torch.utils.flop_counter``) times the batches over the time, as a share of a GEMM peak
+measured in the same process: numpy's float32 GEMM on the CPU (``gemm_peak``, which names
+the BLAS kernel), torch's matmul in the run's precision on a GPU. Models whose weights are not installed (AlexNet, CosPlace, EigenPlaces
 without a download) run with random weights written to a temporary file: the speed is
 the same, the descriptors are meaningless, and the table says so. Run::
 
@@ -124,6 +128,14 @@ def bench(extractor, paths: list[Path], batch_size: int, workers: int, repeats: 
     return best
 
 
+def batch_flops(extractor, paths: list[Path], batch_size: int) -> int:
+    """Flops torch counts for one forward pass of a full batch."""
+    from gemm_peak import torch_flops
+
+    batch = np.stack([extractor.load(p) for p in paths[:batch_size]])
+    return torch_flops(lambda: extractor.forward(batch))
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
@@ -150,6 +162,11 @@ def main(argv: list[str] | None = None) -> None:
         args.workers = default_workers()
     import torch  # to report what the forward pass ran on
 
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from gemm_peak import measure_peak, share, torch_gemm_rate
+
+    cpu_peak = measure_peak()
+
     print("$ python " + " ".join(shlex.quote(a) for a in [sys.argv[0], *(argv if argv is not None else sys.argv[1:])]))
     gpu = f", GPU {torch.cuda.get_device_name()}" if torch.cuda.is_available() else ", no GPU"
     print(
@@ -157,6 +174,9 @@ def main(argv: list[str] | None = None) -> None:
         f"torch {torch.__version__} with {torch.get_num_threads()} CPU threads{gpu}; "
         f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (other processes skew the timings)"
     )
+    for line in cpu_peak.lines():
+        print(line)
+    gpu_peak: dict[str, float] = {}
     header = (
         f"{'extractor':<20}{'device':>8}{'end-to-end img/s':>18}{'bare fwd img/s':>16}{'ratio':>7}"
         f"{'decode img/s':>14}{'extract s':>11}{'cached s':>10}  note"
@@ -179,6 +199,19 @@ def main(argv: list[str] | None = None) -> None:
                 f"{n / t['decode']:>14.1f}{t['end_to_end']:>11.3f}{t['cached']:>10.3f}  {note}",
                 flush=True,
             )
+            flops = batch_flops(extractor, paths, args.batch_size) if name in TORCH_EXTRACTORS else 0
+            if flops:
+                if device.startswith("cuda"):
+                    key = f"{device} {args.precision}"
+                    if key not in gpu_peak:
+                        gpu_peak[key] = torch_gemm_rate(device, {"fp32": "float32", "bf16": "bfloat16",
+                                                                  "fp16": "float16"}[args.precision], 8192, 8192, 8192)
+                    peak, what = gpu_peak[key], f"torch {args.precision} matmul peak {gpu_peak[key]:.0f} GFLOP/s"
+                else:
+                    peak, what = cpu_peak.float32, "numpy float32 GEMM peak"
+                per_image = flops / min(args.batch_size, n)
+                print(f"{'':<20}forward: {per_image / 1e9:.2f} GFLOP/image, "
+                      f"{share(per_image * n, t['bare'], peak)} ({what})", flush=True)
             del extractor
     print(
         "ratio = end-to-end / bare forward throughput (goal >= 0.8); decode = 1 thread, untimed in the others; "

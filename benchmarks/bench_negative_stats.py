@@ -1,7 +1,7 @@
 """Negative statistics: the closed form in float32 and float64 side by side, and against pairwise.
 
     python benchmarks/bench_negative_stats.py [--n 100000] [--dim 1280] [--places 12500]
-        [--pair-n 20000] [--pair-places 2000] [--shared 0.0] [--repeats 3]
+        [--pair-n 20000] [--pair-places 2000] [--shared 0.0] [--repeats 3] [--device cuda]
 
 1. The closed form (O(N·D²)) at N = 100,000, D = 1,280, 12,500 places, with float32
    products (the default) and in float64 (the code before issue 13, with its block of
@@ -120,6 +120,12 @@ def side_by_side(args: argparse.Namespace, peak32: float) -> None:
     print(f"   float32, the step's flops / time: {share(needed, t32, peak32)} (float32 GEMM; effective, "
           f"W does fewer)")
     print(f"   float32, flops done / time      : {share(f['float32 all'], t32, peak32)} (float32 GEMM)")
+    if args.device:
+        tdev, stdev = best_time(lambda: negative_stats(d, labels, device=args.device), args.repeats)
+        print(f"   torch on {args.device:<8}: {tdev:6.2f} s   float32 / torch = {t32 / tdev:.2f}×   "
+              f"max |Δμ| = {np.abs(stdev.mu - st64.mu).max():.2e}   max |Δσ| = {np.abs(stdev.sigma - st64.sigma).max():.2e}"
+              f" (against float64)")
+        print(f"   torch, the step's flops / time  : {share(needed, tdev, peak32)} (numpy float32 GEMM on the CPU)")
 
 
 def against_pairwise(args: argparse.Namespace) -> None:
@@ -149,6 +155,7 @@ def main() -> None:
     ap.add_argument("--shared", type=float, default=0.0, help="shared component: scores near this value")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--device", default=None, help="also the torch path on this device (cpu, cuda)")
     args = ap.parse_args()
     print(f"load average {load_average()}")
     peak = measure_peak(BLOCK, args.dim, args.dim)

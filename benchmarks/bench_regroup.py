@@ -6,7 +6,12 @@ the app runs on such a move, ``views.regroup`` (places, database thresholds from
 day_left + day_right, every night_right frame decided under every method), for a few
 group/step settings, one run each and not served from any cache; and, once, the
 descriptor extraction a naive app would redo on every move (a fresh temporary cache,
-so every image is decoded and run through the model). Run::
+so every image is decoded and run through the model).
+
+Against the machine's limit (issue 13): each move's achieved rate, counting only the flops
+it needs (the database fit, ``gemm_peak.fit_flops``, and the decided frames' similarities,
+2·F·N·D), as a share of numpy's float32 GEMM rate measured in the same run on the
+database's shape (``gemm_peak``, which names the BLAS kernel). Run::
 
     python benchmarks/bench_regroup.py --data /work/shared/datasets
 """
@@ -22,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gemm_peak import decision_flops, fit_flops, measure_peak
 from vpr_explorer import settings
 from vpr_explorer.datasets import load_dataset
 from vpr_explorer.pipeline import dataset_descriptors
@@ -31,12 +37,18 @@ from vpr_explorer.views import regroup
 MOVES = ((3, 10), (4, 10), (4, 8), (2, 5), (5, 20), (3, 3))
 
 
-def time_regroup(descriptors: np.ndarray, dataset, spec: PlaceSpec) -> tuple[float, str]:
-    """Seconds of one ``regroup`` (what a slider move recomputes) and what it produced."""
+def move_flops(r, dim: int) -> float:
+    """Flops a move needs: the database fit and the decided frames' similarities."""
+    return fit_flops(len(r.model.images), dim) + decision_flops(len(r.frames), len(r.model.images), dim)
+
+
+def time_regroup(descriptors: np.ndarray, dataset, spec: PlaceSpec) -> tuple[float, str, float]:
+    """Seconds of one ``regroup`` (what a slider move recomputes), what it produced, and its flops."""
     start = time.perf_counter()
     r = regroup(descriptors, dataset, spec)
     seconds = time.perf_counter() - start
-    return seconds, f"{r.places.n_places} places, place-level R@1 {r.recall1['place-baseline']:.0%}"
+    return seconds, f"{r.places.n_places} places, place-level R@1 {r.recall1['place-baseline']:.0%}", \
+        move_flops(r, descriptors.shape[1])
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -61,14 +73,20 @@ def main(argv: list[str] | None = None) -> None:
           f"database {' + '.join(dataset.traversals[:-1])}, queries {dataset.traversals[-1]}")
     print(f"extraction (fresh cache, the work a move would redo without per-image descriptors): {extraction:.2f} s")
     print(f"reading them back from the on-disk cache: {cached:.2f} s")
-    regroup(descriptors, dataset, PlaceSpec(3, 10))  # warm-up: first-call imports and allocations are not a move
-    header = f"{'group/step':<12}{'recompute ms':>14}{'extraction s':>14}{'extraction / recompute':>24}  result"
+    warm = regroup(descriptors, dataset, PlaceSpec(3, 10))  # warm-up: first-call imports and allocations are not a move
+    peak = measure_peak(m=4096, k=descriptors.shape[1], n=max(256, min(len(warm.model.images), 4096)))
+    for line in peak.lines():
+        print(line)
+    header = (f"{'group/step':<12}{'recompute ms':>14}{'extraction s':>14}{'extraction / recompute':>24}"
+              f"{'% of peak':>11}  result")
     print(header)
     print("-" * len(header))
     for group, step in MOVES:
-        seconds, what = time_regroup(descriptors, dataset, PlaceSpec(group, step))
-        print(f"{f'{group}/{step}':<12}{1000 * seconds:>14.1f}{extraction:>14.2f}{extraction / seconds:>23.0f}x  {what}",
-              flush=True)
+        seconds, what, flops = time_regroup(descriptors, dataset, PlaceSpec(group, step))
+        print(f"{f'{group}/{step}':<12}{1000 * seconds:>14.1f}{extraction:>14.2f}{extraction / seconds:>23.0f}x"
+              f"{100 * flops / seconds / 1e9 / peak.float32:>10.1f}%  {what}", flush=True)
+    print("% of peak: the flops a move needs (database fit, 2·F·N·D for the decided frames) over its time, "
+          "against the float32 GEMM peak above; moves this small are bookkeeping, not GEMM")
 
 
 if __name__ == "__main__":

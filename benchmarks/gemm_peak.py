@@ -42,7 +42,8 @@ def blas_kernel() -> str:
     ) + f" ({env})"
 
 
-def gemm_rate(dtype: type = np.float32, m: int = 4096, k: int = 1280, n: int = 1280, repeats: int = 5) -> float:
+def gemm_rate(dtype: type = np.float32, m: int = 4096, k: int = 1280, n: int = 1280, repeats: int = 5,
+              clock=time.perf_counter) -> float:
     """Best GFLOP/s of numpy's ``(m, k) @ (k, n)`` in ``dtype`` over ``repeats`` runs (2·m·k·n flops each).
 
     The output buffer is reused, as a tuned step would: a fresh array per product adds page
@@ -55,9 +56,9 @@ def gemm_rate(dtype: type = np.float32, m: int = 4096, k: int = 1280, n: int = 1
     np.matmul(a, b, out=out)  # warm-up: threads started, buffers touched
     best = np.inf
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0 = clock()
         np.matmul(a, b, out=out)
-        best = min(best, time.perf_counter() - t0)
+        best = min(best, clock() - t0)
     return 2 * m * k * n / best / 1e9
 
 
@@ -69,13 +70,20 @@ class GemmPeak:
     float64: float  # GFLOP/s
     shape: tuple[int, int, int]
     kernel: str
+    float32_cpu: float = float("nan")  # GFLOP per CPU second (all BLAS threads): steadier on a shared machine
+
+    def best(self, other: "GemmPeak") -> "GemmPeak":
+        """The higher rates of two measurements of the same shape (before and after a step: on a
+        shared machine the load changes, and the peak is what the machine can do)."""
+        return GemmPeak(max(self.float32, other.float32), max(self.float64, other.float64), self.shape, self.kernel,
+                        max(self.float32_cpu, other.float32_cpu))
 
     def lines(self) -> list[str]:
         m, k, n = self.shape
         return [
             f"BLAS: {self.kernel}",
             f"GEMM peak, ({m}×{k}) @ ({k}×{n}), best of runs: float32 {self.float32:.0f} GFLOP/s, "
-            f"float64 {self.float64:.0f} GFLOP/s",
+            f"float64 {self.float64:.0f} GFLOP/s; float32 per CPU second {self.float32_cpu:.0f} GFLOP",
         ]
 
 
@@ -86,7 +94,66 @@ def measure_peak(m: int = 4096, k: int = 1280, n: int = 1280, repeats: int = 5) 
         float64=gemm_rate(np.float64, m, k, n, repeats),
         shape=(m, k, n),
         kernel=blas_kernel(),
+        float32_cpu=gemm_rate(np.float32, m, k, n, repeats, clock=time.process_time),
     )
+
+
+def decision_flops(n_frames: int, n_database: int, dim: int) -> float:
+    """Flops deciding ``n_frames`` query frames against ``n_database`` images needs: their similarities, 2·F·N·D."""
+    return 2.0 * n_frames * n_database * dim
+
+
+def fit_flops(n_database: int, dim: int) -> float:
+    """Flops a database fit needs (``database.fit_database``, float32 closed form and the automatic θ):
+    the symmetric Gram N·D(D+1), the quadratic forms 2·N·D², and 2·D per pair of the automatic
+    θ's sample (all pairs, or ``thresholds.tile_groups``' tiles). Per-place terms (O(N·k·D)) are left out."""
+    from vpr_explorer.thresholds import AUTO_MAX_PAIRS, tile_groups
+
+    n = n_database
+    pairs = n * (n - 1) // 2
+    if pairs > AUTO_MAX_PAIRS:
+        edges, tiles = tile_groups(n, AUTO_MAX_PAIRS)
+        sizes = np.diff(edges)
+        pairs = sum(int(sizes[a] * sizes[b]) for a, b in tiles)
+    return n * dim * (dim + 1) + 2.0 * n * dim * dim + 2.0 * dim * pairs
+
+
+def torch_gemm_rate(device: str = "cpu", dtype: str = "float32", m: int = 4096, k: int = 1280, n: int = 1280,
+                    repeats: int = 5) -> float:
+    """Best GFLOP/s of torch's ``(m, k) @ (k, n)`` on ``device`` in ``dtype`` (float32: TF32 off)."""
+    import torch
+
+    dev = torch.device(device)
+    dt = getattr(torch, dtype)
+    saved = torch.get_float32_matmul_precision()
+    torch.set_float32_matmul_precision("highest")
+    try:
+        a = torch.randn(m, k, device=dev).to(dt)
+        b = torch.randn(k, n, device=dev).to(dt)
+        out = torch.empty(m, n, device=dev, dtype=dt)
+        torch.matmul(a, b, out=out)
+        best = float("inf")
+        for _ in range(repeats):
+            if dev.type == "cuda":
+                torch.cuda.synchronize(dev)
+            t0 = time.perf_counter()
+            torch.matmul(a, b, out=out)
+            if dev.type == "cuda":
+                torch.cuda.synchronize(dev)
+            best = min(best, time.perf_counter() - t0)
+    finally:
+        torch.set_float32_matmul_precision(saved)
+    return 2 * m * k * n / best / 1e9
+
+
+def torch_flops(fn) -> int:
+    """Flops torch counts for ``fn()`` (``torch.utils.flop_counter``: 2 per multiply-add of convolutions
+    and matrix products; elementwise work is not counted)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    with FlopCounterMode(display=False) as counter:
+        fn()
+    return int(counter.get_total_flops())
 
 
 def share(flops: float, seconds: float, peak_gflops: float) -> str:

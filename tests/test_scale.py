@@ -393,6 +393,15 @@ def test_nordland_tables_do_not_depend_on_blas_kernel_block_size_or_threads(data
         assert table == first, f"{name} differs from {first_name}"
 
 
+def test_torch_device_products_give_the_same_numbers(monkeypatch):
+    # device="cpu": the pass's block products as torch matmuls (the GPU path's code on CPU
+    # tensors); last-bit differences from numpy's sgemm never cross the tie tolerance
+    d, labels, trav = structured(seed=3, n_places=120, per_place=6, dim=48)
+    check(monkeypatch, d, labels, trav, 120, runs=2, fast_kw={"block": 200, "device": "cpu"})
+    with pytest.raises(VPRInputError, match="device='tpu'"):
+        fast_paper_protocol(d, labels, trav, 120, runs=2, device="tpu")
+
+
 def test_progress_counts_every_split_then_the_pass():
     d, labels, trav = structured(seed=6, n_places=40, per_place=4, dim=16)
     calls = []

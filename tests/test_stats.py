@@ -293,3 +293,41 @@ def test_closed_form_equals_pairwise_on_real_descriptors(request, fixture, garde
     np.testing.assert_allclose(st.sigma, sigma, atol=1e-6)
     if precision == "float32":
         assert_within_bound(st, mu, sigma, d, frames)
+
+
+# --------------------------------------------------------------------------- device= (torch)
+
+
+@pytest.mark.parametrize("dtype, block", [(np.float32, 4096), (np.float64, 100), (np.float16, 7)])
+def test_torch_device_within_the_same_bound(dtype, block):
+    # The torch path (here on CPU tensors; on a GPU the same code) keeps μ exact to float64
+    # rounding and σ² within the float32 bound, on the hard shared-component data.
+    rng = np.random.default_rng(3)
+    d, labels = shared_component(rng, 1200, 64, 150)
+    d = d.astype(dtype)
+    mu, sigma = pairwise_negative_stats(d.astype(np.float64), labels)
+    st = negative_stats(d, labels, block=block, device="cpu")
+    assert_within_bound(st, mu, sigma, d, labels, block=block)
+    np.testing.assert_array_equal(st.n_neg, negative_stats(d, labels).n_neg)
+    np.testing.assert_allclose(st.sigma, negative_stats(d, labels, block=block).sigma, rtol=0, atol=1e-7)
+
+
+@pytest.mark.parametrize("kw, fragment", [({"device": "tpu"}, "device='tpu'"),
+                                          ({"device": "cpu", "precision": "float64"}, "precision='float32' only")])
+def test_bad_device(kw, fragment):
+    rng = np.random.default_rng(0)
+    with pytest.raises(VPRInputError, match=fragment):
+        negative_stats(unit_rows(rng, 10, 4), np.arange(10) % 3, **kw)
+
+
+def test_cuda_device_runs_or_says_why():
+    import torch
+
+    rng = np.random.default_rng(4)
+    d, labels = unit_rows(rng, 300, 32).astype(np.float32), rng.integers(0, 30, 300)
+    if not torch.cuda.is_available():
+        with pytest.raises(VPRInputError, match="no CUDA device is available here"):
+            negative_stats(d, labels, device="cuda")
+        return
+    mu, sigma = pairwise_negative_stats(d.astype(np.float64), labels)
+    assert_within_bound(negative_stats(d, labels, device="cuda"), mu, sigma, d, labels)

@@ -92,10 +92,11 @@ def test_pair_sample_when_large():
     d = unit_rows(rng, 300, 8).astype(np.float32)
     exact = training_pair_scores(d)
     assert exact.size == 300 * 299 // 2
-    sample = training_pair_scores(d, max_pairs=20_000, seed=3)
-    assert sample.size == 20_000
-    assert abs(np.median(sample) - np.median(exact)) < 0.02
-    assert not np.isclose(sample, 1.0).any()  # never an image with itself
+    for kind in ("tiles", "pairs"):
+        sample = training_pair_scores(d, max_pairs=20_000, seed=3, sample=kind)
+        assert sample.size == 20_000 if kind == "pairs" else 17_000 <= sample.size <= 20_000
+        assert abs(np.median(sample) - np.median(exact)) < 0.02
+        assert not np.isclose(sample, 1.0).any()  # never an image with itself
 
 
 def test_pair_sample_memory_is_bounded_by_the_block():
@@ -103,11 +104,12 @@ def test_pair_sample_memory_is_bounded_by_the_block():
 
     rng = np.random.default_rng(4)
     d = unit_rows(rng, 3000, 512).astype(np.float32)
-    whole = training_pair_scores(d, max_pairs=200_000, seed=1, block=200_000, workers=1)
+    kw = {"max_pairs": 200_000, "seed": 1, "sample": "pairs"}
+    whole = training_pair_scores(d, block=200_000, workers=1, **kw)
     # Threads score blocks in any order, each pair the same dot product.
-    np.testing.assert_array_equal(training_pair_scores(d, max_pairs=200_000, seed=1, block=777, workers=3), whole)
+    np.testing.assert_array_equal(training_pair_scores(d, block=777, workers=3, **kw), whole)
     tracemalloc.start()
-    blocked = training_pair_scores(d, max_pairs=200_000, seed=1, block=1_000)
+    blocked = training_pair_scores(d, block=1_000, **kw)
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
     np.testing.assert_array_equal(blocked, whole)
@@ -119,3 +121,68 @@ def test_unknown_method():
     st = _stats([0.2], [0.1], [1], [0], 1)
     with pytest.raises(VPRInputError, match="choose one of simple, weighted"):
         place_thresholds(st, "median")
+
+
+# --------------------------------------------------------------------------- the tile sample
+
+
+def test_tile_sample_pairs_are_distinct_balanced_and_exact(monkeypatch):
+    import vpr_explorer.thresholds as thresholds
+
+    rng = np.random.default_rng(5)
+    n, dim = 1_000, 24
+    d = unit_rows(rng, n, dim).astype(np.float32)
+    monkeypatch.setattr(thresholds, "TILE_ROWS", 50)  # several chunks, the wrap tile in its own
+    scores = training_pair_scores(d, max_pairs=20_000, seed=7, workers=3)
+    # the same pairs, by hand: groups of the seeded permutation, group a against group a + 1
+    perm = np.random.default_rng(7).permutation(n)
+    edges, tiles = thresholds.tile_groups(n, 20_000)
+    assert len(tiles) == len(edges) - 1 == 50
+    pairs = np.concatenate([np.stack(np.meshgrid(perm[edges[a]:edges[a + 1]], perm[edges[b]:edges[b + 1]],
+                                                 indexing="ij"), -1).reshape(-1, 2) for a, b in tiles])
+    assert len(pairs) == len(scores) == 20_000
+    assert (pairs[:, 0] != pairs[:, 1]).all()  # never an image with itself
+    assert len({(min(i, j), max(i, j)) for i, j in pairs}) == len(pairs)  # each pair once
+    assert set(np.bincount(pairs.ravel(), minlength=n)) == {40}  # every image in 2t pairs: balanced
+    exact = np.einsum("ij,ij->i", d[pairs[:, 0]].astype(np.float64), d[pairs[:, 1]].astype(np.float64))
+    np.testing.assert_allclose(scores, exact, rtol=0, atol=1e-6)
+    # rows= reads a larger array in place; workers and BLAS threads change nothing
+    big = unit_rows(rng, 3 * n, dim).astype(np.float32)
+    at = rng.choice(3 * n, n, replace=False)
+    big[at] = d
+    np.testing.assert_array_equal(training_pair_scores(big, rows=at, max_pairs=20_000, seed=7, workers=1), scores)
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(2):
+        np.testing.assert_array_equal(training_pair_scores(d, max_pairs=20_000, seed=7), scores)
+    # just above the pair limit: three groups, three tiles
+    small = unit_rows(rng, 210, dim).astype(np.float32)
+    assert training_pair_scores(small, max_pairs=20_000, seed=1).size == 3 * 70 * 70
+    with pytest.raises(VPRInputError, match="sample='grid'"):
+        training_pair_scores(d, sample="grid")
+
+
+def hub_descriptors(n=2_500, dim=32, places=250, seed=0):
+    """Place structure plus a per-image shift along one direction: some images score high with
+    everything (row effects), the case where pairs sharing a row are most correlated."""
+    rng = np.random.default_rng(seed)
+    centres = rng.standard_normal((places, dim))
+    d = centres[rng.integers(0, places, n)] + rng.standard_normal((n, dim))
+    d += 1.5 * rng.standard_normal((n, 1)) / np.sqrt(dim)
+    return (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+
+
+def test_tile_sample_threshold_agrees_with_independent_pairs_within_sampling_error():
+    # The tile sample's pairs share rows and columns (correlated); over seeds its θ must
+    # centre on the independent-pairs θ, within their sampling error, and spread no wider.
+    d = hub_descriptors()
+    full = auto_global_threshold(training_pair_scores(d, max_pairs=10**8))  # all 3.1·10⁶ pairs
+    seeds = 40
+    theta = {kind: np.array([auto_global_threshold(training_pair_scores(d, max_pairs=20_000, seed=s, sample=kind))
+                             for s in range(seeds)]) for kind in ("tiles", "pairs")}
+    sd = {k: v.std(ddof=1) for k, v in theta.items()}
+    assert 1e-3 < sd["pairs"] < 0.05  # a real sampling error to compare against
+    se = np.sqrt((sd["tiles"] ** 2 + sd["pairs"] ** 2) / seeds)
+    assert abs(theta["tiles"].mean() - theta["pairs"].mean()) < 3 * se
+    assert sd["tiles"] < 1.5 * sd["pairs"]
+    assert np.abs(theta["tiles"] - full).max() < 4 * sd["pairs"]

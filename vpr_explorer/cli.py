@@ -340,6 +340,20 @@ def build_parser() -> argparse.ArgumentParser:
     ls.add_argument("--radius", type=float, default=None, help=argparse.SUPPRESS)
     ls.set_defaults(func=_list)
 
+    from vpr_explorer import sweep_cli
+
+    sw = sub.add_parser("sweep", help="run a protocol over a grid of group × step (both readings): tables, CSV, JSON",
+                        conflict_handler="resolve")  # its --group/--step/--reading take lists
+    sweep_cli.add_arguments(sw)
+    sw.set_defaults(func=sweep_cli.run)
+
+    from vpr_explorer import extract_cli
+
+    ex = sub.add_parser("extract", help="fill the descriptor cache for a dataset: local threads, or a Ray cluster "
+                                        "with --ray ADDRESS|local")
+    extract_cli.add_arguments(ex)
+    ex.set_defaults(func=extract_cli.run)
+
     from vpr_explorer.app import launch
 
     app = sub.add_parser("app", help="open the explorer: Streamlit on the packaged app, from any directory")

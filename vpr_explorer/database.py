@@ -9,14 +9,22 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
 
 from vpr_explorer.datasets import Dataset
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.evaluation import query_truth
-from vpr_explorer.places import Places
-from vpr_explorer.retrieval import Outcome, QueryDecision, decide, place_scores, score_queries, similarity
+from vpr_explorer.places import Places, right_places
+from vpr_explorer.retrieval import (
+    METHODS_BY_KEY,
+    Outcome,
+    QueryDecision,
+    decide,
+    place_scores,
+    score_queries,
+    similarity,
+)
 from vpr_explorer.stats import NegativeStats, mixture_moments, negative_stats, positive_means
 from vpr_explorer.thresholds import (
     ThresholdMethod,
@@ -106,8 +114,75 @@ def database_rows(descriptors: np.ndarray, images: np.ndarray) -> np.ndarray:
 
 
 def query_places(dataset: Dataset, places: Places, query_images: np.ndarray, tolerance: int = 0) -> np.ndarray:
-    """``(n_queries, n_places)`` bool: the right places of each query image (frames within ``tolerance``)."""
-    return query_truth(dataset.image_frame[np.asarray(query_images)], places.frame_place, tolerance)
+    """``(n_queries, n_places)`` bool: the right places of each query image (``places.right_places``)."""
+    return right_places(dataset.image_frame[np.asarray(query_images)], places.frame_place, tolerance)
+
+
+class Verdict(StrEnum):
+    """What one method's answer for one query frame was (``places.BETWEEN_PLACES_RULE`` for ``BETWEEN``)."""
+
+    RIGHT = "right"
+    WRONG_ACCEPT = "wrong accept"
+    WRONG_REJECT = "wrong reject"
+    BETWEEN = "between places"
+
+
+def query_verdict(decision: QueryDecision, key: str) -> Verdict:
+    """The verdict on one query frame of the traversal model under method ``key``.
+
+    A frame with no right place lies between places (every place of the traversal model
+    is in the database, so it is never an unknown place): it is not scored, whatever the
+    method answered, exactly as the traversal protocol, the Places page and a recording
+    leave it out.
+    """
+    if not len(decision.true_places):  # an all-False row of ``places.right_places``
+        return Verdict.BETWEEN
+    o = decision.outcomes[key]
+    if o.right[0]:
+        return Verdict.RIGHT
+    return Verdict.WRONG_ACCEPT if o.accepted[0] else Verdict.WRONG_REJECT
+
+
+def image_name(dataset: Dataset, image: int) -> str:
+    """A dataset image as the pages name it: "<traversal> · frame N"."""
+    return f"{dataset.traversals[dataset.image_traversal[image]]} · frame {dataset.image_frame[image]}"
+
+
+def describe_query(decision: QueryDecision, key: str, model: DatabaseModel, dataset: Dataset) -> str:
+    """``decision.describe(key)`` for the traversal model, in the pages' words.
+
+    The image-level answer is named by traversal and frame ("accepted as day_right ·
+    frame 81 → place 8"), never by its position in the database; a frame between places
+    is said to be not scored instead of judged as an unknown place.
+    """
+    m = METHODS_BY_KEY[key]
+    o = decision.outcomes[key]
+    ans, img = int(o.answer_place[0]), int(o.answer_image[0])
+    named = f"{image_name(dataset, int(model.images[img]))} → " if m.level == "image" and img >= 0 else ""
+    if query_verdict(decision, key) is not Verdict.BETWEEN:
+        text = decision.describe(key)
+        return text.replace(f"accepted as image {img} → ", f"accepted as {named}", 1) if named else text
+    theta = decision.thresholds.get(m.threshold) if m.threshold else None
+
+    def scores(p: int) -> str:
+        if theta is None:
+            return f"raw {decision.raw[p]:.3f}"
+        return f"raw {decision.raw[p]:.3f}, threshold {theta[p]:.3f}, margin {decision.raw[p] - theta[p]:+.3f}"
+
+    why = "not scored: the query frame lies between places, so no answer is right or wrong"
+    if ans >= 0:
+        return f"accepted as {named}place {ans} ({why}): {scores(ans)}"
+    ranking = decision.raw if theta is None else decision.raw - theta
+    closest = int(np.argmax(np.where(np.isfinite(ranking), ranking, -np.inf)))
+    return f"rejected ({why}): every place scored below its threshold; the closest, place {closest}: {scores(closest)}"
+
+
+def between_note(frame: int, tolerance: int = 0) -> str:
+    """What the inspector says of a query frame between places (``places.BETWEEN_PLACES_RULE``)."""
+    where = (f"no place holds a frame within {tolerance} frame{'s' if tolerance != 1 else ''} of it" if tolerance
+             else "group/step put it in no place")
+    return (f"**Frame {frame} lies between places** ({where}): it has no right answer, so, as on every page, "
+            "protocol and recording, it is **not scored**; each method's answer is shown unmarked.")
 
 
 def explain_query(

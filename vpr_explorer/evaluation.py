@@ -26,6 +26,7 @@ import numpy as np
 
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.groundtruth import GroundTruth
+from vpr_explorer.places import between_places, right_places
 from vpr_explorer.precision_recall import PRCurve, PRRow, PRSplit, pr_rows
 from vpr_explorer.retrieval import (
     METHODS_BY_KEY,
@@ -620,21 +621,8 @@ def open_set_protocol(
 
 
 def query_truth(query_frames: np.ndarray, frame_place: np.ndarray, tolerance: int) -> np.ndarray:
-    """``(n_queries, n_places)`` bool: the places holding a frame within ``tolerance`` of each query frame.
-
-    The aligned-traversal case of the ground-truth relation, vectorised over offsets: the
-    same as ``GroundTruth.from_frames(query_frames, frames, tolerance).places(frame_place)``
-    (``tests/test_groundtruth.py`` checks they agree).
-    """
-    n_places = int(frame_place.max()) + 1
-    truth = np.zeros((len(query_frames), n_places), dtype=bool)
-    for off in range(-tolerance, tolerance + 1):
-        f = query_frames + off
-        ok = (f >= 0) & (f < len(frame_place))
-        p = np.where(ok, frame_place[np.clip(f, 0, len(frame_place) - 1)], -1)
-        has = p >= 0
-        truth[np.flatnonzero(has), p[has]] = True
-    return truth
+    """``(n_queries, n_places)`` bool: ``places.right_places``, the one between-place rule (kept under this name)."""
+    return right_places(query_frames, frame_place, tolerance)
 
 
 def traversal_protocol(
@@ -670,8 +658,8 @@ def traversal_protocol(
     n_places = int(frame_place.max()) + 1
     db = np.flatnonzero(np.isin(image_traversal, database) & (image_place >= 0))
     qs = np.flatnonzero(image_traversal == query)
-    truth = query_truth(image_frame[qs], frame_place, tolerance)
-    keep = truth.any(axis=1)
+    truth = right_places(image_frame[qs], frame_place, tolerance)
+    keep = ~between_places(truth)  # places.BETWEEN_PLACES_RULE: frames between places are left out
     qs, truth = qs[keep], truth[keep]
     if len(qs) == 0:
         raise VPRInputError("no query frame falls in a place; lower step or raise tolerance")

@@ -136,6 +136,45 @@ class Places:
         return f"{self.n_places} places × {per} {what} ({how})"
 
 
+BETWEEN_PLACES_RULE = (
+    "A query frame belongs to every place holding a frame within `tolerance` frames of it (tolerance 0: its "
+    "own frame's place); a frame with no such place lies between places, has no right answer, and is left out "
+    "of scoring on every page, protocol and recording (shown as \"between places, not scored\")."
+)
+"""The between-place rule in one sentence (README's method section; the pages quote it)."""
+
+
+def right_places(query_frames: np.ndarray, frame_place: np.ndarray, tolerance: int = 0) -> np.ndarray:
+    """``(n_queries, n_places)`` bool: the right places of each query frame (``BETWEEN_PLACES_RULE``).
+
+    The one rule every page, protocol and recording applies: a place is right for a query
+    frame when it holds a frame within ``tolerance`` frames of it; a row with no right
+    place (``between_places``) is a frame between places, left out of scoring. The
+    aligned-traversal case of the ground-truth relation, vectorised over offsets: the same
+    as ``GroundTruth.from_frames(query_frames, frames, tolerance).places(frame_place)``
+    (``tests/test_groundtruth.py`` checks they agree).
+
+    Args:
+        query_frames: ``(n_queries,)`` frame number of each query.
+        frame_place: ``(n_frames,)`` place of each frame, ``-1`` between places.
+    """
+    query_frames = np.asarray(query_frames, dtype=np.int64)
+    frame_place = np.asarray(frame_place)
+    truth = np.zeros((len(query_frames), max(0, int(frame_place.max(initial=-1)) + 1)), dtype=bool)
+    for off in range(-int(tolerance), int(tolerance) + 1) if len(frame_place) else ():
+        f = query_frames + off
+        ok = (f >= 0) & (f < len(frame_place))
+        p = np.where(ok, frame_place[np.clip(f, 0, len(frame_place) - 1)], -1)
+        has = p >= 0
+        truth[np.flatnonzero(has), p[has]] = True
+    return truth
+
+
+def between_places(truth: np.ndarray) -> np.ndarray:
+    """``(n_queries,)`` bool: the query frames of ``right_places`` rows with no right place (not scored)."""
+    return ~np.asarray(truth, dtype=bool).any(axis=-1)
+
+
 def make_places(dataset: Dataset, spec: PlaceSpec | None) -> Places:
     """Label every image of ``dataset`` with its place.
 

@@ -43,6 +43,49 @@ LINE_COLOURS = {
     "global θ, user value": "#b15928",
 }
 _MARGIN = dict(l=10, r=10, t=40, b=10)
+#: Plotly's modebar sits over the top-right corner, where a subplot's title is: stood on its
+#: side in a right margin of its own, it covers no title or data.
+_SIDE_MODEBAR = dict(modebar=dict(orientation="v"), margin={**_MARGIN, "r": 40})
+#: Two thresholds closer than this are equal (an ulp apart in exact arithmetic): named "=".
+COINCIDENT = 1e-6
+#: Two threshold lines closer than this share of the x range fall on the same pixels: named "≈".
+NEAR_SHARE = 0.004
+
+
+def _missing(x: float, fmt: str = ".3f") -> str:
+    """``x`` formatted, or "—" for NaN/inf (a value with nothing behind it), never "nan" or "None"."""
+    return f"{x:{fmt}}" if x is not None and np.isfinite(x) else "—"
+
+
+def _note_coincident(fig: go.Figure, lines: Sequence[go.Scatter], span: float = 0.0) -> None:
+    """Say which threshold lines are drawn on one another: in their legend names, hovers, and a note.
+
+    Lines closer than ``NEAR_SHARE`` of the x ``span`` (or ``COINCIDENT``) fall on the same
+    pixels whatever their dash, so each later one is named "(= θ …)" (equal) or "(≈ θ …)"
+    (closer than a pixel) and the figure gets one note per group, values included.
+    """
+    near = max(COINCIDENT, NEAR_SHARE * span)
+    names = [t.meta if isinstance(t.meta, str) else t.name for t in lines]
+    groups: list[list[int]] = []
+    for i, line in enumerate(lines):
+        same = [j for j in range(i) if abs(line.x[0] - lines[j].x[0]) <= near]
+        if same:
+            marks = [("=" if abs(line.x[0] - lines[j].x[0]) <= COINCIDENT else "≈") + f" {names[j]}" for j in same]
+            line.name = f"{line.name} ({', '.join(marks)}, drawn on it)"
+            next(g for g in groups if same[0] in g).append(i)
+        else:
+            groups.append([i])
+    notes = []
+    for g in groups:
+        if len(g) < 2:
+            continue
+        text = ", ".join(f"{names[i]} {lines[i].x[0]:.3f}" for i in g)
+        for i in g:
+            lines[i].hovertemplate = f"{text}<extra></extra>"
+        notes.append(f"drawn on one another: {text}")
+    for k, note in enumerate(notes):
+        fig.add_annotation(text=note, xref="paper", yref="paper", x=0, y=1 - 0.08 * k, xanchor="left",
+                           yanchor="top", showarrow=False, font=dict(size=11), bgcolor="rgba(255,255,255,0.85)")
 
 
 def _vline(name: str, x: float, y_top: float, *, dash: str = "solid", colour: str | None = None) -> go.Scatter:
@@ -107,12 +150,13 @@ def route_figure(
             hovertemplate="frame %{x}: skipped<extra></extra>", meta=f"skipped {t}",
         ), row=1, col=1)
         fig.add_trace(go.Scatter(
+            # No legend entry: a swatch shows one colour, these squares one per place (the axis title says so).
             x=frames[inside], y=[t] * int(inside.sum()), mode="markers", name="place frames",
-            legendgroup="places", showlegend=t == traversals[0], customdata=frame_place[inside],
+            legendgroup="places", showlegend=False, customdata=frame_place[inside],
             marker=dict(symbol="square", size=9, color=place_colours(frame_place[inside])),
             hovertemplate="frame %{x}: place %{customdata}<extra></extra>", meta=f"places {t}",
         ), row=1, col=1)
-    fig.update_xaxes(title_text="frame", row=1, col=1)
+    fig.update_xaxes(title_text="frame (squares: place frames, one colour per place, colours repeat)", row=1, col=1)
     fig.update_yaxes(type="category", row=1, col=1)
     if has_map:
         xy = np.asarray(positions)
@@ -127,8 +171,8 @@ def route_figure(
         ), row=1, col=2)
         fig.update_xaxes(showticklabels=False, row=1, col=2)
         fig.update_yaxes(showticklabels=False, scaleanchor="x2", row=1, col=2)
-    fig.update_layout(title=title or None, height=max(140 + 45 * len(traversals), 340 if has_map else 0), margin=_MARGIN,
-                      legend=dict(orientation="h", y=-0.25))
+    fig.update_layout(title=title or None, height=max(140 + 45 * len(traversals), 340 if has_map else 0),
+                      legend=dict(orientation="h", y=-0.25), **_SIDE_MODEBAR)
     return fig
 
 
@@ -147,9 +191,20 @@ def theta_histogram(theta: Mapping[str, np.ndarray], auto: float, user_theta: fl
         return int(np.histogram(v, bins=1 if flat else 30)[0].max())
 
     counts = max((peak(v) for v in values if np.isfinite(v).any()), default=1)
-    fig.add_trace(_vline("global θ, automatic", auto, float(counts), dash="dot"))
+    lines = [_vline("global θ, automatic", auto, float(counts), dash="dot")]
     if user_theta is not None:
-        fig.add_trace(_vline("global θ, user value", user_theta, float(counts), dash="dash"))
+        lines.append(_vline("global θ, user value", user_theta, float(counts), dash="dash"))
+    fig.add_traces(lines)
+    xs = np.r_[np.concatenate(values), auto, user_theta if user_theta is not None else auto]
+    xs = xs[np.isfinite(xs)]
+    _note_coincident(fig, list(fig.data[-len(lines):]), float(np.ptp(xs)) if xs.size else 0.0)
+    finite = [v[np.isfinite(v)] for v in values]
+    if len(finite) == 2 and len(finite[0]) == len(finite[1]) and np.allclose(finite[0], finite[1], rtol=0,
+                                                                             atol=COINCIDENT):
+        fig.add_annotation(text=f"{' and '.join(f'θ_p {n}' for n in theta)} are equal at every place: "
+                                "one histogram hides the other", xref="paper", yref="paper", x=0, y=1,
+                           xanchor="left", yanchor="top", showarrow=False, font=dict(size=11),
+                           bgcolor="rgba(255,255,255,0.8)")
     fig.update_layout(barmode="overlay", title="θ_p of every place", xaxis_title="similarity",
                       yaxis_title="places", height=320, margin=_MARGIN, legend=dict(orientation="h", y=-0.3))
     return fig
@@ -160,9 +215,10 @@ def recall_bars(recall1: Mapping[str, float], *, rejected: Mapping[str, float] |
     """One bar per method: Recall@1 (and, when given, the share rejected as a second bar)."""
     keys = list(recall1)
     labels = [METHODS_BY_KEY[k].label for k in keys]
+    # One colour per trace: the legend's swatch is then the colour of every bar it names.
     fig = go.Figure(go.Bar(x=labels, y=[recall1[k] for k in keys], name="Recall@1", customdata=keys,
-                           marker_color=[BASELINE if k == "place-baseline" else KEPT for k in keys],
-                           text=[f"{recall1[k]:.0%}" for k in keys], textposition="outside", meta="recall1"))
+                           marker_color=KEPT, text=[_missing(recall1[k], ".0%") for k in keys],
+                           textposition="outside", meta="recall1"))
     if rejected is not None:
         fig.add_trace(go.Bar(x=labels, y=[rejected[k] for k in keys], name="rejected", customdata=keys,
                              marker_color=REJECTED, opacity=0.6, meta="rejected"))
@@ -174,35 +230,65 @@ def recall_bars(recall1: Mapping[str, float], *, rejected: Mapping[str, float] |
 # --------------------------------------------------------------------------- thresholds
 
 
+#: Above this many places the overview drops its place labels and draws smaller dots: a
+#: sorted curve of θ_p is what stays readable (Nordland 64x32 has 358 places).
+OVERVIEW_LABELLED_PLACES = 60
+
+
 def places_overview(theta: np.ndarray, positive_mean: np.ndarray, negative_mean: np.ndarray,
                     selected: int | None = None) -> go.Figure:
-    """Every place sorted by θ_p, with its mean negative and mean same-place score; clicking a bar selects it.
+    """Every place sorted by θ_p, as dots, with its mean negative and mean same-place score; click a place to pick it.
 
-    Bars carry ``customdata`` = place id, in sorted order.
+    Dots, not bars: the similarities sit far from zero, so a bar cut off at the axis floor
+    would show lengths that mean nothing. The θ_p dots (``meta="theta"``) carry
+    ``customdata`` = place id, in sorted order; behind them one column per place
+    (``meta="pick"``, transparent but for the selected place's tint) spans the plot, so a
+    click anywhere above a place picks it. Above ``OVERVIEW_LABELLED_PLACES`` places the
+    x axis is the rank by θ_p (hover names the place).
     """
     theta = np.asarray(theta, dtype=float)
     order = np.argsort(theta, kind="stable")
     order = order[np.isfinite(theta[order])]
-    labels = [f"P{p}" for p in order]
+    pos = np.asarray(positive_mean, dtype=float)[order]
+    neg = np.asarray(negative_mean, dtype=float)[order]
+    labelled = len(order) <= OVERVIEW_LABELLED_PLACES
+    x = [f"P{p}" for p in order] if labelled else np.arange(len(order))
+    size = 9 if labelled else 5
+    lo = np.nanmin(np.r_[theta[order], neg]) if len(order) else 0.0
+    hi = np.nanmax(np.r_[theta[order], pos]) if len(order) else 1.0
+    pad = 0.05 * (hi - lo if hi > lo else 1.0)
+    hover = [f"place {p}: θ_p {_missing(t)}, μ⁺ {_missing(a)}, μ⁻ {_missing(b)}"
+             for p, t, a, b in zip(order, theta[order], pos, neg)]
     fig = go.Figure()
     fig.add_trace(go.Bar(
-        x=labels, y=theta[order], customdata=order.tolist(), name="θ_p weighted", meta="theta",
-        marker=dict(color=[POSITIVE if p == selected else LINE_COLOURS["θ_p weighted"] for p in order]),
-        hovertemplate="place %{customdata}: θ_p = %{y:.3f}<extra></extra>",
+        x=x, y=np.full(len(order), hi - lo + 2 * pad), base=lo - pad, customdata=order.tolist(), meta="pick",
+        name="pick", showlegend=False, text=hover, textposition="none", hovertemplate="%{text}<extra></extra>",
+        marker=dict(color=["rgba(228,87,46,0.15)" if p == selected else "rgba(0,0,0,0)" for p in order],
+                    line=dict(width=0)),
     ))
-    fig.add_trace(go.Scatter(x=labels, y=np.asarray(positive_mean, dtype=float)[order], mode="markers",
-                             name="mean same-place score μ⁺", marker=dict(symbol="diamond", color=POSITIVE, size=7),
-                             customdata=order, meta="positive_mean"))
-    fig.add_trace(go.Scatter(x=labels, y=np.asarray(negative_mean, dtype=float)[order], mode="markers",
-                             name="mixture mean μ⁻", marker=dict(symbol="circle-open", color=NEGATIVE, size=7),
-                             customdata=order, meta="negative_mean"))
-    lo = np.nanmin(np.r_[theta[order], np.asarray(negative_mean, float)[order]])
-    hi = np.nanmax(np.r_[theta[order], np.asarray(positive_mean, float)[order]])
-    pad = 0.05 * (hi - lo if hi > lo else 1.0)
-    fig.update_layout(title="All places, sorted by θ_p (click a bar to pick the place)", height=300, margin=_MARGIN,
-                      yaxis=dict(range=[lo - pad, hi + pad], title="similarity"),
-                      xaxis=dict(title="place", type="category"),
-                      legend=dict(orientation="h", y=-0.35))
+    fig.add_trace(go.Scatter(
+        x=x, y=theta[order], customdata=order.tolist(), name="θ_p weighted", meta="theta",
+        mode="markers" if labelled else "lines+markers", line=dict(color=LINE_COLOURS["θ_p weighted"], width=1),
+        marker=dict(size=[size + 5 if p == selected else size for p in order],
+                    color=[POSITIVE if p == selected else LINE_COLOURS["θ_p weighted"] for p in order]),
+        text=hover, hovertemplate="%{text}<extra></extra>",
+    ))
+    fig.add_trace(go.Scatter(x=x, y=pos, mode="markers", name="mean same-place score μ⁺",
+                             marker=dict(symbol="diamond", color=POSITIVE, size=size - 2),
+                             customdata=order, meta="positive_mean", text=hover,
+                             hovertemplate="%{text}<extra></extra>"))
+    # θ_p is a weighted mean of the μᵢ, so it often sits on μ⁻: a wider ring stays visible around its dot.
+    fig.add_trace(go.Scatter(x=x, y=neg, mode="markers", name="mixture mean μ⁻ (ring, often around θ_p)",
+                             marker=dict(symbol="circle-open", color=NEGATIVE, size=size + (7 if labelled else 3),
+                                         line=dict(width=2 if labelled else 1)),
+                             customdata=order, meta="negative_mean", text=hover,
+                             hovertemplate="%{text}<extra></extra>"))
+    xaxis = (dict(title="place", type="category") if labelled else
+             dict(title=f"the {len(order)} places, ranked by θ_p (hover for the place; click to pick it)",
+                  range=[-1, len(order)]))
+    fig.update_layout(title=f"All {len(order)} places, sorted by θ_p (click a place to pick it)", height=300,
+                      yaxis=dict(range=[lo - pad, hi + pad], title="similarity"), xaxis=xaxis, bargap=0,
+                      legend=dict(orientation="h", y=-0.35), hovermode="closest", **_SIDE_MODEBAR)
     return fig
 
 
@@ -275,13 +361,15 @@ def mixture_figure(
                                  name="raw_p of this place's query frames", meta="query_raw",
                                  customdata=detail.query_images,
                                  hovertemplate="query image %{customdata}: raw_p %{x:.3f}<extra></extra>"))
-    fig.add_trace(_vline("θ_p simple", detail.theta["simple"], top, dash="dot"))
-    fig.add_trace(_vline("θ_p weighted", detail.theta["weighted"], top))
-    fig.add_trace(_vline("θ_p(k)", detail.theta_k(k, method), top, dash="dash"))
-    fig.data[-1].name = f"θ_p(k={k:g}) {method} = {detail.theta_k(k, method):.3f}"
-    fig.add_trace(_vline("global θ, automatic", detail.auto, top, dash="dashdot"))
+    lines = [_vline("θ_p simple", detail.theta["simple"], top, dash="dot"),
+             _vline("θ_p weighted", detail.theta["weighted"], top),
+             _vline("θ_p(k)", detail.theta_k(k, method), top, dash="dash"),
+             _vline("global θ, automatic", detail.auto, top, dash="dashdot")]
+    lines[2].name = f"θ_p(k={k:g}) {method} = {detail.theta_k(k, method):.3f}"
     if user_theta is not None:
-        fig.add_trace(_vline("global θ, user value", user_theta, top, dash="longdash"))
+        lines.append(_vline("global θ, user value", user_theta, top, dash="longdash"))
+    fig.add_traces(lines)
+    _note_coincident(fig, list(fig.data[-len(lines):]), float(x[-1] - x[0]))
     fig.update_layout(
         title=f"Place {detail.place}: negative mixture, scores and thresholds", barmode="overlay",
         xaxis_title="cosine similarity", yaxis=dict(title="density", range=[3 * rug_y, top]),
@@ -294,11 +382,13 @@ def mixture_figure(
 
 
 def candidate_bars(decision: QueryDecision, key: str, candidates: Sequence[int], *, title: str | None = None) -> go.Figure:
-    """raw_p of the candidate places under one method: bars coloured kept/dropped, θ_p ticks, margins.
+    """raw_p of the candidate places under one method, as dots: coloured kept/dropped, θ ticks, margins.
 
-    Bars (``meta="raw_p"``) carry ``customdata`` = place id; the θ ticks (``meta="theta"``) sit
-    at the method's threshold of each candidate; the answer has a black outline and right
-    places are starred.
+    Dots, not bars: raw_p sits far from zero (0.3–1), and bars cut off at the axis floor
+    would show lengths that mean nothing. The dots (``meta="raw_p"``) carry ``customdata`` =
+    place id; the θ ticks (``meta="theta"``) sit at the method's threshold of each
+    candidate; the answer has a black outline and right places are starred. Labels: the
+    margin raw_p − θ (raw_p without a threshold); "—" where there is no value.
     """
     m = METHODS_BY_KEY[key]
     cands = np.asarray(candidates, dtype=np.int64)
@@ -308,12 +398,14 @@ def candidate_bars(decision: QueryDecision, key: str, candidates: Sequence[int],
     true = set(int(p) for p in decision.true_places)
     labels = [f"{'★ ' if p in true else ''}P{p}" for p in cands]
     theta = decision.thresholds[m.threshold][cands] if m.threshold else None
-    text = [f"{r - t:+.3f}" for r, t in zip(raw, theta)] if theta is not None else [f"{r:.3f}" for r in raw]
-    fig = go.Figure(go.Bar(
-        x=labels, y=raw, customdata=cands, name="raw_p", meta="raw_p", text=text, textposition="outside",
-        marker=dict(color=[KEPT if k else DROPPED for k in kept],
+    text = ([_missing(r - t, "+.3f") for r, t in zip(raw, theta)] if theta is not None else
+            [_missing(r) for r in raw])
+    fig = go.Figure(go.Scatter(
+        x=labels, y=raw, customdata=cands, name="raw_p", meta="raw_p", text=text, mode="markers+text",
+        textposition="top center", cliponaxis=False, textfont=dict(size=10),
+        marker=dict(size=16, color=[KEPT if k else DROPPED for k in kept],
                     line=dict(color=["#000" if p == answer else "rgba(0,0,0,0)" for p in cands], width=3)),
-        hovertemplate="place %{customdata}: raw_p %{y:.3f}<extra></extra>",
+        hovertemplate="place %{customdata}: raw_p %{y:.3f}, label %{text}<extra></extra>",
     ))
     if theta is not None:
         fig.add_trace(go.Scatter(x=labels, y=theta, mode="markers", name=f"θ ({m.threshold})", meta="theta",
@@ -325,7 +417,8 @@ def candidate_bars(decision: QueryDecision, key: str, candidates: Sequence[int],
     lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
     pad = 0.15 * (hi - lo if hi > lo else 0.1)
     fig.update_layout(title=title or m.label, height=300, margin=_MARGIN, showlegend=False,
-                      yaxis=dict(range=[lo - pad, hi + 2 * pad], title="raw_p"), xaxis=dict(type="category"))
+                      yaxis=dict(range=[lo - pad, hi + 2 * pad], title="raw_p (dots; red tick: θ)"),
+                      xaxis=dict(type="category"))
     return fig
 
 
@@ -333,17 +426,24 @@ def candidate_bars(decision: QueryDecision, key: str, candidates: Sequence[int],
 
 
 def recall_figure(ev: Evaluation) -> go.Figure:
-    """Recall@K of every method as grouped bars (one group per method, one bar per K), ± std over runs."""
+    """Recall@K of every method as grouped bars (one group per method, one bar per K), ± std over runs.
+
+    A protocol of one run (traversal, database/queries, or ``runs=1``) has no spread: its
+    bars carry no error bars and its title says "one run".
+    """
     fig = go.Figure()
     labels = [r.label for r in ev.rows]
+    runs = ev.settings.get("runs")
+    several = isinstance(runs, (int, np.integer)) and not isinstance(runs, bool) and runs > 1
     for k in ev.ks:
         fig.add_trace(go.Bar(
             x=labels, y=[r.recall[k][0] for r in ev.rows], name=f"R@{k}", meta=f"R@{k}",
             customdata=[r.key for r in ev.rows],
             error_y=dict(type="data", array=[0.0 if math.isnan(r.recall[k][1]) else r.recall[k][1] for r in ev.rows],
-                         visible=True),
+                         visible=several),
         ))
-    fig.update_layout(barmode="group", title="Recall@K (mean ± std over runs)", yaxis=dict(range=[0, 1.05],
+    title = f"Recall@K (mean ± std over {runs} runs)" if several else "Recall@K (one run)"
+    fig.update_layout(barmode="group", title=title, yaxis=dict(range=[0, 1.05],
                       tickformat=".0%"), height=380, margin=_MARGIN, legend=dict(orientation="h", y=-0.35))
     return fig
 
@@ -403,7 +503,7 @@ def pr_figure(curves: Mapping[str, PRCurve], operating_points: Mapping[str, PRPo
 
     Curve traces (``meta`` = the curve's name) carry ``customdata`` = the θ or k of each
     point (``None`` at the start point, nothing accepted); their names give the AUC and the
-    unknown-place queries, counted as false positives when accepted. Operating points
+    queries with no true match (unknown places: false positives when accepted). Operating points
     (``meta = "own <label>"``) take the colour of their curve when ``curve_of`` maps the
     label to it.
     """
@@ -413,7 +513,8 @@ def pr_figure(curves: Mapping[str, PRCurve], operating_points: Mapping[str, PRPo
         colours[name] = PALETTE[i % len(PALETTE)]
         auc = "—" if math.isnan(c.auc) else f"{c.auc:.3f}"
         fig.add_trace(go.Scatter(
-            x=c.recall, y=c.precision, mode="lines", name=f"{name}: AUC {auc}, {c.n_unknown:,} unknown", meta=name,
+            x=c.recall, y=c.precision, mode="lines", meta=name,
+            name=f"{name}: AUC {auc}, {c.n_unknown:,} of {c.n_known + c.n_unknown:,} queries with no true match",
             line=dict(color=colours[name], width=2),
             customdata=[float(t) if np.isfinite(t) else None for t in c.threshold],
             hovertemplate=(f"{c.param}=%{{customdata:.3f}}: recall %{{x:.1%}}, precision %{{y:.1%}}"
@@ -450,7 +551,7 @@ def similarity_heatmap(grid: SimilarityGrid, *, query: str, database: Sequence[s
     """
     rows, cols = grid.z.shape
     fig = go.Figure(go.Heatmap(z=grid.z, x=grid.col_frames, y=grid.row_frames, colorscale="Viridis",
-                               colorbar=dict(title="s"), meta="similarity", hoverinfo="skip"))
+                               colorbar=dict(title="similarity<br>s(q, i)"), meta="similarity", hoverinfo="skip"))
     xx, yy = np.meshgrid(grid.col_frames, grid.row_frames)
     fig.add_trace(go.Scattergl(
         x=xx.ravel(), y=yy.ravel(), mode="markers", meta="cells",

@@ -44,17 +44,16 @@ import urllib.parse
 import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from enum import StrEnum
 from pathlib import Path
 
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from vpr_explorer.database import DatabaseModel, TraversalDecisions, decide_traversal, fit_database
+from vpr_explorer.database import DatabaseModel, TraversalDecisions, Verdict, decide_traversal, fit_database
 from vpr_explorer.datasets import Dataset, load_dataset
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.places import Places, PlaceSpec, make_places
+from vpr_explorer.places import BETWEEN_PLACES_RULE, Places, PlaceSpec, between_places, make_places
 from vpr_explorer.settings import check_cache_root
 from vpr_explorer.retrieval import METHODS_BY_KEY
 
@@ -69,15 +68,6 @@ ENCODED_SUFFIXES = frozenset({".jpg", ".jpeg", ".png"})
 """Logged as the file's bytes; other formats are decoded and logged as pixels."""
 
 Progress = Callable[[int, int], None]
-
-
-class Verdict(StrEnum):
-    """What one method's answer for one query frame was."""
-
-    RIGHT = "right"
-    WRONG_ACCEPT = "wrong accept"
-    WRONG_REJECT = "wrong reject"
-    BETWEEN = "between places"
 
 
 LEVELS = {
@@ -107,11 +97,11 @@ _PLACE_COLORS = {"true": (200, 200, 200), "paper": (31, 119, 180), "baseline": (
 def frame_verdicts(decisions: TraversalDecisions, key: str) -> np.ndarray:
     """``(n_frames,)`` ``Verdict`` values of one method over the query frames.
 
-    A frame with no right place (between places) is not scored, as in the traversal
-    protocol; otherwise right = accepted with the true place at rank 1.
+    A frame with no right place (between places) is not scored (``places.BETWEEN_PLACES_RULE``,
+    as in the traversal protocol); otherwise right = accepted with the true place at rank 1.
     """
     o = decisions.outcomes[key]
-    known = decisions.truth.any(axis=1)
+    known = ~between_places(decisions.truth)
     out = np.where(o.right, Verdict.RIGHT.value,
                    np.where(o.accepted, Verdict.WRONG_ACCEPT.value, Verdict.WRONG_REJECT.value))
     return np.where(known, out, Verdict.BETWEEN.value).astype(object)
@@ -206,42 +196,55 @@ def route_positions(dataset: Dataset) -> np.ndarray:
     return np.stack([f, np.zeros_like(f)], axis=1)
 
 
+#: Longest view title the viewer shows whole in a third of the Playback page's width.
+TITLE_CHARS = 40
+
+
 def playback_blueprint(query: str, database: Sequence[str]) -> rrb.Blueprint:
-    """Query and both answers on top, the score series below, route, decisions and thresholds last."""
-    db = ", ".join(database)
-    no_legend = rrb.PlotLegend(visible=False)  # it would hide most of a short plot; the titles name the colours
-    series = "raw_p (blue), θ_p (red), margin raw_p − θ_p (green)"
+    """Query and both answers on top, the score series below, route, decisions and thresholds last.
+
+    View titles stay within ``TITLE_CHARS`` so that none is cut in a third of the page; the
+    colours and units they used to spell out are in each plot's legend (the series' names,
+    ``_SERIES_NAMES``: rerun's plots have no axis titles) and in the summary. The summary
+    shares the widest panel with the decision log, word-wrapped.
+    """
+    legend = rrb.PlotLegend(corner=rrb.Corner2D.LeftTop, visible=True)
     return rrb.Blueprint(
         rrb.Vertical(
             rrb.Horizontal(
-                rrb.Spatial2DView(origin="query", name=f"query ({query})"),
-                rrb.Spatial2DView(origin="match/paper", name=f"paper's answer ({db}): margin, weighted θ"),
-                rrb.Spatial2DView(origin="match/baseline", name=f"place-level baseline's answer ({db})"),
+                rrb.Spatial2DView(origin="query", name=_title(f"query ({query})")),
+                rrb.Spatial2DView(origin="match/paper", name="paper's answer: margin, weighted θ"),
+                rrb.Spatial2DView(origin="match/baseline", name="place-level baseline's answer"),
             ),
             rrb.Horizontal(
-                rrb.TimeSeriesView(origin="scores/paper", name=f"paper, best place: {series}",
-                                   plot_legend=no_legend),
-                rrb.TimeSeriesView(origin="scores/baseline", name=f"baseline, its place: {series}",
-                                   plot_legend=no_legend),
-                rrb.TimeSeriesView(origin="place", name="place: true (grey), paper (blue), baseline (orange)",
-                                   plot_legend=no_legend),
+                rrb.TimeSeriesView(origin="scores/paper", name="paper: similarity per frame",
+                                   plot_legend=legend),
+                rrb.TimeSeriesView(origin="scores/baseline", name="baseline: similarity per frame",
+                                   plot_legend=legend),
+                rrb.TimeSeriesView(origin="place", name="place: true (grey) and answers", plot_legend=legend),
             ),
             rrb.Horizontal(
-                rrb.Spatial2DView(origin="route", name="route: query (blue), answers (green right, red wrong)"),
-                rrb.TextLogView(origin="decision", name="decisions"),
+                rrb.Spatial2DView(origin="route", name="route: query blue, answers"),
                 rrb.Tabs(
-                    rrb.TextDocumentView(origin="summary", name="summary"),
-                    rrb.BarChartView(origin="thresholds/weighted", name="θ_p weighted (paper)"),
-                    rrb.BarChartView(origin="thresholds/simple", name="θ_p simple"),
+                    rrb.TextDocumentView(origin="summary", name="summary",
+                                         format_options=rrb.archetypes.TextDocumentFormat(word_wrap=True)),
+                    rrb.TextLogView(origin="decision", name="decisions"),
+                    rrb.BarChartView(origin="thresholds/weighted", name="θ_p weighted (paper) per place"),
+                    rrb.BarChartView(origin="thresholds/simple", name="θ_p simple per place"),
                 ),
-                column_shares=[2, 3, 2],
+                column_shares=[2, 5],
             ),
-            row_shares=[3, 3, 3],
+            row_shares=[3, 3, 4],
         ),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
         rrb.TimePanel(state="collapsed", timeline=TIMELINE),
     )
+
+
+def _title(text: str) -> str:
+    """``text`` cut to ``TITLE_CHARS`` with an ellipsis (a traversal name can be long)."""
+    return text if len(text) <= TITLE_CHARS else text[:TITLE_CHARS - 1] + "…"
 
 
 def _image(path: Path) -> rr.AsComponents:
@@ -270,18 +273,29 @@ def _summary(
         f"- descriptor: {descriptor or 'not given'}",
         f"- thresholds: θ_p + k·s_p with k = {k:g}, from the database images only "
         "(weighted θ uses the normalised weights wᵢτᵢ² / Σⱼ wⱼτⱼ²)",
-        f"- {len(decisions.query_images)} query frames, {int(decisions.truth.any(axis=1).sum())} in a place "
-        "(frames between places are shown but not scored)",
+        f"- {len(decisions.query_images)} query frames, {int((~between_places(decisions.truth)).sum())} in a place",
+        f"- {BETWEEN_PLACES_RULE}",
         "",
-        "| method | right | wrong accept | wrong reject | between places | Recall@1 |",
-        "|---|---|---|---|---|---|",
+        "## Decisions",
+        "",
     ]
-    for key in RECORDED:
+    # One short line per method, not a wide table: the viewer's text panel would cut its columns.
+    for key, short in RECORDED.items():
         c = verdict_counts(decisions, key)
         scored = c[Verdict.RIGHT] + c[Verdict.WRONG_ACCEPT] + c[Verdict.WRONG_REJECT]
-        recall = f"{100 * c[Verdict.RIGHT] / scored:.1f} %" if scored else "n/a"
-        lines.append(f"| {METHODS_BY_KEY[key].label} | {c[Verdict.RIGHT]} | {c[Verdict.WRONG_ACCEPT]} | "
-                     f"{c[Verdict.WRONG_REJECT]} | {c[Verdict.BETWEEN]} | {recall} |")
+        recall = f"{100 * c[Verdict.RIGHT] / scored:.1f} %" if scored else "— (no frame in a place)"
+        lines.append(f"- **{short}** ({METHODS_BY_KEY[key].label}): Recall@1 {recall}; {c[Verdict.RIGHT]} right, "
+                     f"{c[Verdict.WRONG_ACCEPT]} wrong accepts, {c[Verdict.WRONG_REJECT]} wrong rejects, "
+                     f"{c[Verdict.BETWEEN]} between places (not scored)")
+    lines += [
+        "",
+        "## Plots",
+        "",
+        f"- similarity per frame: {', '.join(_SERIES_NAMES.values())} of the method's best place "
+        "(the answer, or for a rejected frame the closest place), against the frame number",
+        "- place: the true place id and each answered place id, against the frame number",
+        "- route: the query's true position (blue), each answer's position (green right, red wrong)",
+    ]
     return "\n".join(lines) + "\n"
 
 

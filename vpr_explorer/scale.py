@@ -9,9 +9,9 @@ similarity; this module does one pass over the image pairs for all splits.
 Algorithm
 ---------
 A split holds exactly one image of every place out (the query) and trains on the rest.
-``scale_splits`` runs the steps below as 1 (full-set sums), 4 (locating the sampled
-pairs), 2, 4 (their order statistics), 1 and 3 (per split), 6 (error bounds), then 5 and 6
-together; the functions doing each step are named at its end.
+``scale_splits`` runs the steps below as 1 (full-set sums), 4 (the automatic θ), 2, 1 and
+3 (per split), 6 (error bounds), then 5 and 6 together; the functions doing each step are
+named at its end.
 
 1. **Negative statistics by downdating** (DESIGN.md §2). From the full-set sums T = Σⱼ dⱼ,
    T_p, C = Σⱼ dⱼdⱼᵀ and aᵢ = Σ_{j∉p(i)} (dᵢ·dⱼ − c)² (from dᵢᵀCdᵢ, float64, once; c is the
@@ -48,7 +48,6 @@ together; the functions doing each step are named at its end.
      t3 ≥ t2 − tol: near-duplicate images, rare), the entry keeps all its slot scores
      (``_NearSlots``), from which raw_p and its image (the lowest slot within the
      tolerance) follow exactly in every split;
-   * the scores of the automatic threshold's sampled pairs (4);
    * for the image-level baseline, the places where two or more images reach b_q, with
      the slots that do (at most max(ks) per image: more, and the rank is beyond every K).
 
@@ -61,13 +60,10 @@ together; the functions doing each step are named at its end.
    ``_blocked_pass``, ``_floor``, ``_Entries``, ``_Records``.
 3. **Per split thresholds** from the downdated moments through the library's own
    ``NegativeStats`` and ``place_thresholds``. ``_split_thresholds``.
-4. **The automatic global θ** mirrors ``thresholds.training_pair_scores`` exactly: below
-   its pair limit it is called as is; above, the same seeded pairs are located in the
-   blocks before the pass (``_pair_plan``), which supplies their sgemm scores. Those differ
-   from the reference's einsum scores by at most ε = 2γ_D·max‖d‖² (γ_D = D·u/(1 − D·u),
-   u = 2⁻²⁴: Higham's bound for any summation order). Only pairs within 2ε of the median
-   (and then of the MAD) are recomputed with the reference's einsum, which fixes those
-   order statistics exactly. ``_auto_threshold_from_plan``, ``_order_stats``.
+4. **The automatic global θ** is the reference's own call, ``training_pair_scores`` on the
+   split's training rows (``rows=``, so they are not copied): its tile sample (2·10⁶ scores
+   in dense tiles, one small GEMM each, ~0.3 CPU s per split at 110k × 1,280) is cheap
+   enough to run as is, and so equals the reference bit for bit. ``scale_splits``.
 5. **Per split scoring**, one row block of queries at a time, reads each query's table
    entries at or above its cutoff — the lowest score that can still reach a rank or an
    answer under any method of the split, with every weighted θ anywhere within its error
@@ -124,8 +120,6 @@ from vpr_explorer.evaluation import (
 from vpr_explorer.retrieval import METHODS_BY_KEY, TIE_TOLERANCE, Outcome
 from vpr_explorer.stats import SIGMA_FLOOR, NegativeStats, mixture_moments
 from vpr_explorer.thresholds import (
-    AUTO_MAX_PAIRS,
-    AUTO_Z,
     ThresholdMethod,
     adaptive_k,
     auto_global_threshold,
@@ -144,8 +138,6 @@ TABLE_MEMORY = 2 * 1024**3
 #: nonzero term per place among them (about 170 for Nordland's places of 12 images); the
 #: chunks are summed in float64.
 _W_CHUNK = 2048
-#: Unit roundoff of float32.
-_U32 = 2.0**-24
 #: Descriptor rows read (and converted) at a time outside the pass.
 _CHUNK = 8192
 #: One top-2 table entry: layout row, place index, best score and its slot, second best and its slot.
@@ -394,112 +386,6 @@ class _Records:
         np.add.at(self.n, rows, 1)
 
 
-# --------------------------------------------------------------------------- automatic θ
-
-
-@dataclass(eq=False)
-class _PairPlan:
-    """One split's seeded training pairs, grouped by the block pair holding their score.
-
-    ``flat`` is the pair's index into the (rows of I) × (rows of J) block, I ≤ J, and
-    ``offsets[I * n_blocks + J]`` starts block pair (I, J); ``approx`` gets the sgemm scores.
-    """
-
-    offsets: np.ndarray
-    flat: np.ndarray
-    approx: np.ndarray
-
-
-def _pair_plan(train: np.ndarray, lay: Layout, seed: int) -> _PairPlan:
-    """The pairs ``training_pair_scores(d[train], seed=seed)`` samples, located in the blocks."""
-    n = len(train)
-    rng = np.random.default_rng(seed)
-    i = rng.integers(0, n, size=AUTO_MAX_PAIRS)
-    j = rng.integers(0, n - 1, size=AUTO_MAX_PAIRS)
-    j += j >= i  # the reference's uniform j != i
-    ra = lay.row_of_image[train[i]]
-    rb = lay.row_of_image[train[j]]
-    del i, j
-    ra, rb = np.minimum(ra, rb), np.maximum(ra, rb)  # blocks are row ranges: the lower row, the lower block
-    nb, full = lay.n_blocks, lay.full_rows
-    ba, bb = ra // full, rb // full
-    key = (ba * nb + bb).astype(np.uint16 if nb * nb < 2**16 else np.int64)  # uint16 sorts by radix
-    order = np.argsort(key, kind="stable")
-    width = np.diff(lay.block_start)[bb] * lay.slots
-    flat = ((ra - ba * full) * width + (rb - bb * full))[order].astype(np.int32)
-    offsets = np.r_[0, np.cumsum(np.bincount(key, minlength=nb * nb))]
-    return _PairPlan(offsets, flat, np.empty(AUTO_MAX_PAIRS, dtype=np.float32))
-
-
-def _order_stats(approx: np.ndarray, eps: float, ks: list[int],
-                 exact: Callable[[np.ndarray], np.ndarray]) -> list[float]:
-    """Exact order statistics ``ks`` (adjacent ranks) of values known to within ``eps``.
-
-    The k-th smallest exact value lies within eps of the k-th smallest approximation, so an
-    element more than 2·eps below the window is exactly below it, one more than 2·eps above
-    is above, and the k-th value is the (k − #below)-th of the rest, computed exactly.
-    """
-    part = np.partition(approx, ks)
-    lo, hi = part[min(ks)] - 2 * eps, part[max(ks)] + 2 * eps
-    below = int(np.count_nonzero(approx < lo))
-    cand = np.flatnonzero((approx >= lo) & (approx <= hi))
-    values = np.sort(exact(cand))
-    return [float(values[k - below]) for k in ks]
-
-
-def _median_of(values: list[float]) -> float:
-    # np.median of an even count is the mean of the two middle values: the same arithmetic
-    return float(np.mean(np.asarray(values, dtype=np.float64)))
-
-
-def _auto_threshold_from_plan(plan: _PairPlan, d: np.ndarray, lay: Layout, eps: float) -> float:
-    """``auto_global_threshold(training_pair_scores(...))`` from the pass's approximations.
-
-    The median, then the median absolute deviation from it, each through ``_order_stats``
-    with the reference's einsum scores as the exact values (module doc, step 4).
-    """
-    nb, full = lay.n_blocks, lay.full_rows
-    width = np.diff(lay.block_start) * lay.slots
-    m = len(plan.approx)
-
-    def exact_scores(idx: np.ndarray) -> np.ndarray:
-        key = np.searchsorted(plan.offsets, idx, side="right") - 1
-        bi, bj = key // nb, key % nb
-        flat = plan.flat[idx].astype(np.int64)
-        a = lay.image_of_row[bi * full + flat // width[bj]]
-        b = lay.image_of_row[bj * full + flat % width[bj]]
-        order = np.argsort(a)  # gather rows in memory order
-        out = np.empty(len(idx), dtype=np.float64)
-        for lo in range(0, len(idx), _CHUNK):
-            o = order[lo : lo + _CHUNK]
-            x = np.asarray(d[a[o]], dtype=np.float32)
-            y = np.asarray(d[b[o]], dtype=np.float32)
-            out[o] = np.einsum("ij,ij->i", x, y)  # the reference's scores, bit for bit
-        return out
-
-    approx = plan.approx.astype(np.float64)
-    mid = [m // 2 - 1, m // 2] if m % 2 == 0 else [m // 2]
-    med = _median_of(_order_stats(approx, eps, mid, exact_scores))
-    np.subtract(approx, med, out=approx)
-    np.abs(approx, out=approx)
-    eps_dev = eps * (1 + 1e-9) + 1e-12  # the float64 subtraction adds one rounding
-    mad = _median_of(_order_stats(approx, eps_dev, mid, lambda idx: np.abs(exact_scores(idx) - med)))
-    return med + AUTO_Z * mad / 0.675
-
-
-def _score_bound(d: np.ndarray, lay: Layout) -> float:
-    """ε: the most an sgemm score and an einsum score of the same pair can differ."""
-    top = 0.0
-    for lo in range(0, len(d), _CHUNK):
-        z = np.asarray(d[lo : lo + _CHUNK], dtype=np.float32).astype(np.float64)
-        ok = lay.row_of_image[lo : lo + _CHUNK] >= 0
-        if ok.any():
-            top = max(top, float(np.einsum("ij,ij->i", z[ok], z[ok]).max()))
-    dim = d.shape[1]
-    gamma = dim * _U32 / (1 - dim * _U32)
-    return 2 * gamma * top * (1 + 1e-6)
-
-
 # --------------------------------------------------------------------------- exact full-set sums
 
 
@@ -634,23 +520,60 @@ def _table_side(pool, s3: np.ndarray, floor: np.ndarray, *, axis: int, parts: in
     return {"row": r, "place": c, **_top2_rows(vals), "vals": vals}
 
 
+class _BlockProducts:
+    """S = X_I X_Jᵀ of the pass, written into a float32 buffer: numpy (BLAS), or torch on ``device``.
+
+    With a device the layout descriptors are copied there once (CPU tensors share numpy's
+    memory) and each block's product comes back to the CPU buffer. Its float32 scores may
+    differ from numpy's in the last bits, like another BLAS kernel's: the tie tolerance
+    (module doc, step 2) keeps every outcome the same.
+    """
+
+    def __init__(self, x: np.ndarray, device: object | None):
+        self.x, self.device = x, device
+        if device is not None:
+            import torch
+
+            from vpr_explorer.stats import torch_device
+
+            self.device = torch_device(device)
+            self.xt = torch.from_numpy(x).to(self.device)
+
+    def __call__(self, ri: slice, rj: slice, out: np.ndarray) -> None:
+        x = self.x
+        if self.device is None:
+            np.matmul(x[ri], x[ri].T if ri == rj else x[rj].T, out=out)  # A @ A.T: the syrk of the reference's d @ d.T
+            return
+        import torch
+
+        from vpr_explorer.stats import ieee_float32
+
+        with ieee_float32():
+            if self.device.type == "cpu":
+                torch.matmul(self.xt[ri], self.xt[rj].T, out=torch.from_numpy(out))
+            else:
+                torch.from_numpy(out).copy_(self.xt[ri] @ self.xt[rj].T)
+
+
 def _blocked_pass(
     x: np.ndarray,
     lay: Layout,
     query_rows: np.ndarray,
     row_traversal: np.ndarray | None,
     entries: _Entries,
-    plans: dict[int, _PairPlan],
     cap: int,
     mu_range: tuple[float, float],
     centre: float,
     threads: int,
     progress: Callable[[int, str], None] | None,
+    device: object | None = None,
 ) -> _PassResult:
     """Everything the splits need from the similarities, in one pass over block pairs I ≤ J (step 2).
 
     Diagonal blocks come first: they hold each image's own place, hence b and the row's
     floor, which the off-diagonal blocks need. ``progress(pairs done, message)`` after each pair.
+    ``device``: a torch device for the block products (``_BlockProducts``); the bookkeeping
+    stays in numpy on the CPU.
     """
     n_rows, m, nb = lay.n_rows, lay.slots, lay.n_blocks
     runs = query_rows.shape[0]
@@ -668,20 +591,15 @@ def _blocked_pass(
     s_buf = np.empty(widest * widest, dtype=np.float32)
     q_buf = np.empty(widest * widest, dtype=np.float32)
     pairs = [(i, i) for i in range(nb)] + [(i, j) for i in range(nb) for j in range(i + 1, nb)]
+    products = _BlockProducts(x, device)
     pool = ThreadPoolExecutor(threads) if threads > 1 else None
     try:
         for step, (bi, bj) in enumerate(pairs):
             ri, rj = lay.rows(bi), lay.rows(bj)
             ni, nj = ri.stop - ri.start, rj.stop - rj.start
             gi, gj = ni // m, nj // m  # places in each block
-            xi = x[ri]
             s = s_buf[: ni * nj].reshape(ni, nj)
-            np.matmul(xi, xi.T if bi == bj else x[rj].T, out=s)  # A @ A.T: the syrk of the reference's d @ d.T
-            flat_s = s.reshape(-1)
-            for plan in plans.values():  # the automatic threshold's pairs, unmasked
-                lo, hi = plan.offsets[bi * nb + bj], plan.offsets[bi * nb + bj + 1]
-                if hi > lo:
-                    np.take(flat_s, plan.flat[lo:hi], out=plan.approx[lo:hi])
+            products(ri, rj, s)
             # second moments: squared scores against each split's queries of other places
             q = q_buf[: ni * nj].reshape(ni, nj)
             _in_slices(pool, lambda sl: np.square(np.subtract(s[sl], centre, out=q[sl]), out=q[sl]), ni, threads)
@@ -1272,6 +1190,7 @@ def scale_splits(
     spill_dir: str | os.PathLike | None = None,
     threads: int | None = None,
     progress: Progress | None = None,
+    device: object | None = None,
 ) -> list[SplitScores]:
     """The paper protocol's splits scored through one blocked pass (see the module doc).
 
@@ -1282,7 +1201,7 @@ def scale_splits(
         splits: from ``evaluation.draw_splits`` without unknown places.
         seed: the protocol's seed (split r's automatic threshold samples with seed + r).
         max_k: image-level ranks beyond it are reported as ``max_k + 1``.
-        block, table_memory, spill_dir, threads: see ``fast_paper_protocol``.
+        block, table_memory, spill_dir, threads, device: see ``fast_paper_protocol``.
         progress: ``progress(done, total, message)`` over the splits (their automatic θ), the
             pass's block pairs, then the scoring's row blocks.
     Returns:
@@ -1296,6 +1215,10 @@ def scale_splits(
     if any(sp.unknown.any() for sp in splits):
         raise VPRInputError("scale_splits: splits with unknown places (the open set) are not supported; "
                             "use evaluation.open_set_protocol")
+    if device is not None:  # a bad device fails before any work
+        from vpr_explorer.stats import torch_device
+
+        device = torch_device(device)
     lay = make_layout(image_place, n_places, block)
     query_rows = np.stack([lay.row_of_image[sp.queries] for sp in splits])  # (R, P): queries by place index
     held = lay.slot_of_row[query_rows]
@@ -1309,23 +1232,12 @@ def scale_splits(
     n_pairs = lay.n_blocks * (lay.n_blocks + 1) // 2
     steps = runs + n_pairs + lay.n_blocks  # per split (automatic θ), per block pair, per row block
     report = (lambda done, what: progress(done, steps, what)) if progress else None
-    # automatic θ (step 4): the reference's exact branch as is; its sampled pairs located for the pass
+    # automatic θ (step 4): the reference's own call on the split's training rows
     autos: dict[int, float] = {}
-    sampled = []
     for r, sp in enumerate(splits):
-        n = len(sp.train)
-        if n * (n - 1) // 2 <= AUTO_MAX_PAIRS:
-            autos[r] = auto_global_threshold(training_pair_scores(d[sp.train], seed=seed + r))
-            if report:
-                report(r + 1, f"split {r + 1}/{runs}: automatic θ")
-        else:
-            sampled.append(r)
-    plans = {}
-    with ThreadPoolExecutor(threads) as pool:  # numpy frees the GIL: splits side by side
-        for r, plan in zip(sampled, pool.map(lambda r: _pair_plan(splits[r].train, lay, seed + r), sampled)):
-            plans[r] = plan
-            if report:
-                report(len(autos) + len(plans), f"split {r + 1}/{runs}: automatic θ pairs located")
+        autos[r] = auto_global_threshold(training_pair_scores(d, rows=sp.train, seed=seed + r))
+        if report:
+            report(r + 1, f"split {r + 1}/{runs}: automatic θ")
     row_traversal = None
     if cross_condition:
         _, codes = np.unique(image_traversal, return_inverse=True)
@@ -1336,14 +1248,9 @@ def scale_splits(
     entries = _Entries(lay, table_memory, spill_dir)
     try:
         x = _as_layout32(d, lay)
-        pas = _blocked_pass(x, lay, query_rows, row_traversal, entries, plans, max_k, (mu_lo, mu_hi), sums.centre,
-                            threads, pass_report)
+        pas = _blocked_pass(x, lay, query_rows, row_traversal, entries, max_k, (mu_lo, mu_hi), sums.centre,
+                            threads, pass_report, device)
         del x
-        if plans:
-            eps = _score_bound(d, lay)
-            with ThreadPoolExecutor(threads) as pool:
-                autos.update(zip(sampled, pool.map(lambda r: _auto_threshold_from_plan(plans.pop(r), d, lay, eps),
-                                                   sampled)))
         content = _content_classes(d, lay)
         data = [_split_thresholds(r, sp, lay, sums, pas, held[r], n_places, autos[r], user_theta, content)
                 for r, sp in enumerate(splits)]
@@ -1378,6 +1285,7 @@ def fast_paper_protocol(
     image_frame: np.ndarray | None = None,
     frame_place: np.ndarray | None = None,
     pr: bool = False,
+    device: object | None = None,
 ) -> Evaluation:
     """``evaluation.paper_protocol`` through one blocked pass: the same ``Evaluation``.
 
@@ -1397,6 +1305,8 @@ def fast_paper_protocol(
         pr: also the precision–recall rows and curves. The per-place family curves need every
             query's raw_p, which the pass does not keep: up to ``PR_FAMILY_CELLS`` runs × places²
             the run goes to ``paper_protocol`` (the same numbers), above it they are left out.
+        device: ``None`` (numpy) or a torch device ("cpu", "cuda") for the pass's block
+            products; the same numbers (the tie tolerance absorbs last-bit differences).
     """
     t0 = time.perf_counter()
     d, image_place, image_traversal, ks = _check_common(descriptors, image_place, image_traversal, runs, ks)
@@ -1419,7 +1329,7 @@ def fast_paper_protocol(
     scored = scale_splits(
         d, image_place, image_traversal, n_places, splits, cross_condition=cross_condition, user_theta=user_theta,
         seed=seed, max_k=max(ks), block=block, table_memory=table_memory, spill_dir=spill_dir, threads=threads,
-        progress=progress,
+        progress=progress, device=device,
     )
     notes = []
     if not cross_condition:

@@ -50,6 +50,9 @@ plus float64 rounding (~1e-16 · dᵢᵀEdᵢ / n⁻ᵢ); ``sigma_sq_error_bound
 It holds for every order of summing the products, hence for every BLAS kernel (OpenBLAS,
 MKL: none uses Strassen-type products) and thread count: two runs differ by at most twice
 it, and the elementwise parts are cut the same whatever ``threads``.
+``device=`` ("cpu", "cuda", "cuda:1", a ``torch.device``) runs the two N·D² products as
+torch float32 matmuls on that device (full E, no triangle; float64 sums on the device; TF32
+off), and the rest as above: the same bound holds, since it holds for any summation order.
 It is a worst case: rounding errors of both signs add like √k, and measured |σ̂² − σ²| is
 1e-6 to 1e-2 of it (tests/test_stats.py): |Δσ| ≈ 1e-9 at N = 100,000, D = 1,280, and
 2e-9 to 5e-8 on small or shared-component sets (σ ≈ 0.01 with all scores near 0.8).
@@ -57,6 +60,7 @@ It is a worst case: rounding errors of both signs add like √k, and measured |�
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -78,6 +82,7 @@ BLOCK = 4096
 _CENTRE_ROWS = 4096  # rows averaged for the centre m
 _BIG_PLACE = 1024  # places with more images get their same-place scores a band of rows at a time
 _PART = 512  # rows per part of the elementwise work shared out to threads (fixed: see ``_parts``)
+_MEAN_ROWS = 8192  # rows converted to float64 at a time by ``positive_means``
 _TRI_BLOCKS = 4  # column blocks of W: the quadratic forms take (1 + 1/4)·N·D² flops instead of 2·N·D²
 
 
@@ -215,6 +220,7 @@ def negative_stats(
     block: int = BLOCK,
     precision: Precision | str = Precision.FLOAT32,
     threads: int | None = None,
+    device: object | None = None,
 ) -> NegativeStats:
     """μᵢ, σᵢ of every training image's negative scores, in closed form.
 
@@ -230,6 +236,9 @@ def negative_stats(
         threads: threads for the elementwise work of the float32 path (default: CPU count, at
             most 8; BLAS keeps its own). The work is cut into the same parts whatever the
             count, so the result does not depend on it.
+        device: ``None`` (numpy, the default) or a torch device ("cpu", "cuda", …): the float32
+            products as torch matmuls there (module docstring); within the same error bound.
+            Only with ``precision="float32"``.
     """
     d = validate_descriptors(descriptors, "training descriptors")
     n, dim = d.shape
@@ -244,6 +253,11 @@ def negative_stats(
     threads = min(os.cpu_count() or 1, 8) if threads is None else max(1, int(threads))
     counts = np.bincount(labels, minlength=n_places)
     n_neg = n - counts[labels]
+    if device is not None:
+        if Precision(precision) is not Precision.FLOAT32:
+            raise VPRInputError(f"device={device!r}: the torch path computes precision='float32' only")
+        dev = torch_device(device)
+        closed_form = functools.partial(_closed_form_torch, device=dev)
     mu, var = closed_form(d, labels, counts, n_neg, int(block), threads)
     # Cancellation can leave -1e-17 where the true variance is 0 (all negatives equal).
     sigma = np.sqrt(np.clip(var, 0.0, None))
@@ -397,6 +411,79 @@ def _quadratic_forms(d: np.ndarray, gram: np.ndarray, block: int, pool: ThreadPo
     return quad
 
 
+def torch_device(device: object):
+    """``torch.device(device)``, checked usable here; a ``VPRInputError`` naming ``device=`` otherwise."""
+    try:
+        import torch
+    except ImportError:  # pragma: no cover (torch is a dependency)
+        raise VPRInputError(f"device={device!r}: needs torch (pip install torch); or leave device unset") from None
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError, ValueError):
+        raise VPRInputError(f"device={device!r}: not a torch device; use e.g. 'cpu' or 'cuda'") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise VPRInputError(f"device={device!r}: no CUDA device is available here; use device='cpu' or leave it unset")
+    if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
+        raise VPRInputError(f"device={device!r}: this machine has {torch.cuda.device_count()} CUDA device(s)")
+    if dev.type not in ("cpu", "cuda"):
+        raise VPRInputError(f"device={device!r}: only 'cpu' and 'cuda' devices are supported")
+    return dev
+
+
+class ieee_float32:
+    """Context: torch float32 matmuls in full float32 (no TF32 on CUDA), restored on exit."""
+
+    def __enter__(self):
+        import torch
+
+        self.torch = torch
+        self.saved = torch.get_float32_matmul_precision()
+        torch.set_float32_matmul_precision("highest")
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.torch.set_float32_matmul_precision(self.saved)
+
+
+def _closed_form_torch(
+    d: np.ndarray, labels: np.ndarray, counts: np.ndarray, n_neg: np.ndarray, block: int, threads: int, *, device
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(mu, var)`` as ``_closed_form_float32``, the two N·D² products as torch matmuls on ``device``.
+
+    Blocks of rows go to the device once per pass; E is summed there in float64, and the
+    quadratic forms use the whole E (2·N·D² flops: simpler than the triangle, and a GPU has
+    them to spare). The per-place float64 terms stay on the CPU (O(N·k·D)).
+    """
+    import torch
+
+    n, dim = d.shape
+    centre = _centre(d)
+    dtype32 = d.dtype == np.float32
+    m = torch.from_numpy(centre if dtype32 else centre.astype(np.float64)).to(device)
+
+    def rows(lo: int):
+        return torch.from_numpy(np.ascontiguousarray(d[lo : lo + block])).to(device)
+
+    with ieee_float32():
+        gram = torch.zeros((dim, dim), dtype=torch.float64, device=device)
+        total = torch.zeros(dim, dtype=torch.float64, device=device)
+        for lo in range(0, n, block):
+            x = rows(lo)
+            e = (x - m).to(torch.float32)  # float32 − float32, or float64 − float64 then one rounding
+            gram += (e.T @ e).to(torch.float64)
+            total += x.sum(dim=0, dtype=torch.float64)
+        gram32 = gram.to(torch.float32)
+        quad = torch.empty(n, dtype=torch.float64, device=device)
+        for lo in range(0, n, block):
+            x = rows(lo).to(torch.float32)
+            quad[lo : lo + len(x)] = ((x @ gram32).to(torch.float64) * x.to(torch.float64)).sum(dim=1)
+        quad, total = quad.cpu().numpy(), total.cpu().numpy()
+    with ThreadPoolExecutor(threads) as pool:
+        dot_total, a, same, same_sq = _place_terms(d, labels, counts, np.stack([total, centre]), pool)
+    mu = (dot_total - same) / n_neg
+    return mu, (quad - same_sq) / n_neg - (mu - a) ** 2
+
+
 _CLOSED_FORMS = {Precision.FLOAT32: _closed_form_float32, Precision.FLOAT64: _closed_form_float64}
 
 
@@ -497,12 +584,25 @@ def mixture_pdf(x: np.ndarray, mu: np.ndarray, sigma: np.ndarray, weights: np.nd
 def positive_means(descriptors: np.ndarray, labels: np.ndarray, n_places: int) -> np.ndarray:
     """``(n_places,)`` mean same-place score over pairs i ≠ j; NaN where a place has < 2 images.
 
-    Σ_{i≠j∈p} dᵢ·dⱼ = ‖T_p‖² − Σ_{i∈p} ‖dᵢ‖², so no pairwise matrix is needed.
+    Σ_{i≠j∈p} dᵢ·dⱼ = ‖T_p‖² − Σ_{i∈p} ‖dᵢ‖², so no pairwise matrix is needed. Rows are
+    converted to float64 ``_MEAN_ROWS`` at a time into one buffer (a whole float64 copy of a
+    33,000 × 2,048 database was 14% of the app's fit, mostly page faults); up to that many
+    rows the sums are the single product they were before.
     """
-    d = np.asarray(descriptors, dtype=np.float64)
+    d = np.asarray(descriptors)
+    n = len(labels)
     counts = np.bincount(labels, minlength=n_places).astype(np.float64)
-    sums = sparse.csr_matrix((np.ones(len(labels)), (labels, np.arange(len(labels)))), shape=(n_places, len(labels))) @ d
-    norms = np.bincount(labels, weights=np.einsum("ij,ij->i", d, d), minlength=n_places)
+    sums = np.zeros((n_places, d.shape[1]))
+    sq = np.empty(n)
+    buf = np.empty((min(_MEAN_ROWS, n), d.shape[1]))
+    for lo in range(0, n, _MEAN_ROWS):
+        x = buf[: min(_MEAN_ROWS, n - lo)]
+        np.copyto(x, d[lo : lo + len(x)], casting="same_kind")  # float32/float16 to float64: exact
+        part = sparse.csr_matrix((np.ones(len(x)), (labels[lo : lo + len(x)], np.arange(len(x)))),
+                                 shape=(n_places, len(x)))
+        sums += part @ x
+        sq[lo : lo + len(x)] = np.einsum("ij,ij->i", x, x)
+    norms = np.bincount(labels, weights=sq, minlength=n_places)
     pairs = counts * (counts - 1)
     with np.errstate(invalid="ignore", divide="ignore"):
         out = (np.einsum("ij,ij->i", sums, sums) - norms) / pairs

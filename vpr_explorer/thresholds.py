@@ -11,7 +11,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from enum import StrEnum
 
@@ -25,8 +27,12 @@ from vpr_explorer.stats import SIGMA_FLOOR, NegativeStats, mixture_moments
 AUTO_Z = float(norm.ppf(1 - 1e-6))
 #: Pairs used for the automatic global threshold when the training set has more.
 AUTO_MAX_PAIRS = 2_000_000
-# Sampled pairs scored per task, and threads (110k-image app benchmark, 24,831 x 2048
-# database: 13.5 s in one thread with 65,536-pair blocks, 7.8 s with two).
+#: How a training set with more pairs than ``AUTO_MAX_PAIRS`` is sampled (``training_pair_scores``).
+AUTO_SAMPLES = ("tiles", "pairs")
+#: Rows gathered at a time by the tile sample (8,192 × 2,048 float32: 64 MiB).
+TILE_ROWS = 8192
+# Independent pairs (``sample="pairs"``) scored per task, and threads (110k-image app benchmark,
+# 24,831 x 2048 database: 13.5 s in one thread with 65,536-pair blocks, 7.8 s with two).
 PAIR_BLOCK = 4096
 PAIR_WORKERS = min(4, os.cpu_count() or 1)
 
@@ -97,25 +103,50 @@ def adaptive_k(positive_mean: np.ndarray, negative_mean: np.ndarray, negative_st
 
 
 def training_pair_scores(
-    descriptors: np.ndarray, *, max_pairs: int = AUTO_MAX_PAIRS, seed: int = 0, block: int = PAIR_BLOCK,
-    workers: int = PAIR_WORKERS,
+    descriptors: np.ndarray, *, max_pairs: int = AUTO_MAX_PAIRS, seed: int = 0, rows: np.ndarray | None = None,
+    sample: str = "tiles", block: int = PAIR_BLOCK, workers: int = PAIR_WORKERS,
 ) -> np.ndarray:
-    """Similarities of distinct training pairs i < j: all of them, or a seeded sample of ``max_pairs``.
+    """Similarities of distinct training pairs: all of them (i < j), or a seeded sample of about ``max_pairs``.
 
-    Sampled pairs are scored ``block`` at a time by ``workers`` threads (gathering the
-    rows is memory-bound and numpy releases the GIL for it), so memory stays at
-    ``2·workers·block·D`` floats whatever ``max_pairs`` is. Each pair's score is the same
-    float32 dot product whatever the block size or thread count.
+    Args:
+        descriptors: ``(n, D)`` training descriptors, or the rows ``rows`` of a larger array
+            (then the result is exactly that of ``descriptors[rows]``, without copying it).
+        sample: above ``max_pairs`` pairs, which sample (README, "The app at that scale"):
+
+            * ``"tiles"`` (default): a seeded permutation of the n images cut into
+              g = ⌈n²/max_pairs⌉ (≥ 3) groups of ⌊n/g⌋ or ⌈n/g⌉ images, and every pair between
+              group a and group a + 1 (mod g): g dense tiles of about (max_pairs/n)² scores,
+              each one float32 GEMM of gathered rows. About n²/g ≤ max_pairs pairs, all
+              distinct, no image with itself, and every image in the same number of them to
+              within 2 (balanced, as in the full set, where each is in n − 1). Pairs in one tile
+              share rows and columns, so they are not independent: ``tests/test_thresholds.py``
+              and ``benchmarks/bench_auto_sample.py`` show that the automatic θ from them
+              agrees with the independent-pairs θ within its sampling error.
+            * ``"pairs"``: ``max_pairs`` independent uniform pairs (i, j ≠ i), scored ``block``
+              at a time by ``workers`` threads (each gathers 2·block rows: memory-bound).
+
+    Each score is the same float32 value whatever ``block``, ``workers`` or the BLAS thread count.
     """
-    d = np.asarray(descriptors, dtype=np.float32)
-    n = len(d)
+    if sample not in AUTO_SAMPLES:
+        raise VPRInputError(f"sample={sample!r}: choose one of {', '.join(AUTO_SAMPLES)}")
+    if rows is not None:
+        rows = np.asarray(rows, dtype=np.int64)
+    n = len(descriptors) if rows is None else len(rows)
     total = n * (n - 1) // 2
     if total == 0:
         raise VPRInputError("the automatic global threshold needs at least 2 training images")
+
+    def gather(idx: np.ndarray) -> np.ndarray:
+        """float32 rows ``idx`` of the training set."""
+        return np.asarray(descriptors[idx if rows is None else rows[idx]], dtype=np.float32)
+
     if total <= max_pairs:
+        d = np.asarray(descriptors if rows is None else descriptors[rows], dtype=np.float32)
         iu = np.triu_indices(n, k=1)
         return (d @ d.T)[iu]
     rng = np.random.default_rng(seed)
+    if sample == "tiles":
+        return _tile_scores(gather, n, rng.permutation(n), max_pairs, max(1, workers))
     i = rng.integers(0, n, size=max_pairs)
     j = rng.integers(0, n - 1, size=max_pairs)
     j = j + (j >= i)  # uniform over j != i
@@ -123,10 +154,88 @@ def training_pair_scores(
 
     def score(lo: int) -> None:
         hi = lo + block
-        out[lo:hi] = np.einsum("ij,ij->i", d[i[lo:hi]], d[j[lo:hi]])
+        out[lo:hi] = np.einsum("ij,ij->i", gather(i[lo:hi]), gather(j[lo:hi]))
 
     with ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="vpr-pairs") as pool:
         list(pool.map(score, range(0, max_pairs, block)))
+    return out
+
+
+def tile_groups(n: int, max_pairs: int) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """Group edges ``(g + 1,)`` of n permuted images in g = ⌈n²/max_pairs⌉ (at least 3) near-equal
+    groups, and the tiles (a, a + 1 mod g) whose pairs are scored."""
+    g = min(n, max(3, -(-n * n // max_pairs)))
+    edges = np.arange(g + 1) * n // g
+    return edges, [(a, (a + 1) % g) for a in range(g)]
+
+
+_BLAS_LOCK = threading.Lock()
+_BLAS_USERS = [0, None]  # callers inside ``_one_blas_thread``, and the limiter they share
+
+
+@contextlib.contextmanager
+def _one_blas_thread():
+    """BLAS in one thread while inside (the tiles' own threads parallelise; a multithreaded GEMM of
+    80 × 2,048 × 80 waits more on its threads than it computes: 15× slower on a loaded machine).
+
+    Process-wide (OpenBLAS has one setting): nested and concurrent callers share one limiter,
+    the last to leave restores the count. The GEMMs used here give the same value per element
+    whatever the thread count (they split rows and columns between threads, never the sum).
+    Without threadpoolctl, nothing is changed.
+    """
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover
+        yield
+        return
+    with _BLAS_LOCK:
+        if _BLAS_USERS[0] == 0:
+            _BLAS_USERS[1] = threadpool_limits(limits=1, user_api="blas")
+        _BLAS_USERS[0] += 1
+    try:
+        yield
+    finally:
+        with _BLAS_LOCK:
+            _BLAS_USERS[0] -= 1
+            if _BLAS_USERS[0] == 0:
+                _BLAS_USERS[1].restore_original_limits()
+                _BLAS_USERS[1] = None
+
+
+def _tile_scores(gather, n: int, perm: np.ndarray, max_pairs: int, workers: int) -> np.ndarray:
+    """The ``"tiles"`` sample: scores of every pair between permuted groups a and a + 1, tile by tile.
+
+    Groups are read ``TILE_ROWS`` rows at a time (with the next group, and group 0 for the
+    last tile), so each image is gathered about once and memory stays at ~2·TILE_ROWS·D floats
+    per worker. A tile's scores are ``x_a @ x_bᵀ``: one GEMM of fixed shape, whichever chunk
+    or thread computes it.
+    """
+    edges, tiles = tile_groups(n, max_pairs)
+    sizes = np.diff(edges)
+    counts = np.array([sizes[a] * sizes[b] for a, b in tiles], dtype=np.int64)
+    offsets = np.r_[0, np.cumsum(counts)]
+    out = np.empty(int(offsets[-1]), dtype=np.float32)
+    per_chunk = max(1, TILE_ROWS // (int(sizes.max()) + 1))
+    chunks = [range(lo, min(lo + per_chunk, len(tiles))) for lo in range(0, len(tiles), per_chunk)]
+
+    def score(chunk: range) -> None:
+        first = tiles[chunk[0]][0]
+        last = max(max(tiles[k]) for k in chunk)  # groups first..last are read together (0 apart)
+        lo, hi = int(edges[first]), int(edges[last + 1])
+        x = gather(perm[lo:hi])
+        x0 = None
+        for k in chunk:
+            a, b = tiles[k]
+            xa = x[edges[a] - lo : edges[a + 1] - lo]
+            if b == 0:  # the last tile wraps to group 0
+                x0 = gather(perm[: edges[1]]) if x0 is None else x0
+                xb = x0
+            else:
+                xb = x[edges[b] - lo : edges[b + 1] - lo]
+            np.matmul(xa, xb.T, out=out[offsets[k] : offsets[k + 1]].reshape(len(xa), len(xb)))
+
+    with _one_blas_thread(), ThreadPoolExecutor(max_workers=workers, thread_name_prefix="vpr-tiles") as pool:
+        list(pool.map(score, chunks))
     return out
 
 

@@ -310,12 +310,19 @@ def place_detail(
 
 
 def top_candidates(decision: QueryDecision, n: int = 8) -> np.ndarray:
-    """Place ids to show for a query: the ``n`` best by raw_p, then any right place not among them."""
-    order = np.argsort(-decision.raw, kind="stable")
-    order = order[np.isfinite(decision.raw[order])]
-    top = list(order[:n])
-    top += [int(p) for p in decision.true_places if p not in top]
-    return np.array(top, dtype=np.int64)
+    """Place ids to show for a query: the ``n`` best by raw_p, every method's answer and every right place.
+
+    An answer or a right place outside the ``n`` best by raw_p (the margin rule can answer
+    a place far down the raw_p order) joins them, so the bars always carry each method's
+    answer and the right place(s); all are shown in descending raw_p (ties by place id).
+    """
+    raw = np.asarray(decision.raw, dtype=np.float64)
+    order = np.argsort(-raw, kind="stable")
+    order = order[np.isfinite(raw[order])]
+    shown = set(int(p) for p in order[:n])
+    shown |= {int(o.answer_place[0]) for o in decision.outcomes.values() if o.answer_place[0] >= 0}
+    shown |= {int(p) for p in decision.true_places}
+    return np.array(sorted(shown, key=lambda p: (-raw[p] if np.isfinite(raw[p]) else np.inf, p)), dtype=np.int64)
 
 
 @dataclass(frozen=True, eq=False)

@@ -18,6 +18,7 @@ PAGES = (  # (script under pages/, title, icon); the first is the default page
     ("evaluation", "Evaluation", ":material/bar_chart:"),
     # Pages owned by other modules are added below this line, one entry each.
     ("playback", "Playback (rerun)", ":material/play_circle:"),
+    ("sweep", "Group/step sweep", ":material/grid_on:"),
 )
 
 

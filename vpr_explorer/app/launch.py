@@ -4,9 +4,10 @@
 script (``ENTRY``) and the environment it needs; ``run`` prints the URL and becomes that
 server. The project's Streamlit settings travel as command-line flags (``SETTINGS``),
 since Streamlit reads a ``.streamlit/config.toml`` only from the current directory; the
-server binds 127.0.0.1 unless told otherwise. The dataset and a descriptor file reach the
-app through the environment (``DATASET_ENV``, ``DESCRIPTORS_ENV``): every session opens
-them when its link names nothing else, the browser that Streamlit opens included.
+server binds 127.0.0.1 unless told otherwise. The dataset (with its layout and radius) and a
+descriptor file reach the app through the environment (``DATASET_ENV``, ``LAYOUT_ENV``,
+``RADIUS_ENV``, ``DESCRIPTORS_ENV``): every session opens them when its link names nothing
+else, the browser that Streamlit opens included.
 
 Imports no streamlit: the server is another program.
 """
@@ -21,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import urlencode
 
-from vpr_explorer.app import DATASET_ENV, DESCRIPTORS_ENV, ENTRY, started_view
+from vpr_explorer.app import DATASET_ENV, DESCRIPTORS_ENV, ENTRY, LAYOUT_ENV, RADIUS_ENV, started_view
 from vpr_explorer.errors import VPRInputError
 
 DEFAULT_PORT = 8501
@@ -57,6 +58,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dataset", default=None,
                    help="dataset folder the app opens (or 'demo'); default: the demo route, another one is picked "
                         "on the Dataset page")
+    p.add_argument("--layout", default=None, metavar="LAYOUT",
+                   help="how the dataset is laid out (as for evaluate: traversals, prepared, database-queries, "
+                        "vpr-bench, traversal-positions, manifest); default: detected, and changeable on the Dataset page")
+    p.add_argument("--radius", type=float, default=None, metavar="METRES",
+                   help="position-tagged layouts: a database image within this many metres is right (default 25)")
     p.add_argument("--descriptors", type=Path, default=None, metavar="FILE",
                    help="descriptors computed elsewhere (.npz, .npy, hloc .h5), offered beside the extractors and "
                         "opened first; named by the file's stem")
@@ -90,19 +96,44 @@ def _descriptors(path: Path) -> Path:
     return path.expanduser().resolve()
 
 
+def _layout(text: str) -> str:
+    from vpr_explorer.layouts import Layout
+
+    try:
+        return Layout(text).value
+    except ValueError:
+        raise VPRInputError(f"--layout {text}: choose one of {', '.join(x.value for x in Layout)}") from None
+
+
+def _radius(value: float) -> str:
+    import math
+
+    if not math.isfinite(value) or value <= 0:
+        raise VPRInputError(f"--radius {value:g}: must be a positive distance in metres, e.g. 25")
+    return f"{value:g}"
+
+
 def plan(*, dataset: str | None = None, descriptors: Path | None = None, port: int = DEFAULT_PORT,
-         address: str = DEFAULT_ADDRESS, headless: bool = False) -> Launch:
+         address: str = DEFAULT_ADDRESS, headless: bool = False, layout: str | None = None,
+         radius: float | None = None) -> Launch:
     """The server ``vpr-explorer app`` starts for these options.
 
     Raises:
-        VPRInputError: a dataset folder or descriptor file that is not there, a descriptor file
-            without its dataset, or a bad port.
+        VPRInputError: a dataset folder or descriptor file that is not there, a layout that is not
+            one, a radius that is not a positive number of metres, a descriptor file, layout or
+            radius without its dataset, or a bad port.
     """
     if not 1 <= port <= 65535:
         raise VPRInputError(f"--port {port}: choose a port from 1 to 65535")
     env = {}
     if dataset is not None:
         env[DATASET_ENV] = _dataset(dataset)
+    for option, value, variable, check in (("layout", layout, LAYOUT_ENV, _layout),
+                                           ("radius", radius, RADIUS_ENV, _radius)):
+        if value is not None:
+            if dataset is None:
+                raise VPRInputError(f"--{option} {value}: give the --dataset it applies to too")
+            env[variable] = check(value)
     if descriptors is not None:
         if dataset is None:
             raise VPRInputError(f"--descriptors {descriptors}: give the --dataset its rows describe too")
@@ -121,7 +152,7 @@ def plan(*, dataset: str | None = None, descriptors: Path | None = None, port: i
 def run(args: argparse.Namespace) -> int:
     """``vpr-explorer app``: print the URL, then become the Streamlit server (until Ctrl-C)."""
     launch = plan(dataset=args.dataset, descriptors=args.descriptors, port=args.port, address=args.address,
-                  headless=args.headless)
+                  headless=args.headless, layout=getattr(args, "layout", None), radius=getattr(args, "radius", None))
     print(f"VPR Threshold Explorer: {launch.url}\n  (serving {ENTRY.parent})", flush=True)
     # exec, not a child process: Ctrl-C and a supervisor's SIGTERM reach the server itself.
     os.execve(launch.argv[0], list(launch.argv), {**os.environ, **launch.env})

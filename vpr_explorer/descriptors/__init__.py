@@ -9,7 +9,8 @@ Built in: ``pixels``, ``efficientnet-lite0`` and the paper's ``alexnet-conv3``,
 ``cosplace`` and ``eigenplaces`` (their weights: :mod:`.checkpoints`); users add their
 own models with :func:`register_extractor` or a ``VPR_EXPLORER_MODELS`` settings file
 (:mod:`.custom`). Descriptors computed elsewhere come in through
-:func:`load_descriptor_file` (:mod:`.imported`).
+:func:`load_descriptor_file` (:mod:`.imported`). Extraction on a Ray cluster, into the same
+cache, is :mod:`.distributed` (the optional ``ray`` extra; not imported here).
 """
 
 from vpr_explorer.descriptors.base import Extractor

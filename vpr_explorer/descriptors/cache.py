@@ -358,6 +358,32 @@ class DescriptorCache:
             vectors.resize((len(index), width), refcheck=False)  # no view of it exists
         return CacheHits(index, vectors)
 
+    def contains(self, cache_key: str, hashes: Sequence[str]) -> np.ndarray:
+        """``(len(hashes),)`` bool: whether a shard this cache would read lists each hash.
+
+        Reads manifests only, so it is cheap at millions of hashes (no vectors are read,
+        no checksum verified): what a job uses to decide what is left to compute. A shard
+        found damaged later is still caught by :meth:`lookup`, which then recomputes it.
+        Shards of another storage dtype count as :meth:`lookup` counts them.
+
+        Raises:
+            VPRInputError: a bad ``cache_key``.
+        """
+        folder = self._folder(cache_key)
+        wanted = set(hashes)
+        seen: set[str] = set()
+        for manifest_path in self._manifests(folder):
+            if len(seen) == len(wanted):
+                break
+            try:
+                manifest = self._read_manifest(manifest_path)
+            except _Damaged:
+                continue  # lookup reports and deletes it
+            if self.dtype == "float32" and manifest["dtype"] != "float32":
+                continue
+            seen.update(h for h in manifest["hashes"] if h in wanted)
+        return np.fromiter((h in seen for h in hashes), dtype=bool, count=len(hashes))
+
     # ---------------------------------------------------------------- housekeeping
 
     def clear(self, cache_key: str | None = None) -> None:

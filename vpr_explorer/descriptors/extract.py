@@ -143,7 +143,7 @@ def _check_options(paths: Sequence[Path], batch_size: int, workers: int) -> None
         raise VPRInputError(f"workers={workers!r}: must be a whole number >= 1")
 
 
-def _normalise_rows(raw: np.ndarray, paths: Sequence[Path], extractor: Extractor) -> np.ndarray:
+def normalise_rows(raw: np.ndarray, paths: Sequence[Path], extractor: Extractor) -> np.ndarray:
     """``(B, D)`` model output -> unit rows; raises naming the images whose row is zero or not finite."""
     if raw.shape != (len(paths), extractor.dim):
         raise VPRInputError(
@@ -161,6 +161,16 @@ def _normalise_rows(raw: np.ndarray, paths: Sequence[Path], extractor: Extractor
             "remove the image or choose another descriptor"
         )
     return (raw / norms[:, None]).astype(np.float32)
+
+
+def hash_paths(paths: Sequence[Path], pool: ThreadPoolExecutor) -> list[str]:
+    """Content hashes (:func:`hash_file`) of ``paths``, in order, ``HASH_CHUNK`` files per task of ``pool``.
+
+    Raises:
+        VPRInputError: naming the first file that is missing or unreadable.
+    """
+    chunks = [paths[lo : lo + HASH_CHUNK] for lo in range(0, len(paths), HASH_CHUNK)]
+    return [h for part in pool.map(lambda chunk: [hash_file(p) for p in chunk], chunks) for h in part]
 
 
 def renormalise_in_place(vectors: np.ndarray) -> None:
@@ -183,7 +193,7 @@ def renormalise_in_place(vectors: np.ndarray) -> None:
             vectors[lo + off] = chunk[off] / norms[off, None]
 
 
-def _forward(images: list[np.ndarray], extractor: Extractor) -> np.ndarray:
+def forward_images(images: list[np.ndarray], extractor: Extractor) -> np.ndarray:
     """``extractor.forward`` on loaded images, one call per distinct image shape.
 
     Extractors that keep the aspect ratio (CosPlace, EigenPlaces) load frames of another
@@ -198,7 +208,7 @@ def _forward(images: list[np.ndarray], extractor: Extractor) -> np.ndarray:
         rows = [i for i, image in enumerate(images) if image.shape == shape]
         part = np.asarray(extractor.forward(np.stack([images[i] for i in rows])))
         if part.shape != (len(rows), extractor.dim):
-            return part  # _normalise_rows reports the wrong shape
+            return part  # normalise_rows reports the wrong shape
         raw[rows] = part
     return raw
 
@@ -273,8 +283,7 @@ def extract_descriptors(
         if cache is not None:
             # Files are hashed HASH_CHUNK per task: one task per file costs more in thread
             # hand-offs than hashing a small image (110k Nordland-size PNGs: 10 s -> ~2 s).
-            chunks = [paths[lo : lo + HASH_CHUNK] for lo in range(0, len(paths), HASH_CHUNK)]
-            hashes = [h for part in pool.map(lambda chunk: [hash_file(p) for p in chunk], chunks) for h in part]
+            hashes = hash_paths(paths, pool)
         else:
             # Without a cache there is nothing to key, so skip reading every file twice;
             # the path stands in for the content.
@@ -329,8 +338,8 @@ def extract_descriptors(
                 submit_up_to(b + 1 + ahead)
                 futures = pending.popleft()
                 batch_paths = [paths[groups[h][0]] for h in batch]
-                raw = _forward([f.result() for f in futures], extractor)
-                vectors = _normalise_rows(raw, batch_paths, extractor)
+                raw = forward_images([f.result() for f in futures], extractor)
+                vectors = normalise_rows(raw, batch_paths, extractor)
                 for h, v in zip(batch, vectors):
                     out[groups[h]] = v
                     done += len(groups[h])

@@ -191,6 +191,18 @@ def extractor_names() -> tuple[str, ...]:
     return tuple(_entries())
 
 
+def extractor_options(name: str) -> tuple[str, ...]:
+    """The keyword options ``get_extractor(name, ...)`` accepts (``()`` for ``pixels``).
+
+    Raises:
+        VPRInputError: for an unknown name, listing the choices.
+    """
+    entries = _entries()
+    if name not in entries:
+        raise VPRInputError(f"descriptor {name!r} is unknown: choose one of {', '.join(entries)}")
+    return entries[name].options
+
+
 def available_extractors() -> dict[str, str | None]:
     """``{name: None}`` for extractors usable here, ``{name: reason}`` for the others.
 

@@ -1,14 +1,19 @@
-"""Query inspector: one query, its candidate places under every method, and the answer in words."""
+"""Query inspector: one query, its candidate places under every method, and the answer in words.
+
+A database/queries dataset (``layouts.RetrievalDataset``) gets its own page body
+(``ui.retrieval_inspector``): any query image, its right places from the ground truth.
+"""
 
 import pandas  # noqa: F401  # before plotly: plotly.py#2433
 import streamlit as st
 
 from vpr_explorer import plots
+from vpr_explorer.database import Verdict, between_note, describe_query, query_verdict
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.retrieval import METHODS_BY_KEY
 from vpr_explorer.views import FIND_KINDS, LIVE_METHODS, top_candidates
 
-from vpr_explorer.app.ui import cache, state
+from vpr_explorer.app.ui import cache, retrieval_inspector, state
 from vpr_explorer.app.ui.controls import threshold_controls
 from vpr_explorer.app.ui.current import current
 from vpr_explorer.app.ui.feedback import PLACES_HINT, stop_on_input_error
@@ -23,6 +28,9 @@ BEST_IMAGES = 4
 st.title("Query inspector")
 with stop_on_input_error():
     cur = current()
+if cur.retrieval is not None:
+    retrieval_inspector.render(cur)
+    st.stop()
 with stop_on_input_error(hint=PLACES_HINT):
     r = cache.fitted(cur.data, cur.spec, cur.query)
 ds, model = cur.data.dataset, r.model
@@ -36,7 +44,10 @@ if v.frame is not None and v.frame != frame:
 top = st.columns([2, 3, 2])
 top[0].selectbox("Query traversal (database: every other one)", list(ds.traversals),
                  **state.bind("w_query", "query", cur.query))
-top[1].slider("Query frame", 0, ds.n_frames - 1, **state.bind("w_frame", "frame", frame))
+slide, enter = top[1].columns([4, 1], vertical_alignment="bottom")
+slide.slider("Query frame", 0, ds.n_frames - 1, **state.bind("w_frame", "frame", frame))
+enter.number_input("frame", 0, ds.n_frames - 1, step=1, help="Type a frame number (the slider moves along)",
+                   **state.bind("w_frame_number", "frame", frame))
 with top[2]:
     k, user_theta = threshold_controls()
 
@@ -76,6 +87,17 @@ with stop_on_input_error(hint="Change k or your global θ above, or group/step o
     dec = cache.decision(cur.data, cur.spec, cur.query, image, k=k, user_theta=user_theta)
 cands = top_candidates(dec, SHOWN_CANDIDATES)
 
+
+def image_name(i: int) -> str:
+    """A dataset image as "<traversal> · frame N"."""
+    return f"{ds.traversals[ds.image_traversal[i]]} · frame {ds.image_frame[i]}"
+
+
+def describe(key: str) -> str:
+    """The decision in words: images by traversal and frame, a frame between places not scored."""
+    return describe_query(dec, key, model, ds)
+
+
 left, right = st.columns([1, 2])
 with left:
     st.image(cache.thumbnail(ds.image_paths[image], 240), width="stretch",
@@ -83,38 +105,37 @@ with left:
     if len(dec.true_places):
         st.markdown(f"**Right place:** {', '.join(f'P{p}' for p in dec.true_places)} (frame {frame} is in it).")
     else:
-        st.markdown(f"**Frame {frame} lies between places** (skipped by group/step): no place is right, so the "
-                    "right answer is to reject it.")
+        st.markdown(between_note(frame))
     pair = st.session_state.get("picked_pair")
     if pair and pair[0] == image:
         db = pair[1]
         db_place = int(r.places.image_place[db])
-        st.caption(f"Opened from the similarity matrix: database image {ds.traversals[ds.image_traversal[db]]} · "
-                   f"frame {ds.image_frame[db]} ({'place P' + str(db_place) if db_place >= 0 else 'between places'}).")
+        st.caption(f"Opened from the similarity matrix: database image {image_name(db)} "
+                   f"({'place P' + str(db_place) if db_place >= 0 else 'between places'}).")
 with right:
     st.markdown("**The answer under each method**")
     lines = []
     for key in ["image-baseline", *methods]:
-        ok = ":green[:material/check_circle:]" if dec.is_right(key) else ":red[:material/cancel:]"
-        lines.append(f"- {ok} **{METHODS_BY_KEY[key].label}**: {dec.describe(key)}")
+        ok = {Verdict.RIGHT: ":green[:material/check_circle:]", Verdict.BETWEEN: ":gray[:material/remove:]"}.get(
+            query_verdict(dec, key), ":red[:material/cancel:]")
+        lines.append(f"- {ok} **{METHODS_BY_KEY[key].label}**: {describe(key)}")
     st.markdown("\n".join(lines))
 
 st.subheader("Candidate places: raw_p, threshold and margin")
-st.caption("Bars: raw_p, the query's best score against the place's database images; green = kept, grey = dropped "
+st.caption("Dots: raw_p, the query's best score against the place's database images; green = kept, grey = dropped "
            "by the method's threshold (red tick); black outline = the answer; ★ = the right place; labels = margin "
            "raw_p − θ (or raw_p where there is no threshold).")
 for row in range(0, len(methods), PER_ROW):
     for col, key in zip(st.columns(PER_ROW), methods[row:row + PER_ROW]):
         with col:
             st.plotly_chart(plots.candidate_bars(dec, key, cands), key=f"bars_{key}", width="stretch")
-            st.caption(dec.describe(key))
+            st.caption(describe(key))
 
 st.subheader("Best candidates beside the query")
 cols = st.columns(BEST_IMAGES + 1)
-cols[0].image(cache.thumbnail(ds.image_paths[image], 160), caption=f"query · frame {frame}", width="stretch")
+cols[0].image(cache.thumbnail(ds.image_paths[image], 160), caption=f"query: {image_name(image)}", width="stretch")
 for col, p in zip(cols[1:], cands[:BEST_IMAGES]):
     db_image = int(model.images[dec.best_image[p]])
     verdict = "right place" if p in dec.true_places else "other place"
     col.image(cache.thumbnail(ds.image_paths[db_image], 160), width="stretch",
-              caption=f"P{p}, {ds.traversals[ds.image_traversal[db_image]]} · frame {ds.image_frame[db_image]}: "
-                      f"raw_p {dec.raw[p]:.3f} ({verdict})")
+              caption=f"P{p}, {image_name(db_image)}: raw_p {dec.raw[p]:.3f} ({verdict})")

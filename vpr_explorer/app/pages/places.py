@@ -1,4 +1,8 @@
-"""Places page: group/step sliders, both readings side by side, and the live consequences."""
+"""Places page: group/step sliders, both readings side by side, and the live consequences.
+
+A database/queries dataset (``layouts.RetrievalDataset``) gets its own page body
+(``ui.retrieval_places``): places from frames or metres, and the map of its positions.
+"""
 
 import pandas  # noqa: F401  # before plotly: plotly.py#2433
 
@@ -9,7 +13,7 @@ from vpr_explorer.errors import VPRInputError
 from vpr_explorer.places import READING_LABELS, PlaceSpec, Reading, make_places
 from vpr_explorer.views import LIVE_METHODS
 
-from vpr_explorer.app.ui import cache, state
+from vpr_explorer.app.ui import cache, group_step, retrieval_places, state
 from vpr_explorer.app.ui.current import current
 from vpr_explorer.app.ui.feedback import show_rejected, stop_on_input_error
 from vpr_explorer.app.ui.routing import ensure_routed
@@ -17,14 +21,17 @@ from vpr_explorer.app.ui.routing import ensure_routed
 ensure_routed(__file__)
 
 st.title("Places: group and step")
+show_rejected()
+with stop_on_input_error():
+    cur = current()
+if cur.retrieval is not None:
+    retrieval_places.render(cur)
+    st.stop()
 st.markdown(
     "A **place** is `group` consecutive frames of every traversal; the paper's text and its code read `step` "
     "differently, so both readings are shown side by side. Descriptors belong to images, so a move here only "
     "relabels images and refits the closed-form statistics: nothing is re-extracted."
 )
-show_rejected()
-with stop_on_input_error():
-    cur = current()
 ds = cur.data.dataset
 
 if cur.spec is None:
@@ -36,9 +43,14 @@ else:
     def check(**change) -> None:
         make_places(ds, PlaceSpec(**{"group": spec.group, "step": spec.step, "reading": spec.reading, **change}))
 
+    def check_group(g) -> None:
+        group_step.refuse_overlap(lambda: check(group=g), group_field="group", step_field="step", group=g,
+                                  step=spec.step, stride=spec.reading is Reading.STRIDE)
+
+    group_step.offer_fix(lambda g: check(group=g, step=g))
     c1, c2, c3 = st.columns([2, 2, 3])
     c1.slider("group: frames per place", 1, max(2, spec.group, min(20, ds.n_frames // 2)),
-              **state.bind("w_group", "group", spec.group, validate=lambda g: check(group=g)))
+              **state.bind("w_group", "group", spec.group, validate=check_group))
     c2.slider("step: frames from one place to the next", 1, max(2, spec.step, min(60, ds.n_frames - 1)),
               **state.bind("w_step", "step", spec.step, validate=lambda s: check(step=s)))
     c3.radio("reading of step", [r.value for r in Reading], format_func=lambda r: READING_LABELS[Reading(r)],

@@ -15,6 +15,17 @@ from vpr_explorer.app.ui.routing import ensure_routed
 
 ensure_routed(__file__)
 
+
+def share(x: float) -> str:
+    """A share in %, "—" when there is nothing to count (NaN), never "nan%"."""
+    return "—" if not np.isfinite(x) else f"{x:.0%}"
+
+
+def number(x: float, fmt: str = ".3f") -> str:
+    """A value, "—" when it is missing (NaN), never "nan" or "None"."""
+    return "—" if not np.isfinite(x) else f"{x:{fmt}}"
+
+
 st.title("Thresholds: where θ_p sits")
 with stop_on_input_error():
     cur = current()
@@ -40,9 +51,16 @@ def pick_from_overview() -> None:
 controls, overview = st.columns([1, 3])
 with controls:
     st.selectbox("Place", list(range(model.n_places)),
-                 format_func=lambda p: f"place {p} (θ_p {theta_w[p]:.3f})", **state.bind("w_place", "place", place))
+                 format_func=lambda p: f"place {p} (θ_p {number(theta_w[p])})",
+                 help="A place is `group` consecutive frames of every traversal (Places page). Its threshold θ_p "
+                      "is fitted on the database images only, from their scores against every other place; the "
+                      "list shows each place's weighted θ_p. You can also click a place in the overview.",
+                 **state.bind("w_place", "place", place))
     st.radio("θ_p(k) built on", [m.value for m in ThresholdMethod], index=1, horizontal=True, key="w_method",
-             format_func=lambda m: f"θ_p {m}")
+             format_func=lambda m: f"θ_p {m}",
+             help="Which θ_p the family θ_p(k) = θ_p + k·s_p starts from: **simple** is the plain mean of the "
+                  "place's negative means μᵢ; **weighted** (the paper's eq. 4, normalised) weights each μᵢ by "
+                  "wᵢτᵢ², τᵢ = 1/σᵢ, so images with tight negative scores count more.")
     k, user_theta = threshold_controls()
 with overview:
     st.plotly_chart(plots.places_overview(theta_w, model.positive_mean, model.negative_mean, selected=place),
@@ -66,30 +84,39 @@ with img_col:
         row = shown[ds.image_traversal[shown] == t]
         role = "query" if ds.traversals[t] == cur.query else "database"
         for col, i in zip(st.columns(len(row)), row):
-            extra = f", raw_p {raw_of[int(i)]:.3f}" if int(i) in raw_of else ""
+            extra = f", raw_p {number(raw_of[int(i)])}" if int(i) in raw_of else ""
             col.image(cache.thumbnail(ds.image_paths[i]), width="stretch",
                       caption=f"{ds.traversals[t]} {ds.image_frame[i]} ({role}{extra})")
 
 st.subheader("The teaching point")
 m = st.columns(4)
-m[0].metric("negative scores ≥ θ_p weighted", f"{d.share_negatives_above(d.theta['weighted']):.0%}",
-            help="Share of this place's negative scores (its images against other places) at or above θ_p.")
-m[1].metric(f"negative scores ≥ θ_p(k={k:g})", f"{d.share_negatives_above(theta_k):.0%}")
-m[2].metric("same-place scores < θ_p weighted", f"{d.share_positives_below(d.theta['weighted']):.0%}",
-            help="Share of same-place score pairs among the database images that fall below θ_p.")
-m[3].metric(f"own query frames dropped at θ_p(k={k:g})", f"{d.share_queries_below(theta_k):.0%}",
-            help="This place's query frames whose raw_p is below θ_p(k): the place would be dropped for them.")
+NONE = " Shown as — when there is nothing to count."
+m[0].metric("negative scores ≥ θ_p weighted", share(d.share_negatives_above(d.theta['weighted'])),
+            help="A negative score is s(i, j) between a database image i of this place and a database image j of "
+                 "another place; this is the share of them at or above the weighted θ_p, i.e. how much of the "
+                 "other places' evidence the threshold alone would keep." + NONE)
+m[1].metric(f"negative scores ≥ θ_p(k={k:g})", share(d.share_negatives_above(theta_k)),
+            help=f"The same share at θ_p(k) = θ_p + k·s_p with k = {k:g} (s_p: the standard deviation of the "
+                 "place's negative mixture): raising k moves the threshold up through the negatives." + NONE)
+m[2].metric("same-place scores < θ_p weighted", share(d.share_positives_below(d.theta['weighted'])),
+            help="A same-place score is s(i, j) between two database images of this place (other traversals of the "
+                 "same spot); this is the share of those pairs below the weighted θ_p, i.e. right matches the "
+                 "threshold would drop. A place with one database image has no pair." + NONE)
+m[3].metric(f"own query frames dropped at θ_p(k={k:g})", share(d.share_queries_below(theta_k)),
+            help="raw_p of a query frame is its best score against this place's database images; this is the share "
+                 "of the place's own query-traversal frames whose raw_p is below θ_p(k), for which the right "
+                 "place is dropped (a wrong reject or a wrong answer)." + NONE)
 st.markdown(
     f"θ_p is a weighted **mean of the negative means μᵢ**: it sits in the *centre* of the scores against other "
-    f"places (here {d.share_negatives_above(d.theta['weighted']):.0%} of them lie above it), not above them. On its "
+    f"places (here {share(d.share_negatives_above(d.theta['weighted']))} of them lie above it), not above them. On its "
     "own it therefore drops few places and rejects almost no query of an unknown place; what it mostly does is "
-    f"shift each place's margin raw_p − θ_p. Moving k up (θ_p + k·s_p, s_p = {d.spread:.3f} here; this place's "
-    f"adaptive k = {d.k_adaptive:.2f}) pushes the threshold into the gap between negatives and same-place scores: "
+    f"shift each place's margin raw_p − θ_p. Moving k up (θ_p + k·s_p, s_p = {number(d.spread)} here; this place's "
+    f"adaptive k = {number(d.k_adaptive, '.2f')}) pushes the threshold into the gap between negatives and same-place scores: "
     "that is where rejection starts to pay, at the price of dropping some right places."
 )
 st.info(
-    f"**{THRESHOLD_LABELS[ThresholdMethod.SIMPLE]}** (here {d.theta['simple']:.4f}).  \n"
-    f"**{THRESHOLD_LABELS[ThresholdMethod.WEIGHTED]}** (here {d.theta['weighted']:.4f}).  \n"
+    f"**{THRESHOLD_LABELS[ThresholdMethod.SIMPLE]}** (here {number(d.theta['simple'], '.4f')}).  \n"
+    f"**{THRESHOLD_LABELS[ThresholdMethod.WEIGHTED]}** (here {number(d.theta['weighted'], '.4f')}).  \n"
     "The weighted form is the *normalised* one: read literally, the paper's eq. 4 divides by Σ τⱼ² but not by the "
     "weights, so with wᵢ = 1/n the weights sum to 1/n and θ_p would shrink with the number of images instead of "
     "being a weighted mean of the μᵢ. The authors' code normalises by Σ wⱼτⱼ², which is what is computed here: "

@@ -1,11 +1,16 @@
 """Every Streamlit cache of the app, in one place, chained like the data flow.
 
-dataset (listing) -> descriptors (extraction, on-disk cache; or a descriptor file the app
-was started with) -> fitted (places, database
-thresholds) -> place detail / query decision / next rejected frame, and -> regrouped (the
-query frames decided: the overview, sampled on big datasets) / similarity grid / evaluation.
-Pages that show one place or one query only need ``fitted``: they never compute query ×
-database pairs beyond their own row.
+dataset (listing, in its layout) -> descriptors (extraction, on-disk cache; or a descriptor
+file: one the app was started with, or one typed on the Dataset page) -> fitted (places,
+database thresholds) -> place detail / query decision / next rejected frame, and ->
+regrouped (the query frames decided: the overview, sampled on big datasets) / similarity
+grid / evaluation. Pages that show one place or one query only need ``fitted``: they never
+compute query × database pairs beyond their own row.
+
+A database/queries dataset (``layouts.RetrievalDataset``: database-queries, vpr-bench,
+traversal-positions, manifest) flows the same way through the ``retrieval_*`` functions,
+with its ground truth and places from ``retrieval_views.RetrievalPlaces`` (frames, or metres
+along a route or over a lattice).
 
 Keys: Streamlit samples large arrays when it hashes them, so functions never hash the
 descriptors; they take them as an underscore argument (unhashed) beside ``data.key``,
@@ -46,8 +51,19 @@ from vpr_explorer.descriptors import extract_descriptors, fingerprint, get_extra
 from vpr_explorer.descriptors.base import open_image
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.evaluation import Evaluation
-from vpr_explorer.pipeline import DEMO, dataset_descriptors, imported_descriptors, resolve_dataset, run_protocol
+from vpr_explorer.layouts import RETRIEVAL_LAYOUTS, Layout, RetrievalDataset, detect_layout
+from vpr_explorer.pipeline import (
+    DEMO,
+    dataset_descriptors,
+    evaluate_retrieval,
+    imported_descriptors,
+    open_dataset,
+    resolve_dataset,
+    run_protocol,
+)
 from vpr_explorer.places import PlaceSpec
+from vpr_explorer import retrieval_views
+from vpr_explorer.retrieval_views import RetrievalFitted, RetrievalOverview, RetrievalPlaces
 from vpr_explorer.views import (
     Fitted,
     PlaceDetail,
@@ -72,18 +88,24 @@ class Loaded:
     """A dataset with its descriptors: what every page after the Dataset page starts from.
 
     Attributes:
-        dataset: the dataset.
+        dataset: the dataset: aligned traversals (``Dataset``) or database and queries
+            (``layouts.RetrievalDataset``).
         descriptor: extractor name, or a descriptor file's stem.
         descriptors: ``(n_images, D)`` L2-normalised, read-only.
         key: content key (dataset files + descriptor fingerprint) for the caches below.
         notes: what reading a descriptor file decided (format, name matches), one sentence each.
     """
 
-    dataset: Dataset
+    dataset: Dataset | RetrievalDataset
     descriptor: str
     descriptors: np.ndarray
     key: str
     notes: tuple[str, ...] = ()
+
+    @property
+    def retrieval(self) -> bool:
+        """True for a database/queries dataset (its own pages' branches and ``retrieval_*`` caches)."""
+        return isinstance(self.dataset, RetrievalDataset)
 
 
 # --------------------------------------------------------------------------- memo with progress
@@ -146,14 +168,24 @@ def _memoised(key: tuple, label: str, compute: Callable[[Callable[..., None]], o
 # --------------------------------------------------------------------------- dataset and descriptors
 
 
+#: Files beside the images that a layout reads (ground truth, positions, manifests): edited in
+#: place they change no folder's mtime, so they are stamped themselves.
+_SIDE_FILES = ("ground_truth_new.npy", "manifest.csv", "positions.csv")
+
+
 def _folder_stamp(source: str) -> str:
-    """Changes when a dataset folder's listing may have changed (its and its sub-folders' mtimes)."""
+    """Changes when a dataset's listing may have changed (the mtimes of its folder, sub-folders and side files)."""
     if source == DEMO:
         return f"demo@{settings.cache_root()}:{disk_cache_problem() is None}"
     root = Path(source).expanduser()
     try:
-        parts = [f"{root.resolve()}:{root.stat().st_mtime_ns}"]
-        parts += [f"{p.name}:{p.stat().st_mtime_ns}" for p in sorted(root.iterdir()) if p.is_dir()]
+        parts = [f"{root.resolve()}:{root.stat().st_mtime_ns}:{root.stat().st_size}"]
+        if root.is_dir():
+            subs = [p for p in sorted(root.iterdir()) if p.is_dir()]
+            parts += [f"{p.name}:{p.stat().st_mtime_ns}" for p in subs]
+            for folder in (root, *subs, root / "images" / "test"):
+                parts += [f"{f}:{f.stat().st_mtime_ns}:{f.stat().st_size}" for f in (folder / n for n in _SIDE_FILES)
+                          if f.is_file()]
     except OSError:
         return "missing"
     return "|".join(parts)
@@ -188,19 +220,44 @@ def _demo_in_temporary_folder() -> Dataset:
     return dataclasses.replace(load_dataset(root, list(demo.DEMO_TRAVERSALS)), name=DEMO)
 
 
+def layout_of(source: str, layout: str = Layout.AUTO.value) -> Layout:
+    """The layout ``source`` is read in: ``layout`` when named, else detected (``layouts.detect_layout``)."""
+    try:
+        named = Layout(layout)
+    except ValueError:
+        raise VPRInputError(f"layout {layout!r}: choose one of {', '.join(x.value for x in Layout)}") from None
+    if named is not Layout.AUTO:
+        return named
+    if source == DEMO:
+        return Layout.TRAVERSALS
+    path = Path(source).expanduser()
+    if not path.exists():
+        raise VPRInputError(f"{path}: the dataset folder does not exist; check the path")
+    return detect_layout(path)
+
+
 @st.cache_resource(show_spinner="Reading the dataset folder…", max_entries=8)
-def _dataset(source: str, stamp: str) -> Dataset:
-    if source == DEMO and disk_cache_problem() is not None:
-        return _demo_in_temporary_folder()
-    return resolve_dataset(source)
+def _dataset(source: str, layout: str, radius: float | None, stamp: str) -> Dataset | RetrievalDataset:
+    if source == DEMO and layout in (Layout.AUTO.value, Layout.TRAVERSALS.value):
+        if disk_cache_problem() is not None:
+            return _demo_in_temporary_folder()
+        return resolve_dataset(source)
+    if source == DEMO:
+        return open_dataset(source, layout)  # refuses, naming the layout
+    positions = layout_of(source, layout) in RETRIEVAL_LAYOUTS
+    return open_dataset(source, layout, radius=radius if positions else None)
 
 
-def dataset(source: str) -> Dataset:
-    """The dataset at ``source`` (a folder or ``"demo"``); raises ``VPRInputError`` for bad folders."""
-    return _dataset(source, _folder_stamp(source))
+def dataset(source: str, layout: str = Layout.AUTO.value, radius: float | None = None) -> Dataset | RetrievalDataset:
+    """The dataset at ``source`` (a folder, a manifest ``.csv`` or ``"demo"``) read in ``layout``.
+
+    ``radius`` (metres; default the field's 25) applies to position-tagged layouts and is
+    ignored for the others. Raises ``VPRInputError`` for bad folders and files.
+    """
+    return _dataset(source, layout, None if radius is None else float(radius), _folder_stamp(source))
 
 
-def _files_key(ds: Dataset) -> str:
+def _files_key(ds: Dataset | RetrievalDataset) -> str:
     """A digest of every image's path, size and mtime: descriptors are recomputed when one changes."""
     h = hashlib.sha256()
     for p in ds.image_paths:
@@ -212,36 +269,68 @@ def _files_key(ds: Dataset) -> str:
     return h.hexdigest()
 
 
-def _load_key(descriptor: str, files: str) -> tuple:
-    """What ``load``'s result depends on: the images' ``files`` key, and the descriptor file or the cache mode."""
-    path = descriptor_files().get(descriptor)
+def check_descriptor_file(text: str) -> Path:
+    """A typed descriptor file path, checked before it is read: it exists, its extension is one the
+    library reads, and its stem (the descriptor's name) names no extractor."""
+    from vpr_explorer.descriptors.imported import descriptor_format
+    from vpr_explorer.descriptors.registry import EXTRACTOR_NAMES
+
+    path = Path(str(text).strip()).expanduser()
+    if not str(text).strip():
+        raise VPRInputError("descriptor file: type the path of a .npz, .npy or hloc .h5 file")
+    descriptor_format(path)  # an unknown extension, named
+    if not path.is_file():
+        raise VPRInputError(f"descriptor file {path}: no such file; give the path of a .npz, .npy or hloc .h5 file "
+                            "on this machine")
+    if path.stem in EXTRACTOR_NAMES:
+        raise VPRInputError(f"descriptor file {path}: its stem {path.stem!r} names a built-in descriptor; rename the "
+                            "file (its stem names the descriptor in the app)")
+    return path
+
+
+def descriptor_path(descriptor: str, file: str | Path | None = None) -> Path | None:
+    """The file a descriptor is read from: ``file`` (typed on the Dataset page), a file the app was
+    started with (``descriptor_files``), or ``None`` for an extractor."""
+    if file is not None:
+        return check_descriptor_file(str(file))
+    return descriptor_files().get(descriptor)
+
+
+def _load_key(descriptor: str, files: str, path: Path | None = None, dataset_key: tuple = ()) -> tuple:
+    """What ``load``'s result depends on: the images' ``files`` key, the layout and radius the
+    dataset was read with (``dataset_key``), and the descriptor file (its size and mtime) or the cache mode."""
     if path is not None:
         try:
             s = path.stat()
             stamp = f"{s.st_size}|{s.st_mtime_ns}"
         except OSError:
             stamp = "missing"
-        return ("imported", descriptor, str(path), stamp, files)
+        return ("imported", path.stem, str(path.resolve()), stamp, files, *dataset_key)
     # on_disk in the key: a cache folder that stops (or starts) being writable is not
     # stuck with a failure (or an in-memory result) remembered under the other mode.
-    return ("descriptors", descriptor, files, disk_cache_problem() is None)
+    return ("descriptors", descriptor, files, *dataset_key, disk_cache_problem() is None)
 
 
-def load(source: str, descriptor: str) -> Loaded:
+def load(source: str, descriptor: str, *, layout: str = Layout.AUTO.value, radius: float | None = None,
+         file: str | Path | None = None) -> Loaded:
     """The dataset and its descriptors, computed with a progress bar and time estimate if not in memory.
 
     Through the on-disk cache, or in memory only when the cache folder cannot be written;
-    a descriptor named by a file the app was started with (``descriptor_files``) is read
-    from that file instead.
+    a descriptor file (``file``, typed on the Dataset page, or one the app was started with,
+    ``descriptor_files``) is read instead, and named by its stem. The result's ``key``
+    holds the file's content hash (``ImportedDescriptors.key``), the layout and the radius,
+    so no cache below serves results of an edited file or another ground truth.
     """
-    ds = dataset(source)
+    ds = dataset(source, layout, radius)
     files = _files_key(ds)
-    key = _load_key(descriptor, files)
-    path = descriptor_files().get(descriptor)
+    path = descriptor_path(descriptor, file)
+    dataset_key = (layout, radius) if isinstance(ds, RetrievalDataset) else ()
+    key = _load_key(descriptor, files, path, dataset_key)
+    suffix = "".join(f"-{x}" for x in dataset_key)
     if path is not None:
         def read(_progress):
             imp = imported_descriptors(ds, path)
-            return Loaded(ds, descriptor, imp.descriptors, f"{files[:16]}-{imp.key[:24]}", imp.notes)
+            return Loaded(ds, imp.name, imp.descriptors, f"{files[:16]}-{imp.key[:24]}{suffix}", imp.notes)
 
         return _memoised(key, f"Reading {path.name} for {ds.n_images} images", read)
 
@@ -256,15 +345,19 @@ def load(source: str, descriptor: str) -> Loaded:
         if d.flags.writeable:
             d = d.copy()
             d.setflags(write=False)
-        return Loaded(ds, descriptor, d, f"{files[:16]}-{fingerprint(d)[:24]}")
+        return Loaded(ds, descriptor, d, f"{files[:16]}-{fingerprint(d)[:24]}{suffix}")
 
     return _memoised(key, f"Computing {descriptor} descriptors of {ds.n_images} images", compute)
 
 
-def loaded_in_memory(source: str, descriptor: str) -> bool:
+def loaded_in_memory(source: str, descriptor: str, *, layout: str = Layout.AUTO.value, radius: float | None = None,
+                     file: str | Path | None = None) -> bool:
     """True when ``load`` would return at once (descriptors already in this server's memory)."""
     try:
-        return _memo().get(_load_key(descriptor, _files_key(dataset(source)))) is not None
+        ds = dataset(source, layout, radius)
+        dataset_key = (layout, radius) if isinstance(ds, RetrievalDataset) else ()
+        return _memo().get(_load_key(descriptor, _files_key(ds), descriptor_path(descriptor, file),
+                                     dataset_key)) is not None
     except VPRInputError:
         return False
 
@@ -356,16 +449,120 @@ def grid(data: Loaded, database: tuple[str, ...], query: str) -> SimilarityGrid:
     return _grid(data.key, tuple(database), query, data)
 
 
-def evaluation(data: Loaded, spec: PlaceSpec | None, protocol: str, **options) -> Evaluation:
-    """A protocol run (see ``pipeline.run_protocol``), with a progress bar the first time."""
+def evaluation(data: Loaded, spec: PlaceSpec | None, protocol: str, *, peek: bool = False,
+               **options) -> Evaluation | None:
+    """A protocol run (see ``pipeline.run_protocol``), with a progress bar the first time.
+
+    ``peek``: only a run already in this server's memory, ``None`` when it has not been
+    computed (nothing is run): how a page decides whether showing it costs anything.
+    """
     from vpr_explorer.places import make_places
 
     places = make_places(data.dataset, spec)
     key = ("evaluation", data.key, None if spec is None else (spec.group, spec.step, spec.reading.value), protocol,
-           tuple(sorted((k, tuple(v) if isinstance(v, list) else v) for k, v in options.items())))
+           tuple(sorted((k, tuple(v) if isinstance(v, (list, tuple)) else v) for k, v in options.items())))
+    if peek:
+        hit = _memo().get(key)
+        return hit if isinstance(hit, Evaluation) else None
     return _memoised(key, f"Running the {protocol} protocol", lambda progress: run_protocol(
         protocol, data.dataset, places, data.descriptors, progress=progress,
         settings={"descriptor": data.descriptor}, **options))
+
+
+# --------------------------------------------------------------------------- database/queries datasets
+
+
+def _places_key(places: RetrievalPlaces) -> tuple:
+    """``places`` as plain values (what Streamlit hashes) that ``_places`` turns back into it."""
+    spec, metric = places.spec, places.metric
+    return (None if places.geometry is None else places.geometry.value,
+            None if spec is None else (spec.group, spec.step, spec.reading.value),
+            None if metric is None else (metric.group, metric.step, metric.reading.value, metric.geometry.value))
+
+
+def _places(key: tuple) -> RetrievalPlaces:
+    from vpr_explorer.places import MetricPlaceSpec, PlaceGeometry
+
+    geometry, spec, metric = key
+    return RetrievalPlaces(None if geometry is None else PlaceGeometry(geometry),
+                           None if spec is None else PlaceSpec(*spec), None if metric is None else MetricPlaceSpec(*metric))
+
+
+@st.cache_resource(show_spinner="Fitting the database thresholds for these places…", max_entries=32)
+def _retrieval_fitted(key: str, places: tuple, _data: Loaded) -> RetrievalFitted:
+    return retrieval_views.fit_retrieval(_data.descriptors, _data.dataset, _places(places))
+
+
+def retrieval_fitted(data: Loaded, places: RetrievalPlaces) -> RetrievalFitted:
+    """Places of the database images and their thresholds: what one-query views of a database/queries dataset need."""
+    return _retrieval_fitted(data.key, _places_key(places), data)
+
+
+@st.cache_resource(show_spinner="Deciding the queries…", max_entries=32)
+def _retrieval_overview(key: str, places: tuple, _data: Loaded) -> tuple[RetrievalOverview, float]:
+    start = time.perf_counter()
+    f = _retrieval_fitted(key, places, _data)
+    return retrieval_views.overview(f, _data.descriptors), time.perf_counter() - start
+
+
+def retrieval_overview_timed(data: Loaded, places: RetrievalPlaces) -> tuple[RetrievalOverview, float]:
+    """The query images decided (a sample on big datasets) and the seconds it took when first asked for."""
+    return _retrieval_overview(data.key, _places_key(places), data)
+
+
+@st.cache_data(show_spinner=False, max_entries=256)
+def _retrieval_decision(key: str, places: tuple, query: int, k: float, user_theta, _data: Loaded) -> QueryDecision:
+    f = _retrieval_fitted(key, places, _data)
+    return retrieval_views.explain_query(f, _data.descriptors, query, k=k, user_theta=user_theta)
+
+
+def retrieval_decision(data: Loaded, places: RetrievalPlaces, query: int, *, k: float = 0.0,
+                       user_theta: float | None = None) -> QueryDecision:
+    """The decision record of one query image under every method."""
+    return _retrieval_decision(data.key, _places_key(places), int(query), float(k), user_theta, data)
+
+
+@st.cache_data(show_spinner=False, max_entries=256)
+def _retrieval_image_answer(key: str, query: int, _data: Loaded) -> retrieval_views.ImageAnswer:
+    return retrieval_views.image_answer(_data.dataset, _data.descriptors, query)
+
+
+def retrieval_image_answer(data: Loaded, query: int) -> retrieval_views.ImageAnswer:
+    """The query's top database image over all of them (the field's image-level answer)."""
+    return _retrieval_image_answer(data.key, int(query), data)
+
+
+@st.cache_data(show_spinner=False, max_entries=256)
+def _retrieval_found(key: str, places: tuple, after: int, kind: str, method: str, k: float, user_theta,
+                     _data: Loaded) -> tuple[int | None, int]:
+    f = _retrieval_fitted(key, places, _data)
+    return retrieval_views.find_query(f, _data.descriptors, after=after, kind=kind, method=method, k=k,
+                                      user_theta=user_theta)
+
+
+def retrieval_find(data: Loaded, places: RetrievalPlaces, *, after: int, kind: str, method: str, k: float = 0.0,
+                   user_theta: float | None = None) -> tuple[int | None, int]:
+    """``retrieval_views.find_query``: the next query after ``after`` that ``method`` rejected or got wrong."""
+    return _retrieval_found(data.key, _places_key(places), int(after), kind, method, float(k), user_theta, data)
+
+
+def _retrieval_evaluation_key(data: Loaded, places: RetrievalPlaces, user_theta: float | None, pr: bool) -> tuple:
+    return ("retrieval-evaluation", data.key, _places_key(places), user_theta, pr)
+
+
+def retrieval_evaluated(data: Loaded, places: RetrievalPlaces, *, user_theta: float | None = None,
+                        pr: bool = False) -> bool:
+    """True when ``retrieval_evaluation`` would return at once (already run in this server)."""
+    return _memo().get(_retrieval_evaluation_key(data, places, user_theta, pr)) is not None
+
+
+def retrieval_evaluation(data: Loaded, places: RetrievalPlaces, *, user_theta: float | None = None,
+                         pr: bool = False) -> Evaluation:
+    """The database/queries protocol (``pipeline.evaluate_retrieval``), with a progress bar the first time."""
+    key = _retrieval_evaluation_key(data, places, user_theta, pr)
+    return _memoised(key, "Running the database/queries protocol", lambda progress: evaluate_retrieval(
+        data.dataset, data.descriptors, spec=places.spec, metric=places.metric, user_theta=user_theta,
+        settings={"descriptor": data.descriptor}, progress=progress, pr=pr))
 
 
 # --------------------------------------------------------------------------- images

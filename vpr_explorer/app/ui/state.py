@@ -1,10 +1,13 @@
 """The view a session is looking at, kept in ``st.session_state`` and mirrored into the URL.
 
-One frozen ``View`` holds every choice that more than one page reads: the dataset, the
-descriptor, group/step and their reading, the query traversal, the selected place and
-query frame. It lives in ``st.session_state["view"]``; ``sync_url`` writes it into
-``st.query_params`` on every run, so the address bar always holds a link that reopens
-the same view, and a fresh session starts from the URL it was opened with.
+One frozen ``View`` holds every choice that more than one page reads: the dataset (its
+layout, and the positive radius of a position-tagged one), the descriptor (an extractor, or
+a file of descriptors computed elsewhere), group/step and their reading (in frames, or in
+metres along a route or over a lattice), the query traversal, the selected place and query
+(a query traversal's frame, or a query image of a database/queries dataset). It lives in
+``st.session_state["view"]``; ``sync_url`` writes it into ``st.query_params`` on every run,
+so the address bar always holds a link that reopens the same view, and a fresh session
+starts from the URL it was opened with.
 
 Widgets edit it through ``bind``: the widget's own state is set from the view before it
 is drawn and copied back in its ``on_change`` callback, so the view is the one source
@@ -17,13 +20,17 @@ import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import streamlit as st
 
 from vpr_explorer.app import started_view
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.places import PlaceSpec, Reading
+from vpr_explorer.groundtruth import DEFAULT_RADIUS
+from vpr_explorer.layouts import Layout
+from vpr_explorer.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec, Reading
 from vpr_explorer.pipeline import DEMO
+from vpr_explorer.retrieval_views import DEFAULT_GROUP_M
 
 DEFAULT_DESCRIPTOR = "pixels"
 """Always available and instant; efficientnet-lite0 is the learned choice, one click away."""
@@ -37,12 +44,19 @@ _KEY = "view"
 _PAGE_KEY = "page_params"
 _INT_FIELDS = ("group", "step", "place", "frame")
 _FLOAT_FIELDS = ("k", "theta")
+_METRE_FIELDS = ("radius", "group_m", "step_m")
 # Changing one of these makes the fields after it meaningless: they are reset.
+_PLACES = ("group", "step", "geometry", "group_m", "step_m", "query", "place", "frame")
 _RESETS = {
-    "source": ("group", "step", "query", "place", "frame"),
+    "source": (*_PLACES, "descriptors"),  # a descriptor file describes one dataset's images
+    "layout": _PLACES,
+    "radius": ("place",),
     "group": ("place",),
     "step": ("place",),
     "reading": ("place",),
+    "geometry": ("place",),
+    "group_m": ("place",),
+    "step_m": ("place",),
 }
 
 
@@ -60,6 +74,12 @@ class View:
     frame: int | None = None
     k: float = 0.0
     theta: float | None = None
+    layout: str = Layout.AUTO.value
+    radius: float | None = None
+    geometry: str | None = None
+    group_m: float | None = None
+    step_m: float | None = None
+    descriptors: str | None = None  # a descriptor file typed on the Dataset page; ``descriptor`` is its stem
 
     def to_params(self) -> dict[str, str]:
         """Query parameters for the fields that differ from the defaults."""
@@ -90,6 +110,15 @@ class View:
             except VPRInputError as exc:
                 ignored.append(f"step={params['step']!r}: {exc}; using {_INSTEAD['step']}")
                 del values["step"]
+        if "step_m" in values:
+            try:
+                MetricPlaceSpec(values.get("group_m", DEFAULT_GROUP_M), values["step_m"],
+                                values.get("reading", Reading.STRIDE))
+            except VPRInputError as exc:
+                ignored.append(f"step_m={params['step_m']!r}: {exc}; using {_INSTEAD['step_m']}")
+                del values["step_m"]
+        if "descriptors" in values:  # a descriptor file is named by its stem, everywhere
+            values["descriptor"] = Path(values["descriptors"]).expanduser().stem
         return cls(**values), ignored
 
 
@@ -101,6 +130,12 @@ _INSTEAD = {
     "frame": "the default frame",
     "k": "k = 0 (the paper's thresholds)",
     "theta": "no global θ of your own",
+    "layout": "the detected layout",
+    "radius": f"the field's {DEFAULT_RADIUS:g} m",
+    "geometry": "the dataset's default geometry",
+    "group_m": "the default group in metres",
+    "step_m": "the default step in metres",
+    "descriptors": "the descriptor named by descriptor",
 }
 """What the app uses when a link's parameter is refused."""
 
@@ -131,8 +166,27 @@ def _parse(name: str, text: str) -> object:
         if not low <= value <= high:
             raise ValueError(f"outside {low:g} to {high:g}")
         return value
+    if name in _METRE_FIELDS:
+        try:
+            value = float(text)
+        except ValueError:
+            raise ValueError("not a distance in metres") from None
+        if not math.isfinite(value) or value <= 0:
+            raise ValueError("must be a positive distance in metres, e.g. 25")
+        if name != "radius":
+            try:  # the library's own limits and message
+                MetricPlaceSpec(value, value, Reading.SKIP)
+            except VPRInputError as exc:
+                raise ValueError(str(exc).split(": ", 1)[-1]) from None
+        return value
     if name == "reading" and text not in {r.value for r in Reading}:
         raise ValueError(f"choose {' or '.join(r.value for r in Reading)}")
+    if name == "layout" and text not in {x.value for x in Layout}:
+        raise ValueError(f"choose one of {', '.join(x.value for x in Layout)}")
+    if name == "geometry" and text not in {g.value for g in PlaceGeometry}:
+        raise ValueError(f"choose {' or '.join(g.value for g in PlaceGeometry)}")
+    if name == "descriptors" and not text.strip():
+        raise ValueError("empty: give the path of a .npz, .npy or hloc .h5 file")
     return text
 
 
@@ -160,6 +214,10 @@ def update(**changes: object) -> View:
         if changes[name] != getattr(old, name):
             for dependent in _RESETS.get(name, ()):
                 changes.setdefault(dependent, None)
+    if changes.get("descriptors") is not None:
+        changes["descriptor"] = Path(str(changes["descriptors"])).expanduser().stem
+    elif "descriptors" in changes and old.descriptors is not None and "descriptor" not in changes:
+        changes["descriptor"] = DEFAULT_DESCRIPTOR  # the file's stem names no extractor
     new = dataclasses.replace(old, **changes)
     st.session_state[_KEY] = new
     return new

@@ -1,0 +1,87 @@
+"""The Group/step sweep page under Streamlit's AppTest: a link's settings, a refused one, bad form input, and a
+large dataset that waits for the button (``tests/test_browser_sweep.py`` clicks a cell in Chromium)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import streamlit as st
+from streamlit.testing.v1 import AppTest
+
+from vpr_explorer.app import ENTRY, PAGES
+
+pytestmark = pytest.mark.realdata
+
+TIMEOUT = 120
+
+
+@pytest.fixture(autouse=True)
+def fresh(monkeypatch):
+    """Empty Streamlit caches, and every run routed through the entry script's ``st.navigation`` (as
+    ``tests/test_app.py`` does: AppTest would otherwise run the page in the old multipage mode)."""
+    from streamlit.runtime.pages_manager import PagesManager
+
+    st.cache_data.clear()
+    st.cache_resource.clear()
+    init = PagesManager.__init__
+
+    def init_after_navigation(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        PagesManager.uses_pages_directory = False
+
+    monkeypatch.setattr(PagesManager, "__init__", init_after_navigation)
+
+
+def sweep_page(params: dict) -> AppTest:
+    at = AppTest.from_file(str(ENTRY), default_timeout=TIMEOUT)
+    at.query_params.update(params)
+    return at.switch_page(str(PAGES / "sweep.py")).run()
+
+
+def chart(at: AppTest, key: str):
+    found = [c for c in at.get("plotly_chart") if c.proto.id.endswith(f"-{key}")]
+    assert len(found) == 1, [c.proto.id for c in at.get("plotly_chart")]
+    return found[0]
+
+
+def test_a_link_runs_its_sweep_and_keeps_it_in_the_url(data_root, gp_pixels):
+    gp = str(data_root / "GardensPointWalking")
+    at = sweep_page({"source": gp, "sweep_groups": "3 2", "sweep_steps": "5", "sweep_protocol": "traversal",
+                     "sweep_metric": "auc"})
+    assert not at.exception and not at.error, [e.value for e in at.exception]
+    spec = json.loads(chart(at, "sweep_skip").proto.spec)
+    heat = next(t for t in spec["data"] if t.get("meta") == "values")
+    assert heat["y"] == ["2", "3"] and heat["x"] == ["5"]
+    for name, value in (("sweep_groups", "2 3"), ("sweep_protocol", "traversal"), ("sweep_metric", "auc"),
+                        ("sweep_readings", "stride skip")):
+        got = at.query_params[name]
+        assert (got[0] if isinstance(got, list) else got) == value
+    assert any("4 cells, 4 with valid places" in c.value for c in at.caption)
+    assert any("no unknown places" in c.value for c in at.caption)  # why the rejection grid is empty
+    # the form: a bad group is refused by name and the sweep in use is kept
+    at.text_input(key="w_sweep_groups").set_value("2 x")
+    at.button[0].click().run()
+    assert any("groups '2 x'" in e.value for e in at.error)
+    got = at.query_params["sweep_groups"]
+    assert (got[0] if isinstance(got, list) else got) == "2 3"
+
+
+def test_a_refused_link_setting_falls_back_alone(data_root, gp_pixels):
+    gp = str(data_root / "GardensPointWalking")
+    at = sweep_page({"source": gp, "sweep_groups": "2", "sweep_steps": "0 5", "sweep_protocol": "traversal",
+                     "sweep_readings": "skip"})
+    assert not at.exception
+    assert any("sweep_steps='0 5'" in w.value and "steps=0" in w.value for w in at.warning)
+    got = at.query_params["sweep_protocol"]
+    assert (got[0] if isinstance(got, list) else got) == "traversal"  # the others are kept
+    assert [c.proto.id.rsplit("-", 1)[-1] for c in at.get("plotly_chart")] == ["sweep_skip"]
+
+
+def test_a_large_sweep_states_its_cost_and_waits_for_the_button(data_root):
+    at = sweep_page({"source": str(data_root / "Nordland_64x32"), "sweep_groups": "3", "sweep_steps": "10",
+                     "sweep_protocol": "traversal", "sweep_readings": "stride"})
+    assert not at.exception and not at.error
+    assert any("does not start by itself" in w.value and "image pairs" in w.value for w in at.warning)
+    assert any("1 cell, 1 with valid places, 1 protocol run to do on 7,152 images" in c.value for c in at.caption)
+    assert not at.get("plotly_chart")  # nothing ran

@@ -1,0 +1,251 @@
+"""Group/step sweeps (``vpr_explorer.sweep``, ``vpr-explorer sweep``) on GardensPoint's pixel descriptors.
+
+Every cell of a small real sweep is checked against a separate evaluation of the same
+settings (``pipeline.evaluate_dataset``, what ``vpr-explorer evaluate`` runs): the numbers
+must be equal, not close. Then the empty cells and their reasons, bad settings, the
+cache and the places the two readings share, the CSV/JSON columns, the heatmap's click
+data, and the command's exit codes.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+
+import numpy as np
+import pytest
+
+from vpr_explorer.cli import main
+from vpr_explorer.errors import VPRInputError
+from vpr_explorer.pipeline import evaluate_dataset
+from vpr_explorer.places import PlaceSpec
+from vpr_explorer.sweep import (
+    Metric,
+    SweepCache,
+    SweepSpec,
+    selected_cell,
+    sweep,
+    sweep_cost,
+    sweep_figure,
+    table,
+)
+
+pytestmark = pytest.mark.realdata
+
+RUNS = 2
+
+
+@pytest.fixture(scope="module")
+def paper_sweep(gardens_point, gp_pixels):
+    """Paper protocol, groups 2 3 × steps 2 5, both readings, 2 runs, with precision–recall."""
+    spec = SweepSpec(groups=(3, 2), steps=(5, 2), protocol="paper", runs=RUNS)
+    seen = []
+    result = sweep(gardens_point, gp_pixels, spec, descriptor="pixels",
+                   progress=lambda done, total, msg: seen.append((done, total, msg)))
+    return result, seen
+
+
+def _separate(data_root, spec: PlaceSpec, protocol: str, **options):
+    return evaluate_dataset(data_root / "GardensPointWalking", spec, "pixels", protocol, pr=True, **options)
+
+
+def _everything(ev) -> dict:
+    """An evaluation's every number, setting, note and curve (NaN as ``None``), all but its time."""
+    return {k: v for k, v in ev.to_dict().items() if k != "seconds"}
+
+
+def test_every_cell_equals_a_separate_evaluation(paper_sweep, data_root):
+    result, seen = paper_sweep
+    assert result.spec.groups == (2, 3) and result.spec.steps == (2, 5)  # sorted
+    assert [c.spec for c in result.cells] == [(g, s, r) for r in ("stride", "skip") for g in (2, 3) for s in (2, 5)]
+    assert [d for d, _, _ in seen] == list(range(1, 9)) and all(t == 8 for _, t, _ in seen)
+    assert seen[0][2] == "group 2, step 2 (stride)"
+    checked = 0
+    for c in result.cells:
+        if c.empty:
+            continue
+        ev = _separate(data_root, PlaceSpec(c.group, c.step, c.reading), "paper", runs=RUNS)
+        base = ev.row("place-baseline").recall[1][0]
+        assert c.r1 == base
+        assert c.gain == ev.row("margin-weighted").recall[1][0] - base
+        assert c.auc == next(r.auc for r in ev.pr if r.key == "margin-weighted")
+        assert math.isnan(c.rejection) and "no unknown places" in c.missing["rejection"]
+        assert c.evaluation.same_numbers(ev)
+        assert _everything(c.evaluation) == _everything(ev)  # settings restated for the shared cell too
+        assert c.n_places == int(ev.settings["places"].split()[0])
+        checked += 1
+    assert checked == 7
+
+
+def test_open_set_rejection_at_k_equals_a_separate_evaluation(gardens_point, gp_pixels, data_root):
+    spec = SweepSpec(groups=(3,), steps=(5, 10), readings=("stride",), protocol="open-set", runs=RUNS, k=1.25,
+                     k_grid=(0.0, 1.0))
+    assert spec.k_grid == (0.0, 1.0, 1.25)  # the reported k joins the grid
+    result = sweep(gardens_point, gp_pixels, spec, descriptor="pixels")
+    for c in result.cells:
+        ev = _separate(data_root, PlaceSpec(c.group, c.step), "open-set", runs=RUNS, k_grid=[0.0, 1.0, 1.25])
+        row = next(t for t in ev.tradeoff if t.series == "θ_p(k) weighted" and t.rule == "margin" and t.param == 1.25)
+        assert c.rejection == row.unknown_rejection[0]
+        assert c.r1 == ev.row("place-baseline").recall[1][0]
+        assert c.auc == next(r.auc for r in ev.pr if r.key == "margin-weighted")
+        assert _everything(c.evaluation) == _everything(ev)
+    # a higher k rejects at least as many unknown places (same splits, larger thresholds)
+    low = sweep(gardens_point, gp_pixels, SweepSpec(groups=(3,), steps=(5, 10), readings=("stride",),
+                                                     protocol="open-set", runs=RUNS, k=0.0, k_grid=(0.0, 1.0)))
+    assert all(h.rejection >= lo.rejection for h, lo in zip(result.cells, low.cells))
+
+
+def test_traversal_cells_and_method(gardens_point, gp_pixels, data_root):
+    spec = SweepSpec(groups=(2,), steps=(4,), readings=("skip",), protocol="traversal", method="raw-simple",
+                     tolerance=1)
+    c = sweep(gardens_point, gp_pixels, spec, descriptor="pixels").cells[0]
+    ev = _separate(data_root, PlaceSpec(2, 4, "skip"), "traversal", tolerance=1)
+    assert c.gain == ev.row("raw-simple").recall[1][0] - ev.row("place-baseline").recall[1][0]
+    assert c.auc == next(r.auc for r in ev.pr if r.key == "raw-simple")
+    assert _everything(c.evaluation) == _everything(ev)
+
+
+def test_empty_cells_say_why(paper_sweep, gardens_point, gp_pixels):
+    result, _ = paper_sweep
+    overlap = result.cell(3, 2, "stride")
+    assert overlap.empty and "step=2 < group=3" in overlap.empty and "overlap" in overlap.empty
+    assert overlap.n_places == 0 and math.isnan(overlap.r1) and overlap.evaluation is None
+    assert overlap.why(Metric.AUC) == overlap.empty
+    assert "—" in table(result, "r1", "stride").splitlines()[-1]  # group 3 row, step 2 column
+    # a step that leaves one place, and a protocol that refuses the places (one image per place)
+    spec = SweepSpec(groups=(1, 150), steps=(160,), readings=("stride",), protocol="paper", runs=1)
+    few = sweep(gardens_point, gp_pixels, spec).cells
+    assert "leaves 1 place(s)" in few[1].empty and "lower group or step" in few[1].empty
+    assert few[0].empty is None  # group 1 step 160: 2 places × 3 images
+    assert sweep_cost(gardens_point, spec).valid == 1
+
+
+def test_readings_share_places_and_cache(paper_sweep, gardens_point, gp_pixels):
+    result, _ = paper_sweep
+    shared = result.cell(3, 2, "skip")  # skip 3/2 = stride 3/5: period 5, group 3
+    first = result.cell(3, 5, "stride")
+    assert shared.same_as == (3, 5, "stride") and shared.seconds == 0.0 and first.seconds > 0
+    assert shared.r1 == first.r1 and shared.auc == first.auc
+    assert shared.evaluation.settings["reading"] == "skip" and "skip reading" in shared.evaluation.settings["places"]
+    cache = SweepCache()
+    spec = SweepSpec(groups=(2,), steps=(3,), readings=("stride",), protocol="traversal")
+    key = "test-key"
+    assert sweep_cost(gardens_point, spec, cache=cache, descriptors_key=key).runs == 1
+    one = sweep(gardens_point, gp_pixels, spec, cache=cache, descriptors_key=key)
+    assert sweep_cost(gardens_point, spec, cache=cache, descriptors_key=key).runs == 0
+    two = sweep(gardens_point, gp_pixels, spec, cache=cache, descriptors_key=key)
+    assert two.cells[0].cached and two.cells[0].evaluation is one.cells[0].evaluation
+    other = SweepSpec(groups=(2,), steps=(3,), readings=("stride",), protocol="traversal", tolerance=1)
+    assert sweep_cost(gardens_point, other, cache=cache, descriptors_key=key).runs == 1  # options are in the key
+
+
+def test_bad_settings_are_refused_by_name(gardens_point, gp_pixels):
+    cases = [
+        (dict(groups=(), steps=(5,)), "groups: give at least one"),
+        (dict(groups=(0, 2), steps=(5,)), "groups=0"),
+        (dict(groups=(2,), steps=(2.5,)), "steps=2.5"),
+        (dict(groups=(2,), steps=(5,), readings=("diagonal",)), "reading 'diagonal'"),
+        (dict(groups=(2,), steps=(5,), readings=()), "readings"),
+        (dict(groups=(2,), steps=(5,), protocol="database-queries"), "a sweep runs paper, traversal, open-set"),
+        (dict(groups=(2,), steps=(5,), method="image-baseline"), "method 'image-baseline'"),
+        (dict(groups=(2,), steps=(5,), k=float("nan")), "k=nan"),
+        (dict(groups=tuple(range(1, 21)), steps=tuple(range(1, 21))), "800 cells: at most 400"),
+    ]
+    for kwargs, message in cases:
+        with pytest.raises(VPRInputError, match=message.replace("(", r"\(").replace(")", r"\)")):
+            SweepSpec(**kwargs)
+    with pytest.raises(VPRInputError, match="runs=0"):
+        sweep(gardens_point, gp_pixels, SweepSpec(groups=(2,), steps=(5,), runs=0))
+    with pytest.raises(VPRInputError, match="599 descriptors for 600 images"):
+        sweep(gardens_point, gp_pixels[:599], SweepSpec(groups=(2,), steps=(5,), protocol="traversal"))
+
+
+def test_csv_and_json_carry_every_setting(paper_sweep):
+    result, _ = paper_sweep
+    rows = list(csv.DictReader(io.StringIO(result.to_csv())))
+    assert len(rows) == 8
+    for name in ("dataset", "descriptor", "protocol", "method", "runs", "seed", "cross_condition", "tolerance",
+                 "theta", "pr", "reading", "group", "step", "n_places", "r1", "gain", "rejection", "auc", "empty"):
+        assert name in rows[0], name
+    assert {r["dataset"] for r in rows} == {"GardensPointWalking"} and {r["descriptor"] for r in rows} == {"pixels"}
+    assert {r["protocol"] for r in rows} == {"paper"} and {r["runs"] for r in rows} == {str(RUNS)}
+    for row, c in zip(rows, result.cells):
+        assert (int(row["group"]), int(row["step"]), row["reading"]) == c.spec
+        assert row["r1"] == ("" if c.empty else repr(c.r1))  # repr: the exact float
+        if not c.empty:
+            assert float(row["auc"]) == c.auc
+    data = json.loads(result.to_json())
+    assert data["settings"]["runs"] == RUNS and data["settings"]["descriptor"] == "pixels"
+    assert data["groups"] == [2, 3] and data["readings"] == ["stride", "skip"]
+    overlap = next(c for c in data["cells"] if (c["group"], c["step"], c["reading"]) == (3, 2, "stride"))
+    assert overlap["r1"] is None and "overlap" in overlap["empty"]
+    assert next(c for c in data["cells"] if c["reading"] == "skip" and c["group"] == 3
+                and c["step"] == 2)["same_as"] == {"group": 3, "step": 5, "reading": "stride"}
+
+
+def test_heatmap_cells_carry_their_settings(paper_sweep):
+    result, _ = paper_sweep
+    fig = sweep_figure(result, "gain", "stride", marked=(2, 5))
+    heat = next(t for t in fig.data if t.meta == "values")
+    cells = next(t for t in fig.data if t.meta == "cells")
+    z = np.asarray(heat.z, dtype=float)
+    assert z.shape == (2, 2) and np.isnan(z[1, 0])  # group 3, step 2: overlapping places
+    assert z[0, 1] == 100 * result.cell(2, 5, "stride").gain
+    assert heat.zmid == 0 and list(heat.x) == ["2", "5"] and list(heat.y) == ["2", "3"]
+    assert [list(d) for d in cells.customdata] == [[2, 2, "stride"], [2, 5, "stride"], [3, 5, "stride"]]
+    empty = next(t for t in fig.data if t.meta == "empty")
+    assert list(empty.x) == ["2"] and list(empty.y) == ["3"] and "overlap" in empty.text[0]
+    assert selected_cell({"customdata": [3, 5, "stride"]}) == (3, 5, "stride")
+    assert selected_cell({"customdata": {"0": 2, "1": 2, "2": "skip"}}) == (2, 2, "skip")
+    assert selected_cell({"x": "5"}) is None and selected_cell({"customdata": [1, 2, "diagonal"]}) is None
+    box = fig.layout.shapes[0]
+    assert (box.x0, box.x1, box.y0, box.y1) == (0.5, 1.5, -0.5, 0.5)  # step 5 (column 1), group 2 (row 0)
+
+
+# --------------------------------------------------------------------------- the command
+
+
+def test_cli_sweep_prints_the_grid_and_writes_files(data_root, tmp_path, capsys):
+    out_csv, out_json = tmp_path / "sweep.csv", tmp_path / "sweep.json"
+    rc = main(["sweep", "--dataset", str(data_root / "GardensPointWalking"), "--descriptor", "pixels",
+               "--groups", "2", "3", "--steps", "2", "5", "--reading", "stride", "--protocol", "traversal",
+               "--metric", "r1", "gain", "--csv", str(out_csv), "--json", str(out_json)])
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "GardensPointWalking: 4 cells, 3 with valid places, 3 protocol runs" in out
+    assert "place-level R@1 (%), stride reading" in out and "gain in R@1" in out and "AUC" not in out
+    assert "empty: 3/2 stride: step=2 < group=3" in out
+    assert "missing: rejection (3 cells)" in out
+    rows = list(csv.DictReader(out_csv.open()))
+    assert [(r["group"], r["step"], r["reading"]) for r in rows] == [("2", "2", "stride"), ("2", "5", "stride"),
+                                                                      ("3", "2", "stride"), ("3", "5", "stride")]
+    assert rows[0]["protocol"] == "traversal" and rows[0]["descriptor"] == "pixels" and rows[0]["tolerance"] == "0"
+    data = json.loads(out_json.read_text())
+    assert data["settings"]["protocol"] == "traversal" and len(data["cells"]) == 4
+    ev = evaluate_dataset(data_root / "GardensPointWalking", PlaceSpec(2, 5), "pixels", "traversal", pr=True)
+    assert data["cells"][1]["r1"] == ev.row("place-baseline").recall[1][0]
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--groups", "0", "--steps", "5"], "groups=0"),
+    (["--groups", "2", "--steps", "5", "--protocol", "traversal", "--runs", "3"], "--runs applies to the paper"),
+    (["--groups", "2", "--steps", "5", "--protocol", "paper", "--k", "1"], "--k applies to the open-set"),
+    (["--groups", "2", "--steps", "5", "--runs", "0"], "runs=0"),
+    (["--groups", "2", "--steps", "5", "--protocol", "traversal", "--csv", "/nonexistent/dir/s.csv"],
+     "--csv /nonexistent/dir/s.csv: cannot write"),
+    (["--groups", "2", "--steps", "5", "--geometry", "route"], "--geometry applies to database/queries"),
+])
+def test_cli_sweep_refuses_bad_input_in_one_line(data_root, capsys, argv, message):
+    rc = main(["sweep", "--dataset", str(data_root / "GardensPointWalking"), "--descriptor", "pixels", *argv])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2
+    assert err[-1].startswith("error: ") and message in err[-1], err
+    assert not any("Traceback" in line for line in err)
+
+
+def test_cli_sweep_needs_a_grid(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["sweep", "--dataset", "demo", "--steps", "5"])
+    assert exc.value.code == 2 and "--groups" in capsys.readouterr().err

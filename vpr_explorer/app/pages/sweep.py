@@ -1,0 +1,256 @@
+"""Group/step sweep page: one protocol over a grid of group × step, as heatmaps; a click sets group/step everywhere.
+
+Widgets → one library call (``sweep.sweep``, with progress bars, its cells memoised in one
+``SweepCache`` per server) → render (``sweep.sweep_figure``). The sweep's own settings (groups, steps, readings,
+protocol, runs, method, metric) live in the URL as ``sweep_*`` page parameters; group/step
+and the reading chosen by a click go into the view (``state.commit``), so every page uses them.
+"""
+
+import pandas as pd  # before plotly: plotly.py#2433
+import streamlit as st
+
+from vpr_explorer.errors import VPRInputError
+from vpr_explorer.evaluation import PROTOCOL_LABELS, Protocol
+from vpr_explorer.places import READING_LABELS, Reading
+from vpr_explorer.sweep import (
+    METRIC_HELP,
+    METRIC_LABELS,
+    SWEEP_METHODS,
+    SWEEP_PROTOCOLS,
+    Metric,
+    SweepCache,
+    SweepSpec,
+    empty_reasons,
+    missing_reasons,
+    selected_cell,
+    sweep,
+    sweep_cost,
+    sweep_figure,
+)
+
+from vpr_explorer.app.ui import state
+from vpr_explorer.app.ui.current import current
+from vpr_explorer.app.ui.feedback import progress_reporter, stop_on_input_error
+from vpr_explorer.app.ui.routing import ensure_routed, page_file
+
+ensure_routed(__file__)
+
+DEFAULTS = {"sweep_groups": "1 2 3 5", "sweep_steps": "3 5 10 20", "sweep_readings": "stride skip",
+            "sweep_protocol": Protocol.PAPER.value, "sweep_runs": "5", "sweep_method": SWEEP_METHODS[0],
+            "sweep_metric": Metric.R1.value}
+# the sweep's settings when the URL names none: a 4 × 4 grid in both readings, 5 splits a cell (the paper uses 50)
+MAX_SWEEP_RUNS = 50
+
+
+@st.cache_resource(show_spinner=False)
+def _cells() -> SweepCache:
+    """Every evaluated cell of this server, by descriptors, options and places: sweeps share them."""
+    return SweepCache()
+
+
+def _numbers(text: str, name: str) -> tuple[int, ...]:
+    try:
+        values = [int(x) for x in str(text).replace(",", " ").split()]
+    except ValueError:
+        raise VPRInputError(f"{name} {text!r}: give whole numbers of frames separated by spaces, "
+                            "e.g. 1 2 3 5") from None
+    return tuple(values)
+
+
+def _spec(p: dict) -> SweepSpec:
+    """The sweep the page parameters ``p`` describe; ``VPRInputError`` naming the one at fault."""
+    try:
+        runs = int(p["sweep_runs"])
+    except ValueError:
+        raise VPRInputError(f"runs {p['sweep_runs']!r}: give a whole number from 1 to {MAX_SWEEP_RUNS}") from None
+    if not 1 <= runs <= MAX_SWEEP_RUNS:
+        raise VPRInputError(f"runs={runs}: give a whole number from 1 to {MAX_SWEEP_RUNS}")
+    return SweepSpec(groups=_numbers(p["sweep_groups"], "groups"), steps=_numbers(p["sweep_steps"], "steps"),
+                     readings=tuple(p["sweep_readings"].split()), protocol=p["sweep_protocol"],
+                     method=p["sweep_method"], runs=runs, k=float(state.view().k), user_theta=state.view().theta)
+
+
+def _canonical(p: dict, spec: SweepSpec) -> dict:
+    """``p`` with the lists as the sweep reads them: sorted, each value once."""
+    return {**p, "sweep_groups": " ".join(map(str, spec.groups)), "sweep_steps": " ".join(map(str, spec.steps)),
+            "sweep_readings": " ".join(r.value for r in spec.readings)}
+
+
+def _settings() -> tuple[dict, SweepSpec]:
+    """The sweep's settings from the URL (page parameters), each refused one replaced by its default, said once."""
+    given = {k: v for k, v in state.page_params().items() if k in DEFAULTS}
+    p = {**DEFAULTS, **given}
+    if p["sweep_metric"] not in {m.value for m in Metric}:
+        st.warning(f"sweep_metric={p['sweep_metric']!r}: choose one of {', '.join(m.value for m in Metric)}; "
+                   f"showing {DEFAULTS['sweep_metric']}", icon=":material/warning:")
+        p["sweep_metric"] = DEFAULTS["sweep_metric"]
+    try:
+        spec = _spec(p)
+        return _canonical(p, spec), spec
+    except VPRInputError as exc:
+        for name in given:  # the one refused setting back to its default, the others kept
+            fixed = {**p, name: DEFAULTS[name]}
+            try:
+                spec = _spec(fixed)
+            except VPRInputError:
+                continue
+            st.warning(f"{name}={p[name]!r} in the link was refused: {exc}. Using {DEFAULTS[name]!r} instead.",
+                       icon=":material/warning:")
+            return _canonical(fixed, spec), spec
+        st.warning(f"The link's sweep settings were refused: {exc}. Using the defaults.", icon=":material/warning:")
+        p = {**DEFAULTS, "sweep_metric": p["sweep_metric"]}
+        spec = _spec(p)
+        return _canonical(p, spec), spec
+
+
+def _submit() -> None:
+    """The form's values become the sweep's settings (in the URL), if they make a valid sweep."""
+    ss = st.session_state
+    p = {**state.page_params(), "sweep_groups": ss["w_sweep_groups"], "sweep_steps": ss["w_sweep_steps"],
+         "sweep_readings": " ".join(ss["w_sweep_readings"]), "sweep_protocol": ss["w_sweep_protocol"],
+         "sweep_runs": str(ss["w_sweep_runs"]), "sweep_method": ss["w_sweep_method"]}
+    p = {**DEFAULTS, **{k: v for k, v in p.items() if k in DEFAULTS}}
+    try:
+        spec = _spec(p)
+    except VPRInputError as exc:
+        ss["rejected_sweep"] = str(exc)
+        return
+    state.set_page_params(**_canonical(p, spec))
+    ss["sweep_go"] = True
+
+
+def _pick(reading: str) -> None:
+    """A click on a heatmap cell: that group/step and reading, for every page."""
+    points = st.session_state[f"sweep_{reading}"].selection.points
+    cell = selected_cell(points[0]) if points else None
+    if cell is None:
+        return
+    group, step, reading = cell
+    state.commit(group=group, step=step, reading=reading)
+    st.session_state["sweep_picked"] = cell
+
+
+st.title("Group/step sweep")
+with stop_on_input_error():
+    cur = current()
+if cur.retrieval is not None:
+    st.info("A database/queries dataset: its places come from its own geometry; the sweep reads group/step of aligned "
+            "traversal folders. Set group/step on the **Places** page.", icon=":material/info:")
+    st.stop()
+ds = cur.data.dataset
+if cur.spec is None:
+    st.info("This dataset names its places in its file names (Place####_Cond##_G##): group/step do not apply, so "
+            "there is nothing to sweep.", icon=":material/info:")
+    st.stop()
+st.markdown("Every cell of the grid is one run of the protocol with that group and step, on the descriptors already "
+            "loaded (they are per image, so only the places change). Click a cell to use its group/step and reading "
+            "on every page.")
+
+params, spec = _settings()
+ss = st.session_state
+# the form starts from the settings in use (a widget's state is dropped when the page is left)
+ss.setdefault("w_sweep_groups", " ".join(map(str, spec.groups)))
+ss.setdefault("w_sweep_steps", " ".join(map(str, spec.steps)))
+ss.setdefault("w_sweep_readings", [r.value for r in spec.readings])
+ss.setdefault("w_sweep_protocol", spec.protocol.value)
+ss.setdefault("w_sweep_runs", spec.runs)
+ss.setdefault("w_sweep_method", spec.method)
+
+with st.form("sweep_form"):
+    c = st.columns([3, 3, 3])
+    c[0].text_input("groups (frames per place)", key="w_sweep_groups", help="whole numbers separated by spaces")
+    c[1].text_input("steps (frames)", key="w_sweep_steps", help="whole numbers separated by spaces")
+    c[2].multiselect("readings", [r.value for r in Reading], key="w_sweep_readings",
+                     help=" · ".join(READING_LABELS[r] for r in Reading))
+    c = st.columns([4, 2, 3])
+    c[0].radio("protocol", [p.value for p in SWEEP_PROTOCOLS], key="w_sweep_protocol",
+               format_func=lambda p: PROTOCOL_LABELS[Protocol(p)])
+    c[1].number_input("runs per cell (paper: 50)", 1, MAX_SWEEP_RUNS, key="w_sweep_runs",
+                      help="random splits of the paper and open-set protocols; the traversal protocol runs once")
+    c[2].selectbox("thresholded method (gain, rejection, AUC)", list(SWEEP_METHODS), key="w_sweep_method")
+    st.form_submit_button("Run sweep", type="primary", on_click=_submit)
+
+rejected = ss.pop("rejected_sweep", None)
+if rejected:
+    st.error(f"{rejected}\n\nThe previous sweep settings are kept.", icon=":material/error:")
+state.set_page_params(**params)  # the settings in use, in the URL
+
+with stop_on_input_error(hint="Change the sweep's settings above."):
+    cost = sweep_cost(ds, spec, cache=_cells(), descriptors_key=cur.data.key)
+go = ss.pop("sweep_go", False)
+settings_line = (f"{PROTOCOL_LABELS[spec.protocol]}; {', '.join(r.value for r in spec.readings)} reading"
+                 f"{'s' if len(spec.readings) > 1 else ''}"
+                 + (f"; {spec.runs} runs per cell" if spec.protocol is not Protocol.TRAVERSAL else "")
+                 + (f"; rejection at k = {spec.k:g} (the k of the **Thresholds** page)"
+                    if spec.protocol is Protocol.OPEN_SET else ""))
+st.caption(f"**Cost:** {cost.describe()}. {settings_line}.")
+if cost.runs and cost.large and not go:
+    st.warning(f"{ds.n_images:,} images: this sweep scores about **{cost.pairs:.1e} image pairs** in "
+               f"{cost.runs} protocol runs (minutes to hours), so it does not start by itself. Trim the grid or the "
+               "runs, or press **Run sweep**; a progress bar shows each cell, and finished cells are kept in memory.",
+               icon=":material/timer:")
+    st.stop()
+
+
+def run_sweep():
+    """The sweep, with a progress bar over its cells and one inside the running cell.
+
+    Not through ``cache``'s memo of whole results: the cells are memoised one by one in
+    ``_cells()`` (so an overlapping sweep reuses them), and a sweep of cells in memory
+    takes milliseconds.
+    """
+    progress, clear = progress_reporter(f"Sweeping {cost.valid} cells ({cost.runs} protocol runs to do)")
+    inner, clear_inner = progress_reporter("this cell")
+    try:
+        return sweep(ds, cur.data.descriptors, spec, descriptor=cur.data.descriptor, descriptors_key=cur.data.key,
+                     cache=_cells(), progress=progress, cell_progress=inner)
+    finally:
+        clear_inner()
+        clear()
+
+
+with stop_on_input_error(hint="Change the sweep's settings above, or the dataset on the **Dataset** page."):
+    result = run_sweep()
+
+picked = ss.pop("sweep_picked", None)
+if picked:
+    st.success(f"group {picked[0]}, step {picked[1]} ({picked[2]} reading) is now in use on every page.",
+               icon=":material/check_circle:")
+    st.page_link(page_file("places"), label="See it on the Places page", icon=":material/place:")
+
+metric = st.radio("metric", [m.value for m in Metric], format_func=lambda m: METRIC_LABELS[Metric(m)],
+                  index=[m.value for m in Metric].index(params["sweep_metric"]), horizontal=True, key="w_sweep_metric",
+                  on_change=lambda: state.set_page_params(sweep_metric=ss["w_sweep_metric"]))
+st.caption(METRIC_HELP[Metric(metric)] + (f" Method: {spec.method}." if metric != Metric.R1 else ""))
+v = cur.spec
+for col, reading in zip(st.columns(len(spec.readings)), spec.readings):
+    with col:
+        marked = (v.group, v.step) if v.reading is reading else None
+        st.plotly_chart(sweep_figure(result, metric, reading, marked=marked), key=f"sweep_{reading.value}",
+                        on_select=lambda r=reading.value: _pick(r), selection_mode="points", width="stretch")
+best = result.best(metric)
+ran = sum(c.evaluation.seconds for c in result.cells if c.evaluation is not None and c.same_as is None)
+st.caption(f"In use: group {v.group}, step {v.step} ({v.reading.value}), outlined. "
+           + (f"Best {METRIC_LABELS[Metric(metric)]}: group {best.group}, step {best.step} ({best.reading.value}). "
+              if best else "")
+           + f"The protocol runs took {ran:.1f} s "
+           "(each kept in memory); a cell shared by both readings (skip g/s = stride g/g+s) is run once.")
+for line in empty_reasons(result):
+    st.caption(f"empty: {line}")
+for line in missing_reasons(result):
+    st.caption(f"missing: {line}")
+
+rows = pd.DataFrame([{**c.to_dict(), "missing": "; ".join(f"{k}: {w}" for k, w in c.missing.items()),
+                      "same_as": "" if c.same_as is None else " ".join(map(str, c.same_as))} for c in result.cells])
+for m in (Metric.R1, Metric.GAIN, Metric.REJECTION):
+    rows[m.value] = rows[m.value].astype(float) * 100
+with st.expander("Every cell as a table"):
+    st.dataframe(rows, hide_index=True, key="sweep_table", column_config={
+        m.value: st.column_config.NumberColumn(METRIC_LABELS[m], format="%.3f" if m is Metric.AUC else "%.1f")
+        for m in Metric})
+stem = (f"{ds.name}_{cur.data.descriptor}_{spec.protocol.value}_sweep_g{'-'.join(map(str, spec.groups))}"
+        f"_s{'-'.join(map(str, spec.steps))}_{'-'.join(r.value for r in spec.readings)}")
+d1, d2 = st.columns(2)
+d1.download_button("Download CSV", result.to_csv(), file_name=f"{stem}.csv", mime="text/csv", key="w_sweep_csv")
+d2.download_button("Download JSON", result.to_json(), file_name=f"{stem}.json", mime="application/json",
+                   key="w_sweep_json")

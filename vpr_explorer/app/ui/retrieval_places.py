@@ -1,0 +1,170 @@
+"""The Places page of a database/queries dataset: places from frames or metres, their consequences, the map.
+
+Group/step count database images in listed order (``frames``), or metres along the database
+route (``route``) or over a square lattice (``lattice``) where the layout has positions; a
+manifest with a ``place`` column fixes its places. The map draws the database images
+coloured by place (grey between places), the queries, and one query with its positive
+radius, its positives and its candidate places; a click on a query selects it (the Query
+inspector then opens on it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import streamlit as st
+
+from vpr_explorer import maps, plots
+from vpr_explorer.pipeline import retrieval_places
+from vpr_explorer.places import READING_LABELS, PlaceGeometry, Reading
+from vpr_explorer.retrieval_views import geometries, geometry_label, query_label, radius_of
+from vpr_explorer.views import LIVE_METHODS, top_candidates
+
+from vpr_explorer.app.ui import cache, group_step, state
+from vpr_explorer.app.ui.current import Current, effective_places
+from vpr_explorer.app.ui.feedback import stop_on_input_error
+from vpr_explorer.app.ui.routing import page_file
+
+MAP_CANDIDATES = 5
+"""Candidate places outlined on the map: the selected query's best by raw_p."""
+MAP_METHOD = "margin-weighted"
+"""The method whose answer the map marks: the paper's."""
+
+
+def _controls(cur: Current) -> None:
+    """Geometry, group/step (frames or metres) and reading, each checked before it replaces the view's."""
+    ds, places = cur.retrieval, cur.places
+    offered = geometries(ds)
+    if not offered:
+        st.info(f"{ds.name!r} names the place of every database image ({ds.layout.value}'s place column): "
+                "group/step do not apply.", icon=":material/info:")
+        return
+    if len(offered) > 1:
+        st.radio("places from", [g.value for g in offered], format_func=lambda g: geometry_label(PlaceGeometry(g)),
+                 horizontal=False, help="Frames: the database images in listed order (what `vpr-explorer list` "
+                                        "prints). Route: metres along the database in its listed order. Lattice: "
+                                        "square cells over the plane (unordered data such as Pittsburgh, SF-XL).",
+                 **state.bind("w_geometry", "geometry", places.geometry.value,
+                              validate=lambda g: _check(ds, geometry=g)))
+    c1, c2, c3 = st.columns([2, 2, 3])
+    if places.spec is not None:
+        spec = places.spec
+
+        def check_group(g) -> None:
+            group_step.refuse_overlap(lambda: _check(ds, group=g), group_field="group", step_field="step",
+                                      group=g, step=spec.step, stride=spec.reading is Reading.STRIDE)
+
+        group_step.offer_fix(lambda g: _check(ds, group=g, step=g))
+        c1.slider("group: database images per place", 1, max(2, spec.group, min(20, ds.n_database // 2)),
+                  **state.bind("w_group", "group", spec.group, validate=check_group))
+        c2.slider("step: database images from one place to the next", 1,
+                  max(2, spec.step, min(60, ds.n_database - 1)),
+                  **state.bind("w_step", "step", spec.step, validate=lambda x: _check(ds, step=x)))
+        reading = spec.reading
+    else:
+        metric = places.metric
+
+        def check_group_m(g) -> None:
+            group_step.refuse_overlap(lambda: _check(ds, group_m=g), group_field="group_m",
+                                      step_field="step_m", group=g, step=metric.step,
+                                      stride=metric.reading is Reading.STRIDE, unit=" m")
+
+        group_step.offer_fix(lambda g: _check(ds, group_m=g, step_m=g))
+        c1.number_input("group (m): metres per place", min_value=0.5, max_value=100_000.0, step=5.0, format="%g",
+                        **state.bind("w_group_m", "group_m", float(metric.group), validate=check_group_m))
+        c2.number_input("step (m): metres from one place to the next", min_value=0.5, max_value=1_000_000.0,
+                        step=5.0, format="%g",
+                        **state.bind("w_step_m", "step_m", float(metric.step),
+                                     validate=lambda x: _check(ds, step_m=x)))
+        reading = metric.reading
+    c3.radio("reading of step", [r.value for r in Reading], format_func=lambda r: READING_LABELS[Reading(r)],
+             **state.bind("w_reading", "reading", reading.value,
+                          validate=lambda r: _check(ds, reading=r)))
+
+
+def _check(ds, **changes) -> None:
+    """The places of ``ds`` if the view's fields changed so (``VPRInputError`` when they overlap or leave fewer than 2)."""
+    p = effective_places(dataclasses.replace(state.view(), **changes), ds)
+    retrieval_places(ds, p.spec, p.metric)
+
+
+def _map(cur: Current, fitted) -> None:
+    """The map of positions, with the selected query (``view.frame``) and its radius and candidates."""
+    ds = cur.retrieval
+    v = state.view()
+    q = v.frame if v.frame is not None and 0 <= v.frame < ds.n_queries else 0
+    st.subheader("The map: database images by place, and the queries")
+    c1, c2 = st.columns([1, 3])
+    c1.number_input("selected query", 0, ds.n_queries - 1, step=1, help="Or click a query (×) on the map.",
+                    **state.bind("w_map_query", "frame", q))
+    with stop_on_input_error(hint="Change group or step above."):
+        dec = cache.retrieval_decision(cur.data, cur.places, q, k=v.k, user_theta=v.theta)
+    candidates = top_candidates(dec, MAP_CANDIDATES)[:MAP_CANDIDATES]
+    answer = dec.answer(MAP_METHOD)
+    positives = ds.ground_truth.positives(q)
+    status = fitted.query_status(q)
+    right = ", ".join(f"P{p}" for p in dec.true_places) or "none"
+    c2.markdown(f"**{query_label(ds, q)}** (query {q}): {len(positives)} positive database image(s) "
+                f"({ds.ground_truth.description}); right place(s): {right} ({status}); the paper's method "
+                f"({MAP_METHOD}) answers {'P' + str(answer) if answer >= 0 else 'nothing (rejected)'}.")
+
+    def pick() -> None:
+        points = st.session_state["layout_map"].selection.points
+        picked = [p.get("customdata") for p in points if isinstance(p.get("customdata"), (int, float))]
+        if picked:
+            state.update(frame=int(picked[0]))
+
+    fig = maps.layout_map(ds.database_xy, fitted.database_place, ds.query_xy, selected=q, radius=radius_of(ds),
+                          positives=positives, candidates=candidates, answer=answer,
+                          title=f"{fitted.n_places} places; query {q} with its radius and its {len(candidates)} best "
+                                "candidate places (outlined)")
+    st.plotly_chart(fig, key="layout_map", on_select=pick, selection_mode="points", width="stretch")
+    st.caption("Coloured dots: database images, one colour per place (colours repeat); grey: database images between "
+               "places (skipped by group/step); ×: queries; ★: the selected query, the dashed circle its radius, green "
+               "rings its positives; black outlines: its best candidate places by raw_p; red outline: the place the "
+               "paper's method answered. Plain metres, no map tiles.")
+    if st.button("Open this query in the Query inspector", key="w_map_inspect", icon=":material/search:"):
+        st.switch_page(page_file("inspector"))
+
+
+def render(cur: Current) -> None:
+    """The Places page body for a database/queries dataset."""
+    ds = cur.retrieval
+    st.caption(f"{ds.describe()}. A place is made of **database** images; queries are decided against them, a "
+               "query's right places being those that hold one of its right database images.")
+    _controls(cur)
+    with stop_on_input_error(hint="Change group or step above."):
+        fitted = cache.retrieval_fitted(cur.data, cur.places)
+        ov, seconds = cache.retrieval_overview_timed(cur.data, cur.places)
+
+    st.subheader("Live consequences")
+    decided = (f"a seeded random sample of **{len(ov.queries):,} of the {ov.n_queries:,} queries** is decided (the "
+               "Query inspector decides any query you pick)" if ov.sampled else f"all {ov.n_queries:,} queries are decided")
+    st.caption(f"{fitted.describe()}. Thresholds from the database images in places only; {decided}: "
+               f"{ov.n_scored:,} have a right place and are scored, {ov.n_unknown:,} have no right database image "
+               f"at all (unknown places: rejecting them is right), the others' right images lie between places. "
+               f"Recomputed in {1000 * seconds:.0f} ms for these places (then cached), descriptors untouched.")
+    per = np.bincount(fitted.model.places, minlength=fitted.n_places)
+    m = st.columns(5)
+    m[0].metric("places", fitted.n_places)
+    m[1].metric("database images per place", f"{per.min()}" if per.min() == per.max() else f"{per.min()}–{per.max()}")
+    m[2].metric("place-level R@1", f"{ov.recall1['place-baseline']:.0%}")
+    m[3].metric("margin, weighted θ R@1", f"{ov.recall1['margin-weighted']:.0%}",
+                delta=f"{100 * (ov.recall1['margin-weighted'] - ov.recall1['place-baseline']):+.0f} pts")
+    unknown = ov.unknown_rejected["margin-weighted"]
+    m[4].metric("unknown rejected", "—" if np.isnan(unknown) else f"{unknown:.0%}",
+                help=f"Share of the {ov.n_unknown:,} unknown-place queries (no right database image: the open set) "
+                     "that the paper's method (margin, weighted θ) rejects; — when there is none.")
+    left, right = st.columns(2)
+    left.plotly_chart(plots.theta_histogram(fitted.model.theta, fitted.model.auto), key="theta_hist", width="stretch")
+    right.plotly_chart(plots.recall_bars({k: ov.recall1[k] for k in LIVE_METHODS},
+                                         rejected={k: ov.rejected[k] for k in LIVE_METHODS},
+                                         title="Recall@1 of the queries with a right place"),
+                       key="recall_live", width="stretch")
+    if ds.database_xy is not None and ds.query_xy is not None:
+        _map(cur, fitted)
+    else:
+        st.info(f"The {ds.layout.value} layout has no positions: there is no map. The Query inspector shows any "
+                "query with its right places.", icon=":material/info:")
+

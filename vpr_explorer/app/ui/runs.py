@@ -1,0 +1,179 @@
+"""Runs side by side on the Evaluation page: every run kept while the app is open, pinned, renamed, compared.
+
+The list lives in ``st.session_state`` (one browser session's runs; a reload starts a new
+list) as ``compare.RunRecord`` s; everything numeric is ``vpr_explorer.compare`` and
+``compare_plots``: this module only draws widgets around them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import pandas as pd  # before plotly: plotly.py#2433
+import streamlit as st
+
+from vpr_explorer import compare, compare_plots
+from vpr_explorer.errors import VPRInputError
+from vpr_explorer.evaluation import Evaluation
+from vpr_explorer.retrieval import METHODS_BY_KEY
+
+_KEY = "eval_kept_runs"
+_ISSUED = "eval_runs_issued"
+_DISMISSED = "eval_runs_removed"
+
+
+def kept() -> tuple[compare.RunRecord, ...]:
+    """The session's runs, oldest first."""
+    return st.session_state.get(_KEY, ())
+
+
+def keep(ev: Evaluation, extra: Mapping[str, object] | None = None, *, pressed: bool = False) -> None:
+    """Add a run shown on the page to the list, once per set of settings.
+
+    A run the user removed is not added back while its results stay on the page; pressing
+    **Run** for it again (``pressed``) does.
+    """
+    runs = kept()
+    settings = compare.run_settings(ev, extra)
+    key = compare.settings_key(settings)
+    dismissed = st.session_state.setdefault(_DISMISSED, set())
+    if pressed:
+        dismissed.discard(key)
+    if key in dismissed or compare.find_run(runs, settings) is not None:
+        return
+    issued = st.session_state.get(_ISSUED, 0)
+    new = compare.record(ev, run_id=compare.next_id(runs, issued), extra=extra)
+    st.session_state[_KEY] = compare.add_run(runs, new)
+    st.session_state[_ISSUED] = int(new.id.split()[-1])
+    if "w_compare_runs" in st.session_state:  # a new run joins the comparison
+        st.session_state["w_compare_runs"] = [*st.session_state["w_compare_runs"], new.id]
+
+
+def file_stem(ev: Evaluation) -> str:
+    """A download's file name for one run: every setting in it."""
+    return compare.export_stem([compare.record(ev, run_id="run")], prefix="vpr_eval")
+
+
+def _act(action: str) -> None:
+    """A button of the run manager: rename, pin/unpin or remove the picked run."""
+    ss = st.session_state
+    run_id = ss.get("w_run_pick")
+    try:
+        if action == "rename":
+            ss[_KEY] = compare.rename(kept(), run_id, ss.get("w_run_name", ""))
+        elif action == "pin":
+            run = next(r for r in kept() if r.id == run_id)
+            ss[_KEY] = compare.pin(kept(), run_id, not run.pinned)
+        elif action == "remove":
+            run = next(r for r in kept() if r.id == run_id)
+            ss[_KEY] = compare.remove(kept(), run_id)
+            ss.setdefault(_DISMISSED, set()).add(compare.settings_key(run.settings))
+            ss.pop("w_run_pick", None)
+    except (VPRInputError, StopIteration) as exc:
+        ss["runs_rejected"] = str(exc) or f"no run {run_id!r}"
+    ss.pop("w_run_name_for", None)  # the name field shows the run's (new) name again
+
+
+#: What a cell with nothing to count shows (Streamlit's default is "None").
+MISSING = "—"
+
+
+def _table(rows: list[dict], fmt: Mapping[str, str]):
+    df = pd.DataFrame(rows)
+    return df.style.format({c: f for c, f in fmt.items() if c in df.columns}, na_rep=MISSING)
+
+
+def render() -> None:
+    """The section: the kept runs with their settings, a manager, a comparison table, overlaid curves, exports."""
+    st.subheader("Runs side by side")
+    runs = kept()
+    if not runs:
+        st.caption("Every run shown above is kept here while the app is open, to compare descriptors, readings, "
+                   "cross-condition on/off or tolerance on the same data.")
+        return
+    st.caption(f"Every run made while the app is open, settings and results ({len(runs)} kept; the oldest unpinned "
+               f"ones go beyond {compare.MAX_RUNS}, pinned ones stay). The settings that differ come first.")
+    message = st.session_state.pop("runs_rejected", None)
+    if message:
+        st.error(message, icon=":material/error:")
+    rows = [{k: x if k == "pinned" else (None if x is None else str(x)) for k, x in row.items()}
+            for row in compare.settings_rows(runs)]  # as given: 20 stays "20" beside a run without runs
+    st.dataframe(pd.DataFrame(rows), hide_index=True, key="runs_table", width="stretch", placeholder=MISSING)
+
+    ids = [r.id for r in runs]
+    names = {r.id: r.name for r in runs}
+    if st.session_state.get("w_run_pick") not in ids:
+        st.session_state["w_run_pick"] = ids[-1]
+    c = st.columns([2, 3, 1, 1, 1], vertical_alignment="bottom")
+    pick = c[0].selectbox("run", ids, format_func=lambda i: names[i], key="w_run_pick")
+    if st.session_state.get("w_run_name_for") != pick:
+        st.session_state["w_run_name"] = names[pick]
+        st.session_state["w_run_name_for"] = pick
+    c[1].text_input("name", key="w_run_name", help="A name for the run (unique): the comparison's column header.")
+    c[2].button("Rename", key="w_run_rename", on_click=_act, args=("rename",))
+    pinned = next(r.pinned for r in runs if r.id == pick)
+    c[3].button("Unpin" if pinned else "Pin", key="w_run_pin", on_click=_act, args=("pin",),
+                help="A pinned run stays however many runs follow.")
+    c[4].button("Remove", key="w_run_remove", on_click=_act, args=("remove",))
+
+    # Widgets keep their state by key while their options change: kept to the runs that exist.
+    ss = st.session_state
+    ss["w_compare_runs"] = [i for i in ss.get("w_compare_runs", ids[-4:]) if i in ids]
+    c = st.columns(2)
+    chosen = c[0].multiselect("compare runs", ids, format_func=lambda i: names[i], key="w_compare_runs")
+    compared = [r for r in runs if r.id in chosen]
+    if not compared:
+        st.caption("Choose runs to compare.")
+        return
+    if ss.get("w_compare_ref") not in chosen:
+        ss["w_compare_ref"] = compared[0].id
+    ref = c[1].selectbox("reference run (the differences are run − reference)", [r.id for r in compared],
+                         format_func=lambda i: names[i], key="w_compare_ref")
+    c = st.columns(2)
+    ss["w_compare_metrics"] = [m for m in ss.get("w_compare_metrics", compare.DEFAULT_METRICS) if m in compare.METRICS]
+    metrics = c[0].multiselect("metrics", list(compare.METRICS), key="w_compare_metrics",
+                               help="; ".join(f"{m}: {d}" for m, (d, _) in compare.METRICS.items()))
+    methods = compare.methods_of(compared)
+    default_methods = [m for m in ("place-baseline", "margin-weighted", "raw-weighted", "global-auto") if m in methods]
+    ss["w_compare_methods"] = [m for m in ss.get("w_compare_methods", default_methods) if m in methods]
+    keys = c[1].multiselect("methods", methods, key="w_compare_methods", format_func=lambda k: METHODS_BY_KEY[k].label)
+    if metrics and keys:
+        rows = compare.metric_table(compared, metrics, methods=keys, reference=ref)
+        fmt = {r.name: "{:.3f}" for r in compared}
+        fmt.update({compare.difference_column(r, next(x for x in compared if x.id == ref)): "{:+.3f}"
+                    for r in compared if r.id != ref})
+        narrow = {c: st.column_config.NumberColumn(c, width=105, help=c) for c in fmt}  # the full name on hover
+        st.dataframe(_table(rows, fmt), hide_index=True, key="compare_table", width="stretch", placeholder=MISSING,
+                     column_config={"key": None, "method": st.column_config.TextColumn("method", width=140),
+                                    "metric": st.column_config.TextColumn("metric", width=70), **narrow})
+        st.caption("Rates and areas in [0, 1]; a difference of +0.050 is 5 points. '—': the run has no such number "
+                   "(e.g. a closed-set protocol has no unknown-place rejection; a run without precision–recall no AUC).")
+
+    with_pr = [m for m in methods if any(p.key == m for r in compared for p in r.evaluation.pr)]
+    if with_pr:
+        default = "margin-weighted" if "margin-weighted" in with_pr else with_pr[0]
+        if st.session_state.get("w_compare_pr_method") not in with_pr:
+            st.session_state["w_compare_pr_method"] = default
+        method = st.selectbox("precision–recall curves of", with_pr, format_func=lambda k: METHODS_BY_KEY[k].label,
+                              key="w_compare_pr_method")
+        st.plotly_chart(compare_plots.pr_overlay(compared, method), key="compare_pr", width="stretch")
+    else:
+        st.caption("No compared run has precision–recall curves: turn precision–recall on above and press **Run**.")
+    if any(r.evaluation.tradeoff for r in compared):
+        c = st.columns(2)
+        series = c[0].selectbox("trade-off curve", compare_plots.TRADEOFF_SERIES, key="w_compare_series")
+        rule = c[1].radio("rule", ["margin", "raw"], horizontal=True, key="w_compare_rule",
+                          disabled=series == "global θ")
+        st.plotly_chart(compare_plots.tradeoff_overlay(compared, series, rule), key="compare_tradeoff",
+                        width="stretch")
+    else:
+        st.caption("The open-set trade-off curves are overlaid here once an open-set run is compared.")
+
+    stem = compare.export_stem(compared)
+    d1, d2 = st.columns(2)
+    d1.download_button("Download runs (CSV)", compare.runs_csv(compared), file_name=f"{stem}.csv", mime="text/csv",
+                       key="w_runs_csv", help="One row per run and method: every setting in columns, every metric.")
+    d2.download_button("Download runs (JSON)", compare.runs_json(compared, metrics or compare.DEFAULT_METRICS,
+                                                                 reference=ref),
+                       file_name=f"{stem}.json", mime="application/json", key="w_runs_json",
+                       help="Every run's settings and whole evaluation, and the comparison table.")

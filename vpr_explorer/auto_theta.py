@@ -1,0 +1,59 @@
+"""Why the automatic global θ is what it is, and when it cannot accept anything.
+
+The automatic global θ (``thresholds.auto_global_threshold``) is
+
+    θ = median(S) + Φ⁻¹(1 − 10⁻⁶)·MAD(S)/0.675
+
+over the training similarity scores S. With descriptors whose similarities spread widely
+(efficientnet-lite0 on GardensPoint: median 0.45, MAD 0.08), θ lands above 1, the largest
+cosine similarity of two L2-normalised descriptors: the method then rejects every query,
+and a table showing its 0% recall must say so. ``auto_parts`` gives the pieces, and
+``rejects_all_note`` the sentence the app shows beside the method.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from vpr_explorer.thresholds import AUTO_Z, auto_global_threshold, training_pair_scores
+
+#: The largest similarity two L2-normalised descriptors can have (cosine).
+MAX_SIMILARITY = 1.0
+
+
+@dataclass(frozen=True)
+class AutoParts:
+    """The automatic θ and what it came from: median and MAD of the training scores."""
+
+    theta: float
+    median: float
+    mad: float
+    n_scores: int
+
+    @property
+    def rejects_everything(self) -> bool:
+        """True when θ exceeds the largest possible similarity: no query can reach it."""
+        return self.theta > MAX_SIMILARITY
+
+
+def auto_parts(descriptors: np.ndarray, *, seed: int = 0) -> AutoParts:
+    """The automatic θ of these training descriptors ``(n, D)`` with its median and MAD (the same scores as the
+    protocols: ``training_pair_scores(descriptors, seed=seed)``)."""
+    s = np.asarray(training_pair_scores(descriptors, seed=seed), dtype=np.float64).ravel()
+    med = float(np.median(s))
+    mad = float(np.median(np.abs(s - med)))
+    return AutoParts(auto_global_threshold(s), med, mad, int(s.size))
+
+
+def rejects_all_note(parts: AutoParts, *, over: str = "the training images") -> str | None:
+    """The sentence shown beside the automatic θ when it rejects everything; ``None`` when it does not."""
+    if not parts.rejects_everything:
+        return None
+    return (f"**global θ, automatic = {parts.theta:.3f}**, from {over}: median {parts.median:.3f} + "
+            f"{AUTO_Z:.2f} × MAD {parts.mad:.3f} / 0.675 over {parts.n_scores:,} training similarities. That is "
+            f"above {MAX_SIMILARITY:g}, the largest similarity two descriptors can have, so it **rejects every "
+            "query**: its 0% recall and empty precision come from the threshold, not from the places. "
+            "These descriptors' similarities spread too widely for the rule; set a global θ of your own on the "
+            "**Query inspector** page to compare a global threshold.")

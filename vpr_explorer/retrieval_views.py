@@ -1,0 +1,391 @@
+"""The numbers behind the explorer's views of a database/queries dataset (``layouts.RetrievalDataset``).
+
+Where ``views`` serves aligned traversals (a query traversal against the others, the right
+place by frame index), this module serves the field's layouts: database images and query
+images with the ground truth as a relation (``groundtruth.GroundTruth``). Places cover
+database images only, made by one of (``RetrievalPlaces``):
+
+* the layout's own place ids (a manifest's ``place`` column);
+* ``frames``: group/step counting database images in listed order (``places.PlaceSpec``);
+* ``route`` / ``lattice``: group/step in metres along the database route, or cells of a
+  square lattice over the plane (``places.MetricPlaceSpec``), where the layout has positions.
+
+Thresholds come from the database images that fall in a place (as in
+``evaluation.retrieval_protocol``); a query's right places are those holding one of its
+positives. A query with no positive at all is an *unknown-place* query (the open-set case:
+the right answer is to reject it); one whose positives all lie between places has no
+right place either, and is left out of Recall@1 (as frames between places are).
+
+Pure functions over arrays; never imports streamlit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from vpr_explorer.database import DatabaseModel, database_rows
+from vpr_explorer.errors import VPRInputError
+from vpr_explorer.layouts import Layout, RetrievalDataset
+from vpr_explorer.pipeline import retrieval_places
+from vpr_explorer.places import GEOMETRY_LABELS, MetricPlaceSpec, PlaceGeometry, PlaceSpec
+from vpr_explorer.retrieval import Outcome, QueryDecision, decide, place_scores, score_queries, similarity
+from vpr_explorer.stats import mixture_moments, negative_stats, positive_means
+from vpr_explorer.thresholds import ThresholdMethod, auto_global_threshold, place_thresholds, training_pair_scores
+from vpr_explorer.views import FIND_KINDS, PAIR_BUDGET, overview_frames
+
+#: Group and step in metres the app starts with: a place about as long as the field's 25 m
+#: radius, one every 100 m (GardensPoint at 10 m a frame: the paper's group 3, step 10).
+DEFAULT_GROUP_M = 25.0
+DEFAULT_STEP_M = 100.0
+
+#: What a query's ground truth makes of it (``query_status``).
+KNOWN, BETWEEN, UNKNOWN = "known", "between places", "unknown place"
+
+
+# --------------------------------------------------------------------------- places
+
+
+@dataclass(frozen=True)
+class RetrievalPlaces:
+    """How a retrieval dataset's database images become places.
+
+    Attributes:
+        geometry: ``None`` for the layout's own place ids, else frames / route / lattice.
+        spec: group/step in database images (``frames``), else ``None``.
+        metric: group/step in metres (``route``, ``lattice``), else ``None``.
+    """
+
+    geometry: PlaceGeometry | None
+    spec: PlaceSpec | None = None
+    metric: MetricPlaceSpec | None = None
+
+    def describe(self) -> str:
+        if self.geometry is None:
+            return "places given by the layout"
+        if self.metric is not None:
+            return self.metric.describe()
+        return f"{self.spec.describe()} over database images in listed order"
+
+
+def geometries(dataset: RetrievalDataset) -> tuple[PlaceGeometry, ...]:
+    """The place geometries a dataset offers: none when its layout fixes the places; metres only with positions."""
+    if dataset.database_place is not None:
+        return ()
+    if dataset.database_xy is None:
+        return (PlaceGeometry.FRAMES,)
+    return (PlaceGeometry.FRAMES, PlaceGeometry.ROUTE, PlaceGeometry.LATTICE)
+
+
+def default_geometry(dataset: RetrievalDataset) -> PlaceGeometry | None:
+    """Metres where there are positions (along the route when the database is one route in order, else a
+    lattice), else frames; ``None`` when the layout fixes the places (the command line's default too)."""
+    offered = geometries(dataset)
+    if not offered:
+        return None
+    if PlaceGeometry.ROUTE not in offered:
+        return PlaceGeometry.FRAMES
+    return PlaceGeometry.ROUTE if dataset.ordered else PlaceGeometry.LATTICE
+
+
+def check_geometry(dataset: RetrievalDataset, geometry: str | None) -> PlaceGeometry | None:
+    """``geometry`` (or the default) as one the dataset offers; ``VPRInputError`` naming it otherwise."""
+    if geometry is None:
+        return default_geometry(dataset)
+    offered = geometries(dataset)
+    try:
+        g = PlaceGeometry(geometry)
+    except ValueError:
+        g = None
+    if g not in offered:
+        if not offered:
+            raise VPRInputError(f"geometry={geometry!r}: {dataset.name!r} names its places in its "
+                                f"{dataset.layout.value}; group/step do not apply")
+        raise VPRInputError(f"geometry={geometry!r}: {dataset.name!r} offers {' or '.join(offered)}"
+                            + ("" if dataset.database_xy is not None else " (its layout has no positions)"))
+    return g
+
+
+def geometry_label(geometry: PlaceGeometry) -> str:
+    return GEOMETRY_LABELS[geometry]
+
+
+# --------------------------------------------------------------------------- the fitted database
+
+
+@dataclass(frozen=True, eq=False)
+class RetrievalFitted:
+    """Places of the database images and the thresholds fitted on them: no query decided yet.
+
+    Attributes:
+        dataset: the dataset.
+        places: how the places were made.
+        database_place: ``(n_database,)`` place of each database image, ``-1`` outside every place.
+        n_places: number of places.
+        model: thresholds fitted on the database images in places; ``model.images`` are their
+            indices into the dataset's images (database images come first, so also database positions).
+    """
+
+    dataset: RetrievalDataset
+    places: RetrievalPlaces
+    database_place: np.ndarray
+    n_places: int
+    model: DatabaseModel
+
+    def __post_init__(self) -> None:
+        self.database_place.setflags(write=False)
+
+    def describe(self) -> str:
+        per = np.bincount(self.model.places, minlength=self.n_places)
+        counts = f"{per.min()}" if per.min() == per.max() else f"{per.min()}-{per.max()}"
+        skipped = self.dataset.n_database - len(self.model.images)
+        return (f"{self.n_places} places × {counts} database images ({self.places.describe()}); "
+                f"{skipped} of {self.dataset.n_database} database images between places")
+
+    def right_places(self, queries: np.ndarray) -> np.ndarray:
+        """``(len(queries), n_places)`` bool: places holding a positive of each query."""
+        return self.dataset.ground_truth.places(self.database_place, self.n_places, np.asarray(queries, dtype=np.int64))
+
+    def query_status(self, query: int) -> str:
+        """``KNOWN`` (a right place), ``BETWEEN`` (positives, none in a place) or ``UNKNOWN`` (no positive)."""
+        if self.dataset.ground_truth.counts[query] == 0:
+            return UNKNOWN
+        return KNOWN if self.right_places([query]).any() else BETWEEN
+
+
+def fit_retrieval(descriptors: np.ndarray, dataset: RetrievalDataset, places: RetrievalPlaces) -> RetrievalFitted:
+    """Label the database images with ``places`` and fit the thresholds on those in a place.
+
+    Args:
+        descriptors: ``(n_images, D)`` L2-normalised, database rows first (``dataset.image_paths``' order).
+    """
+    if len(descriptors) != dataset.n_images:
+        raise VPRInputError(f"{len(descriptors)} descriptors for {dataset.n_images} images of {dataset.name!r}: "
+                            "recompute them")
+    place, n_places = retrieval_places(dataset, places.spec, places.metric)
+    images = np.flatnonzero(place >= 0)
+    labels = place[images]
+    d = database_rows(descriptors, images)
+    stats = negative_stats(d, labels, n_places)
+    neg_mean, spread = mixture_moments(stats)
+    model = DatabaseModel(
+        images=images, places=labels, traversals=tuple(int(t) for t in np.unique(dataset.database_traversal)),
+        n_places=n_places, stats=stats, theta={m.value: place_thresholds(stats, m) for m in ThresholdMethod},
+        spread=spread, negative_mean=neg_mean, positive_mean=positive_means(d, labels, n_places),
+        auto=auto_global_threshold(training_pair_scores(d)),
+    )
+    return RetrievalFitted(dataset, places, np.asarray(place, dtype=np.int64), n_places, model)
+
+
+def _check_query(fitted: RetrievalFitted, query: int) -> int:
+    n = fitted.dataset.n_queries
+    if isinstance(query, bool) or not isinstance(query, (int, np.integer)) or not 0 <= query < n:
+        raise VPRInputError(f"query {query!r}: choose a query image from 0 to {n - 1}")
+    return int(query)
+
+
+def explain_query(fitted: RetrievalFitted, descriptors: np.ndarray, query: int, *, k: float = 0.0,
+                  user_theta: float | None = None) -> QueryDecision:
+    """The decision record of query image ``query`` (0-based among the queries) under every method.
+
+    The right places are those holding a positive of the query; none for an unknown-place
+    query or one whose positives lie between places (rejecting it is then right).
+    """
+    q = _check_query(fitted, query)
+    d = np.asarray(descriptors)
+    sims = similarity(d[[fitted.dataset.n_database + q]], database_rows(d, fitted.model.images))[0]
+    truth = fitted.right_places([q])[0]
+    return decide(sims, fitted.model.places, fitted.n_places, fitted.model.thresholds(k, user_theta),
+                  np.flatnonzero(truth))
+
+
+@dataclass(frozen=True)
+class ImageAnswer:
+    """The field's image-level answer of one query: its most similar database image (every one, in a place or not).
+
+    Attributes:
+        image: database position of the top image.
+        score: its similarity.
+        positive: whether it is a positive of the query (the field's R@1 counts the query).
+        distance: metres from the query to it, where the layout has positions.
+    """
+
+    image: int
+    score: float
+    positive: bool
+    distance: float | None
+
+
+def image_answer(dataset: RetrievalDataset, descriptors: np.ndarray, query: int) -> ImageAnswer:
+    """The top database image of ``query`` over every database image (the field's image-level retrieval)."""
+    d = np.asarray(descriptors)
+    sims = similarity(d[[dataset.n_database + query]], d[:dataset.n_database])[0]
+    top = int(np.argmax(sims))
+    distance = (float(np.linalg.norm(dataset.database_xy[top] - dataset.query_xy[query]))
+                if dataset.database_xy is not None and dataset.query_xy is not None else None)
+    return ImageAnswer(top, float(sims[top]), bool(np.isin(top, dataset.ground_truth.positives(query))), distance)
+
+
+# --------------------------------------------------------------------------- many queries
+
+
+def decide_queries(fitted: RetrievalFitted, descriptors: np.ndarray, queries: np.ndarray, *, k: float = 0.0,
+                   user_theta: float | None = None, block: int = 2048) -> tuple[np.ndarray, dict[str, Outcome]]:
+    """Right places ``(n, n_places)`` and every method's ``Outcome`` for query images ``queries`` (blocks of rows)."""
+    queries = np.asarray(queries, dtype=np.int64)
+    if not len(queries):
+        raise VPRInputError("queries: no query image to decide; choose at least one")
+    d = np.asarray(descriptors)
+    db = database_rows(d, fitted.model.images)
+    th = fitted.model.thresholds(k, user_theta)
+    truth = fitted.right_places(queries)
+    parts = []
+    for lo in range(0, len(queries), block):
+        rows = queries[lo:lo + block]
+        sims = similarity(d[fitted.dataset.n_database + rows], db)
+        raw, best = place_scores(sims, fitted.model.places, fitted.n_places)
+        parts.append(score_queries(sims, fitted.model.places, fitted.n_places, th, truth[lo:lo + block],
+                                   raw_best=(raw, best)))
+    outcomes = {key: Outcome(parts[0][key].method, *(np.concatenate([getattr(p[key], f) for p in parts])
+                                                     for f in ("rank", "answer_place", "answer_image", "n_kept")))
+                for key in parts[0]}
+    return truth, outcomes
+
+
+@dataclass(frozen=True, eq=False)
+class RetrievalOverview:
+    """The query images decided for one set of places: what a group/step move changes.
+
+    Attributes:
+        queries: ``(n,)`` ascending query indices decided: all, or a seeded sample when queries ×
+            database images exceed the pair budget (``views.overview_frames``).
+        n_queries: query images in the dataset.
+        scored: ``(n,)`` the query has a right place (Recall@1 counts it).
+        unknown: ``(n,)`` the query has no positive at all (an unknown-place query).
+        outcomes: method key -> ``Outcome`` over ``queries``.
+        recall1: method key -> Recall@1 over the scored queries.
+        rejected: method key -> share of the scored queries rejected.
+        unknown_rejected: method key -> share of the unknown-place queries rejected (NaN without any).
+    """
+
+    queries: np.ndarray
+    n_queries: int
+    scored: np.ndarray
+    unknown: np.ndarray
+    outcomes: dict[str, Outcome]
+    recall1: dict[str, float]
+    rejected: dict[str, float]
+    unknown_rejected: dict[str, float]
+
+    @property
+    def sampled(self) -> bool:
+        return len(self.queries) < self.n_queries
+
+    @property
+    def n_scored(self) -> int:
+        return int(self.scored.sum())
+
+    @property
+    def n_unknown(self) -> int:
+        return int(self.unknown.sum())
+
+
+def overview(fitted: RetrievalFitted, descriptors: np.ndarray, *, k: float = 0.0, user_theta: float | None = None,
+             pair_budget: int | None = None) -> RetrievalOverview:
+    """Decide the query images (a seeded sample above ``pair_budget`` similarities) and summarise every method."""
+    n_q = fitted.dataset.n_queries
+    queries = overview_frames(n_q, len(fitted.model.images), PAIR_BUDGET if pair_budget is None else pair_budget)
+    truth, outcomes = decide_queries(fitted, descriptors, queries, k=k, user_theta=user_theta)
+    scored = truth.any(axis=1)
+    unknown = fitted.dataset.ground_truth.counts[queries] == 0
+    recall1, rejected, unknown_rejected = {}, {}, {}
+    for key, o in outcomes.items():
+        recall1[key] = float((o.rank[scored] == 1).mean()) if scored.any() else float("nan")
+        rejected[key] = float((~o.accepted[scored]).mean()) if scored.any() else float("nan")
+        unknown_rejected[key] = float((~o.accepted[unknown]).mean()) if unknown.any() else float("nan")
+    if not scored.any():
+        raise VPRInputError(f"{fitted.describe()}: no query has a positive inside a place; lower step or raise group")
+    return RetrievalOverview(queries, n_q, scored, unknown, outcomes, recall1, rejected, unknown_rejected)
+
+
+def find_query(fitted: RetrievalFitted, descriptors: np.ndarray, *, after: int, kind: str, method: str,
+               k: float = 0.0, user_theta: float | None = None, pair_budget: int | None = None,
+               first_chunk: int = 64) -> tuple[int | None, int]:
+    """The next query after ``after`` (wrapping round) that ``method`` rejected or answered wrong.
+
+    "answered wrong": a query with a right place not answered right at rank 1, or an
+    unknown-place query accepted (a false positive). Queries are decided in growing chunks
+    and the search stops at ``pair_budget`` similarities, as ``views.find_frame`` does.
+
+    Returns:
+        ``(query, last)``: the query found (``None`` if none) and the last query searched.
+    """
+    if kind not in FIND_KINDS:
+        raise VPRInputError(f"kind={kind!r}: choose one of {', '.join(FIND_KINDS)}")
+    n = fitted.dataset.n_queries
+    order = (after + 1 + np.arange(n)) % n
+    limit = max(1, (PAIR_BUDGET if pair_budget is None else pair_budget) // max(1, len(fitted.model.images)))
+    unknown_all = fitted.dataset.ground_truth.counts == 0
+    lo, chunk = 0, first_chunk
+    while lo < n and lo < limit:
+        queries = order[lo:lo + min(chunk, limit - lo)]
+        truth, outcomes = decide_queries(fitted, descriptors, queries, k=k, user_theta=user_theta)
+        o = outcomes[method]
+        if kind == "rejected":
+            hit = ~o.accepted
+        else:
+            hit = (truth.any(axis=1) & ~o.right) | (unknown_all[queries] & o.accepted)
+        if hit.any():
+            found = int(queries[np.argmax(hit)])
+            return found, found
+        lo += len(queries)
+        chunk *= 2
+    return None, int(order[lo - 1])
+
+
+# --------------------------------------------------------------------------- names
+
+
+def query_label(dataset: RetrievalDataset, query: int) -> str:
+    """How a page names query image ``query``: ``"<traversal> · frame N"`` for traversal folders, else its file name."""
+    if dataset.layout is Layout.TRAVERSAL_POSITIONS:
+        return f"{dataset.traversals[int(dataset.query_traversal[query])]} · frame {query}"
+    return Path(dataset.query_paths[query]).name
+
+
+def database_label(dataset: RetrievalDataset, image: int) -> str:
+    """How a page names database image ``image`` (database position): as ``query_label`` does."""
+    if dataset.layout is Layout.TRAVERSAL_POSITIONS:
+        t = int(dataset.database_traversal[image])
+        first = int(np.argmax(dataset.database_traversal == t))
+        return f"{dataset.traversals[t]} · frame {image - first}"
+    return Path(dataset.database_paths[image]).name
+
+
+def find_query_by_name(dataset: RetrievalDataset, text: str) -> int:
+    """The query whose file name (or path below the dataset folder, or label) is ``text``; ``VPRInputError`` if none."""
+    text = text.strip().replace("\\", "/")
+    if not text:
+        raise VPRInputError("query file name: type a query image's file name")
+    for q, p in enumerate(dataset.query_paths):
+        path = Path(p)
+        names = {path.name, query_label(dataset, q)}
+        try:
+            names.add(path.relative_to(dataset.root).as_posix())
+        except ValueError:
+            pass
+        if text in names:
+            return q
+    raise VPRInputError(f"query file name {text!r}: no query image of {dataset.name!r} has that name; "
+                        f"e.g. {Path(dataset.query_paths[0]).name!r}")
+
+
+def radius_of(dataset: RetrievalDataset) -> float | None:
+    """The positive radius in metres of a position-tagged dataset (from its ground truth), else ``None``."""
+    desc = dataset.ground_truth.description
+    if desc.startswith("within ") and desc.endswith(" m"):
+        return float(desc[len("within "):-len(" m")])
+    return None
+
