@@ -125,11 +125,14 @@ PROTOCOL_OPTIONS = {
 }
 
 
-def _protocol_options(args: argparse.Namespace) -> dict:
-    """The options ``args.protocol`` reads, defaults filled in; one it would ignore is refused, named."""
+def _protocol_options(args: argparse.Namespace, options: dict | None = None) -> dict:
+    """The options ``args.protocol`` reads, defaults filled in; one it would ignore is refused, named.
+
+    ``options``: option name -> (the protocols that read it, its default); ``PROTOCOL_OPTIONS`` by default.
+    """
     protocol = Protocol(args.protocol)
     values = {}
-    for name, (protocols, default) in PROTOCOL_OPTIONS.items():
+    for name, (protocols, default) in (PROTOCOL_OPTIONS if options is None else options).items():
         value = getattr(args, name)
         if value is not None and protocol not in protocols:
             option = "--" + name.replace("_", "-")

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.evaluation import Evaluation
+from vpr_explorer.report import strict
 from vpr_explorer.retrieval import METHODS_BY_KEY
 
 #: Unpinned runs kept; the oldest unpinned one goes when another arrives.
@@ -354,17 +355,6 @@ def read_runs_csv(text: str) -> list[dict[str, object]]:
     return out
 
 
-def _strict(x):
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    if isinstance(x, Mapping):
-        return {str(k): _strict(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_strict(v) for v in x]
-    if hasattr(x, "item") and not isinstance(x, (str, bytes)):  # a numpy scalar
-        return _strict(x.item())
-    return x
-
 
 def runs_json(runs: Sequence[RunRecord], metrics: Sequence[str] = DEFAULT_METRICS, *,
               reference: str | None = None) -> str:
@@ -379,7 +369,7 @@ def runs_json(runs: Sequence[RunRecord], metrics: Sequence[str] = DEFAULT_METRIC
         "comparison": {"reference": None if ref is None else ref.id, "metrics": list(metrics),
                        "rows": metric_table(runs, metrics, reference=None if ref is None else ref.id) if runs else []},
     }
-    return json.dumps(_strict(data), indent=1)
+    return json.dumps(strict(data), indent=1)
 
 
 def read_runs_json(text: str) -> dict:

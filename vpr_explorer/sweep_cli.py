@@ -86,22 +86,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, default=None, help="write the settings and every cell as JSON")
 
 
-def _options(args: argparse.Namespace) -> dict:
-    """The protocol options ``args.protocol`` reads, defaults filled in; one it would ignore is refused, named."""
-    protocol = Protocol(args.protocol)
-    values = {}
-    for name, (protocols, default) in PROTOCOL_OPTIONS.items():
-        value = getattr(args, name)
-        if value is not None and protocol not in protocols:
-            option = "--" + name.replace("_", "-")
-            owners = " and ".join(p.value for p in protocols)
-            raise VPRInputError(f"{option} applies to the {owners} protocol{'s' if len(protocols) > 1 else ''} only, "
-                                f"and this is --protocol {protocol.value}: drop {option}, or pick --protocol "
-                                f"{protocols[0].value}")
-        values[name] = default if value is None else value
-    return values
-
-
 def _write(path: Path | None, text: str, option: str) -> None:
     if path is None:
         return
@@ -114,7 +98,7 @@ def _write(path: Path | None, text: str, option: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the sweep ``args`` describe; print the cost, the grids and why cells are empty; write CSV/JSON."""
-    from vpr_explorer.cli import _bar
+    from vpr_explorer.cli import _bar, _protocol_options
     from vpr_explorer.datasets import Dataset
     from vpr_explorer.pipeline import dataset_descriptors, imported_descriptors, open_dataset
     from vpr_explorer.settings import check_cache_root
@@ -124,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
         if getattr(args, option) is not None:
             raise VPRInputError(f"--{option} applies to database/queries layouts; a sweep reads aligned traversal "
                                 "folders, whose places group/step make")
-    o = _options(args)
+    o = _protocol_options(args, PROTOCOL_OPTIONS)
     spec = SweepSpec(groups=args.groups, steps=args.steps, readings=args.reading, protocol=args.protocol,
                      method=args.method, k=o["k"], runs=o["runs"], seed=o["seed"],
                      cross_condition=o["cross_condition"], unknown_share=o["unknown_share"],

@@ -31,6 +31,7 @@ from vpr_explorer.datasets import Dataset
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.evaluation import Evaluation
 from vpr_explorer.places import Places, PlaceSpec, make_places
+from vpr_explorer.report import strict
 from vpr_explorer.retrieval import QueryDecision, similarity
 
 #: Methods the live pages summarise, in display order (place level; the image-level
@@ -455,18 +456,7 @@ def evaluation_rows(ev: Evaluation) -> list[dict[str, object]]:
     return rows
 
 
-def _strict(x):
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    if isinstance(x, dict):
-        return {str(k): _strict(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_strict(v) for v in x]
-    if isinstance(x, np.generic):
-        return _strict(x.item())
-    return x
-
 
 def evaluation_json(ev: Evaluation) -> str:
     """``Evaluation.to_dict()`` as strict JSON: NaN (a rate with nothing to count) becomes ``null``."""
-    return json.dumps(_strict(ev.to_dict()), indent=1)
+    return json.dumps(strict(ev.to_dict()), indent=1)

@@ -7,13 +7,13 @@ A database/queries dataset (``layouts.RetrievalDataset``) gets its own page body
 import pandas  # noqa: F401  # before plotly: plotly.py#2433
 import streamlit as st
 
-from vpr_explorer import plots
 from vpr_explorer.database import Verdict, between_note, describe_query, query_verdict
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.retrieval import METHODS_BY_KEY
 from vpr_explorer.views import FIND_KINDS, LIVE_METHODS, top_candidates
 
 from vpr_explorer.app.ui import cache, retrieval_inspector, state
+from vpr_explorer.app.ui.candidates import show_candidates
 from vpr_explorer.app.ui.controls import threshold_controls
 from vpr_explorer.app.ui.current import current
 from vpr_explorer.app.ui.feedback import PLACES_HINT, stop_on_input_error
@@ -21,9 +21,7 @@ from vpr_explorer.app.ui.routing import ensure_routed
 
 ensure_routed(__file__)
 
-PER_ROW = 3
 SHOWN_CANDIDATES = 8
-BEST_IMAGES = 4
 
 st.title("Query inspector")
 with stop_on_input_error():
@@ -121,21 +119,6 @@ with right:
         lines.append(f"- {ok} **{METHODS_BY_KEY[key].label}**: {describe(key)}")
     st.markdown("\n".join(lines))
 
-st.subheader("Candidate places: raw_p, threshold and margin")
-st.caption("Dots: raw_p, the query's best score against the place's database images; green = kept, grey = dropped "
-           "by the method's threshold (red tick); black outline = the answer; ★ = the right place; labels = margin "
-           "raw_p − θ (or raw_p where there is no threshold).")
-for row in range(0, len(methods), PER_ROW):
-    for col, key in zip(st.columns(PER_ROW), methods[row:row + PER_ROW]):
-        with col:
-            st.plotly_chart(plots.candidate_bars(dec, key, cands), key=f"bars_{key}", width="stretch")
-            st.caption(describe(key))
-
-st.subheader("Best candidates beside the query")
-cols = st.columns(BEST_IMAGES + 1)
-cols[0].image(cache.thumbnail(ds.image_paths[image], 160), caption=f"query: {image_name(image)}", width="stretch")
-for col, p in zip(cols[1:], cands[:BEST_IMAGES]):
-    db_image = int(model.images[dec.best_image[p]])
-    verdict = "right place" if p in dec.true_places else "other place"
-    col.image(cache.thumbnail(ds.image_paths[db_image], 160), width="stretch",
-              caption=f"P{p}, {image_name(db_image)}: raw_p {dec.raw[p]:.3f} ({verdict})")
+show_candidates(dec, methods, cands, describe, query_image=ds.image_paths[image],
+                query_caption=f"query: {image_name(image)}",
+                database_image=lambda i: (ds.image_paths[int(model.images[i])], image_name(int(model.images[i]))))

@@ -14,20 +14,18 @@ from pathlib import Path
 
 import streamlit as st
 
-from vpr_explorer import plots
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.retrieval import METHODS_BY_KEY
 from vpr_explorer.retrieval_views import BETWEEN, UNKNOWN, database_label, find_query_by_name, query_label
 from vpr_explorer.views import FIND_KINDS, LIVE_METHODS, top_candidates
 
 from vpr_explorer.app.ui import cache, state
+from vpr_explorer.app.ui.candidates import show_candidates
 from vpr_explorer.app.ui.controls import threshold_controls
 from vpr_explorer.app.ui.current import Current
 from vpr_explorer.app.ui.feedback import PLACES_HINT, stop_on_input_error
 
-PER_ROW = 3
 SHOWN_CANDIDATES = 8
-BEST_IMAGES = 4
 SHOWN_POSITIVES = 6
 
 
@@ -162,21 +160,7 @@ def render(cur: Current) -> None:
             lines.append(f"- {mark(key)} **{METHODS_BY_KEY[key].label}**: {describe(key)}")
         st.markdown("\n".join(lines))
 
-    st.subheader("Candidate places: raw_p, threshold and margin")
-    st.caption("Dots: raw_p, the query's best score against the place's database images; green = kept, grey = "
-               "dropped by the method's threshold (red tick); black outline = the answer; ★ = a right place; labels "
-               "= margin raw_p − θ (or raw_p where there is no threshold).")
-    for row in range(0, len(methods), PER_ROW):
-        for col, key in zip(st.columns(PER_ROW), methods[row:row + PER_ROW]):
-            with col:
-                st.plotly_chart(plots.candidate_bars(dec, key, cands), key=f"bars_{key}", width="stretch")
-                st.caption(describe(key))
-
-    st.subheader("Best candidates beside the query")
-    cols = st.columns(BEST_IMAGES + 1)
-    cols[0].image(cache.thumbnail(ds.query_paths[query], 160), caption=f"query: {name[:40]}", width="stretch")
-    for col, p in zip(cols[1:], cands[:BEST_IMAGES]):
-        db_image = int(model.images[dec.best_image[p]])
-        verdict = "right place" if p in dec.true_places else "other place"
-        col.image(cache.thumbnail(ds.database_paths[db_image], 160), width="stretch",
-                  caption=f"P{p}, {database_label(ds, db_image)[:40]}: raw_p {dec.raw[p]:.3f} ({verdict})")
+    show_candidates(dec, methods, cands, describe, query_image=ds.query_paths[query],
+                    query_caption=f"query: {name[:40]}", star="a right place",
+                    database_image=lambda i: (ds.database_paths[int(model.images[i])],
+                                              database_label(ds, int(model.images[i]))[:40]))
