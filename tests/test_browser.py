@@ -197,7 +197,11 @@ def test_walk_gardens_point_in_a_real_browser(browser, data_root, gp_effnet):
         assert "/inspector" in page.url
         frame = int(re.search(r"frame=(\d+)", page.url).group(1))
         assert abs(frame - 150) <= 1
-        assert page.get_by_text("Opened from the similarity matrix").count() == 1
+        # The click reruns the Evaluation page, which then switches to the inspector: settle can
+        # land between the two runs, so wait for the inspector's caption itself.
+        opened = page.get_by_text("Opened from the similarity matrix")
+        opened.wait_for(timeout=RUN_TIMEOUT_MS)
+        assert opened.count() == 1
 
         # Open a rejected query: the inspector's finder, margin rule with the weighted θ (the default).
         page.get_by_role("button", name="next ▶").click()
