@@ -8,13 +8,12 @@ import pandas  # noqa: F401  # before plotly: plotly.py#2433
 import streamlit as st
 
 from vpr_explorer.database import Verdict, between_note, describe_query, query_verdict
-from vpr_explorer.errors import VPRInputError
 from vpr_explorer.retrieval import METHODS_BY_KEY
 from vpr_explorer.views import FIND_KINDS, LIVE_METHODS, top_candidates
 
 from vpr_explorer.app.ui import cache, retrieval_inspector, state
 from vpr_explorer.app.ui.candidates import show_candidates
-from vpr_explorer.app.ui.controls import threshold_controls
+from vpr_explorer.app.ui.controls import jump_to_next, threshold_controls
 from vpr_explorer.app.ui.current import current
 from vpr_explorer.app.ui.feedback import PLACES_HINT, stop_on_input_error
 from vpr_explorer.app.ui.routing import ensure_routed
@@ -58,21 +57,9 @@ under = finder[1].selectbox("under", methods, index=methods.index("margin-weight
 
 def jump() -> None:
     """Move to the next query frame (after the current one, wrapping) that ``under`` rejected / got wrong."""
-    try:
-        found, last = cache.find(cur.data, cur.spec, cur.query, after=frame, kind=kind, method=under, k=k,
-                                 user_theta=user_theta)
-    except VPRInputError as exc:
-        st.session_state["find_none"] = str(exc)
-        return
-    label = METHODS_BY_KEY[under].label
-    if found is not None:
-        state.update(frame=found)
-    elif last == frame:
-        st.session_state["find_none"] = f"no query frame was {kind} under {label}; try raising k or another method"
-    else:  # the search budget ran out: move on, so that the next press searches on
-        state.update(frame=last)
-        st.session_state["find_none"] = (f"no query frame {kind} under {label} from frame {(frame + 1) % ds.n_frames} "
-                                         f"to {last}; moved to frame {last}, press next again to search on")
+    jump_to_next(lambda: cache.find(cur.data, cur.spec, cur.query, after=frame, kind=kind, method=under, k=k,
+                                    user_theta=user_theta),
+                 frame, ds.n_frames, kind=kind, label=METHODS_BY_KEY[under].label, unit="query frame", short="frame")
 
 
 finder[2].button("next ▶", key="w_find_next", on_click=jump, help="Jump to the next such query frame")

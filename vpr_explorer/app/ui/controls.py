@@ -1,8 +1,12 @@
-"""Widgets that several pages share: the threshold family's k and the user's global θ."""
+"""Widgets that several pages share: the threshold family's k, the user's global θ, the inspectors' "next"."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import streamlit as st
+
+from vpr_explorer.errors import VPRInputError
 
 from vpr_explorer.app.ui import state
 from vpr_explorer.app.ui.state import K_RANGE, THETA_RANGE
@@ -26,3 +30,26 @@ def threshold_controls(container=st) -> tuple[float, float | None]:
                                **state.bind("w_user_theta", "theta", float(v.theta)))
     v = state.view()
     return v.k, v.theta
+
+
+def jump_to_next(search: Callable[[], tuple[int | None, int]], current: int, n: int, *, kind: str, label: str,
+                 unit: str, short: str) -> None:
+    """The inspectors' "next ▶": move the view's ``frame`` to what ``search()`` found after ``current``.
+
+    ``search`` returns ``(found, last)`` as ``views.find_frame`` does (``last``: where a search
+    that ran out of budget stopped); ``unit``/``short`` name the items ("query frame"/"frame").
+    What could not be found is kept for the page to show (``st.session_state["find_none"]``).
+    """
+    try:
+        found, last = search()
+    except VPRInputError as exc:
+        st.session_state["find_none"] = str(exc)
+        return
+    if found is not None:
+        state.update(frame=found)
+    elif last == current:
+        st.session_state["find_none"] = f"no {unit} was {kind} under {label}; try raising k or another method"
+    else:  # the search budget ran out: move on, so that the next press searches on
+        state.update(frame=last)
+        st.session_state["find_none"] = (f"no {unit} {kind} under {label} from {short} {(current + 1) % n} to "
+                                         f"{last}; moved to {short} {last}, press next again to search on")

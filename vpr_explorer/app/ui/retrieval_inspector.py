@@ -21,7 +21,7 @@ from vpr_explorer.views import FIND_KINDS, LIVE_METHODS, top_candidates
 
 from vpr_explorer.app.ui import cache, state
 from vpr_explorer.app.ui.candidates import show_candidates
-from vpr_explorer.app.ui.controls import threshold_controls
+from vpr_explorer.app.ui.controls import jump_to_next, threshold_controls
 from vpr_explorer.app.ui.current import Current
 from vpr_explorer.app.ui.feedback import PLACES_HINT, stop_on_input_error
 
@@ -67,21 +67,9 @@ def _finder(cur: Current, query: int, methods: list[str], k: float, user_theta: 
     n = cur.retrieval.n_queries
 
     def jump() -> None:
-        try:
-            found, last = cache.retrieval_find(cur.data, cur.places, after=query, kind=kind, method=under, k=k,
-                                               user_theta=user_theta)
-        except VPRInputError as exc:
-            st.session_state["find_none"] = str(exc)
-            return
-        label = METHODS_BY_KEY[under].label
-        if found is not None:
-            state.update(frame=found)
-        elif last == query:
-            st.session_state["find_none"] = f"no query was {kind} under {label}; try raising k or another method"
-        else:  # the search budget ran out: move on, so that the next press searches on
-            state.update(frame=last)
-            st.session_state["find_none"] = (f"no query {kind} under {label} from query {(query + 1) % n} to {last}; "
-                                             f"moved to query {last}, press next again to search on")
+        jump_to_next(lambda: cache.retrieval_find(cur.data, cur.places, after=query, kind=kind, method=under, k=k,
+                                                  user_theta=user_theta),
+                     query, n, kind=kind, label=METHODS_BY_KEY[under].label, unit="query", short="query")
 
     finder[2].button("next ▶", key="w_find_next", on_click=jump,
                      help="Jump to the next such query (an accepted unknown-place query counts as answered wrong)")
