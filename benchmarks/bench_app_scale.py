@@ -22,7 +22,9 @@ at group 4, step 10, as the Places page's slider move) is timed outside the app,
 its fit (``views.fit``: closed-form statistics, automatic θ, positive means) and its
 decisions, beside its floor: the flops it needs (``gemm_peak.fit_flops`` + 2·F·N·D) at
 numpy's float32 GEMM peak measured in the same run (``gemm_peak``, which names the BLAS
-kernel). ``--move-only`` stops there. AppTest runs the scripts, not a browser;
+kernel), its CPU seconds against the peak per CPU second (steadier on a shared machine), and
+the same frames decided again by ``decide_traversal``'s fused and straightforward paths,
+alternating, best of two each, with their decisions compared. ``--move-only`` stops there. AppTest runs the scripts, not a browser;
 ``--browser`` then also starts a real ``streamlit run`` server and walks the same pages in
 Debian's Chromium (Playwright), timing each from the click to the last Plotly chart drawn,
 and saves a screenshot of each page next to the route.
@@ -170,17 +172,27 @@ def time_move(descriptors, dataset, group: int = 4, step: int = 10) -> None:
     """One group/step move (``views.regroup``), its fit and decisions, against the GEMM floor."""
     from gemm_peak import decision_flops, fit_flops, measure_peak, share
 
+    from vpr_explorer.database import decide_traversal
     from vpr_explorer.places import PlaceSpec
     from vpr_explorer.views import fit, regroup
 
     dim = descriptors.shape[1]
     regroup(descriptors, dataset, PlaceSpec(3, step))  # warm-up: imports, thread pools, page cache
     before = measure_peak(m=4096, k=dim, n=2048)
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     f = fit(descriptors, dataset, PlaceSpec(group, step))
     t_fit = time.perf_counter() - start
     r = regroup(descriptors, dataset, PlaceSpec(group, step), fitted=f)
-    t_move = time.perf_counter() - start
+    t_move, cpu_move = time.perf_counter() - start, time.process_time() - cpu
+    # Side by side, the same frames: the straightforward decisions (issue 13 §3's "before"),
+    # then the fused ones again, alternating, best of each (the load on a shared machine changes).
+    t_plain, t_fused, same = [], [], True
+    for _ in range(2):
+        for fused, times in ((False, t_plain), (True, t_fused)):
+            start = time.perf_counter()
+            again = decide_traversal(f.model, descriptors, dataset, f.places, f.query, frames=r.frames, fused=fused)
+            times.append(time.perf_counter() - start)
+            same = same and _same_decisions(again, r.decisions)
     n_db, n_q = len(r.model.images), len(r.frames)
     peak = before.best(measure_peak(m=4096, k=dim, n=2048))  # best of before and after: the load changes
     for line in peak.lines():
@@ -191,8 +203,22 @@ def time_move(descriptors, dataset, group: int = 4, step: int = 10) -> None:
           f"query frames): {t_move:.2f} s = fit {t_fit:.2f} s + decisions {t_move - t_fit:.2f} s")
     print(f"  fit:       {share(flops_fit, t_fit, peak.float32)}")
     print(f"  decisions: {share(flops_dec, t_move - t_fit, peak.float32)}")
+    print(f"  decisions again, best of 2 (decide_traversal): fused {min(t_fused):.2f} s, straightforward "
+          f"(fused=False) {min(t_plain):.2f} s = {min(t_plain) / min(t_fused):.1f}x the fused; ranks, answers, "
+          f"images and raw_p {'identical' if same else 'DIFFERENT'}")
+    print(f"  the move in CPU seconds (all threads; steadier on a shared machine): {cpu_move:.2f} CPU s, "
+          f"{share(flops_fit + flops_dec, cpu_move, peak.float32_cpu)} per CPU second")
     print(f"summary: move {t_move:.2f} s (goal <= 3 s), floor {floor:.2f} s at the float32 GEMM peak, "
-          f"ratio {t_move / floor:.1f}x; {share(flops_fit + flops_dec, t_move, peak.float32)}", flush=True)
+          f"ratio {t_move / floor:.1f}x; {share(flops_fit + flops_dec, t_move, peak.float32)}; "
+          f"with the straightforward decisions {t_fit + min(t_plain):.2f} s; load average {os.getloadavg()[0]:.1f}",
+          flush=True)
+
+
+def _same_decisions(a, b) -> bool:
+    """Every rank, answer, image and raw_p of two ``TraversalDecisions`` equal (bit for bit)."""
+    return (np.array_equal(a.raw, b.raw) and np.array_equal(a.best, b.best) and all(
+        np.array_equal(getattr(a.outcomes[k], f), getattr(b.outcomes[k], f))
+        for k in a.outcomes for f in ("rank", "answer_place", "answer_image", "n_kept")))
 
 
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",

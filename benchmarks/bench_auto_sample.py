@@ -2,6 +2,7 @@
 
     python benchmarks/bench_auto_sample.py                  # the app's 110k route: 24,831 database images × 2,048
     python benchmarks/bench_auto_sample.py --n 100000 --dim 1280 --seeds 3   # a protocol split at Nordland scale
+    python benchmarks/bench_auto_sample.py --n 110364 --dim 1280 --seeds 20 --pooled 50   # one sample per run
 
 Above ``thresholds.AUTO_MAX_PAIRS`` (2·10⁶) training pairs, ``training_pair_scores`` samples.
 Side by side in one process, on seeded Nordland-like descriptors with place structure
@@ -16,6 +17,14 @@ Side by side in one process, on seeded Nordland-like descriptors with place stru
    sampling error), and the difference of the means in units of its standard error. Pairs
    inside one tile share rows and columns, so they are correlated; the θ must still agree
    with the independent-pairs θ within that error.
+
+``--pooled RUNS`` instead compares the protocols' two ways of taking each split's θ (issue 13
+§4), on the ``--n`` images as places of 12 and ``RUNS`` seeded splits (one query per place):
+a tile sample of each split's own training images (``training_pair_scores(rows=train)``,
+before) against one tile sample per run over all images, of which each split keeps its
+training pairs (``thresholds.pooled_pair_sample``, now). It prints the time of all the
+splits' θ each way (best of ``--seeds``), and split 0's θ over ``--seeds`` seeds of each:
+mean, standard deviation, and the difference of the means in standard errors.
 """
 
 from __future__ import annotations
@@ -27,7 +36,44 @@ import numpy as np
 
 from bench_nordland_scale import FRAMES, TRAVERSALS, nordland_like
 from gemm_peak import load_average, measure_peak, share
-from vpr_explorer.thresholds import AUTO_MAX_PAIRS, auto_global_threshold, training_pair_scores
+from vpr_explorer.evaluation import draw_splits
+from vpr_explorer.thresholds import AUTO_MAX_PAIRS, auto_global_threshold, pooled_pair_sample, training_pair_scores
+
+
+def pooled_against_per_split(d: np.ndarray, labels: np.ndarray, runs: int, seeds: int) -> None:
+    """Each split's automatic θ from its own tile sample, and from the run's pooled one: time and θ."""
+    trains = [sp.train for sp in draw_splits(labels, int(labels.max()) + 1, runs=runs, seed=0)]
+    print(f"{runs} splits of {len(trains[0]):,} training images each; {len(d):,} images in the pooled tiles")
+    peak = measure_peak(m=4096, k=d.shape[1], n=256)
+    theta: dict[str, list[float]] = {"per split": [], "pooled": []}
+    seconds: dict[str, list[float]] = {"per split": [], "pooled": []}
+    size = 0
+    for seed in range(seeds):  # interleaved: both see the same load
+        t0 = time.perf_counter()
+        per = [auto_global_threshold(training_pair_scores(d, rows=t, seed=seed + r)) for r, t in enumerate(trains)]
+        seconds["per split"].append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        sample = pooled_pair_sample(d, trains, seed=seed)
+        pooled = [sample.theta(r) for r in range(runs)]
+        seconds["pooled"].append(time.perf_counter() - t0)
+        theta["per split"].append(per[0])
+        theta["pooled"].append(pooled[0])
+        size = sample.pooled.size
+    peak = peak.best(measure_peak(m=4096, k=d.shape[1], n=256))
+    for line in peak.lines():
+        print(line)
+    t_old, t_new = min(seconds["per split"]), min(seconds["pooled"])
+    print(f"all {runs} splits' θ, best of {seeds}:  per split {t_old:6.2f} s   pooled {t_new:6.2f} s "
+          f"({size:,} pooled scores, {len(sample.scores(0)):,} kept by split 0)   per split / pooled = "
+          f"{t_old / t_new:.1f}×")
+    m = {k: float(np.mean(v)) for k, v in theta.items()}
+    s = {k: float(np.std(v, ddof=1)) if len(v) > 1 else float("nan") for k, v in theta.items()}
+    for kind in theta:
+        print(f"split 0's θ_auto, {kind:<9}: mean {m[kind]:.6f}  sd over {seeds} seeds {s[kind]:.2e}")
+    se = np.sqrt((s["pooled"] ** 2 + s["per split"] ** 2) / seeds)
+    print(f"summary: pooled {t_old / t_new:.1f}× faster than per split; θ means differ by "
+          f"{m['pooled'] - m['per split']:+.2e} = {abs(m['pooled'] - m['per split']) / se:.1f} standard errors "
+          f"(sd pooled / sd per split = {s['pooled'] / s['per split']:.2f})")
 
 
 def main() -> None:
@@ -35,8 +81,17 @@ def main() -> None:
     ap.add_argument("--n", type=int, default=24_831, help="training images (default 24,831: the app's 110k route)")
     ap.add_argument("--dim", type=int, default=2048)
     ap.add_argument("--seeds", type=int, default=5, help="samples of each kind for the θ spread (default 5)")
+    ap.add_argument("--pooled", type=int, default=0, metavar="RUNS",
+                    help="compare per-split tile samples with one pooled sample over RUNS splits instead")
     args = ap.parse_args()
     places = -(-args.n // (FRAMES * TRAVERSALS))
+    if args.pooled:
+        places = args.n // (FRAMES * TRAVERSALS)
+        d, labels, _ = nordland_like(places, args.dim, 0)
+        print(f"data: {len(d):,} × {args.dim} Nordland-like descriptors in {places:,} places of "
+              f"{FRAMES * TRAVERSALS}; load average {load_average()}")
+        pooled_against_per_split(d, labels, args.pooled, args.seeds)
+        return
     d = nordland_like(places, args.dim, 0)[0][: args.n]
     print(f"data: {len(d):,} × {args.dim} Nordland-like descriptors; {len(d) * (len(d) - 1) // 2:.2e} pairs, "
           f"sample of {AUTO_MAX_PAIRS:.0e}; load average {load_average()}")

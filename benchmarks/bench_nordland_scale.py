@@ -28,6 +28,11 @@ share of that peak. Compare kernels with
 ``--check`` also runs ``evaluation.paper_protocol`` and asserts identical tables (small N).
 ``--storage float16`` writes the descriptors as a float16 ``.npy`` and memory-maps it, as
 the descriptor cache can.
+``--per-split-sample`` also runs the protocol as it was before issue 13 §4 took the automatic
+θ's sample once per run: a tile sample of each split's own training images
+(``training_pair_scores(rows=train, seed=seed + r)``), side by side with the pooled sample
+(``thresholds.pooled_pair_sample``), and prints both times and the largest difference of
+the automatic θ between the two in units of its spread over the splits.
 """
 
 from __future__ import annotations
@@ -41,9 +46,11 @@ from pathlib import Path
 
 import numpy as np
 
+import vpr_explorer.scale as scale
 from gemm_peak import load_average, measure_peak, share
 from vpr_explorer.report import render
 from vpr_explorer.scale import fast_paper_protocol
+from vpr_explorer.thresholds import auto_global_threshold, training_pair_scores
 
 FRAMES, TRAVERSALS = 3, 4
 
@@ -97,6 +104,16 @@ def full_similarity_pass(d: np.ndarray, block: int = 4096) -> float:
     return total
 
 
+class PerSplitSample:
+    """The automatic θ as taken before issue 13 §4: a tile sample of each split's own training images."""
+
+    def __init__(self, descriptors, trains, *, seed=0):
+        self.descriptors, self.trains, self.seed = descriptors, list(trains), seed
+
+    def theta(self, r: int) -> float:
+        return auto_global_threshold(training_pair_scores(self.descriptors, rows=self.trains[r], seed=self.seed + r))
+
+
 def peak_gib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB on Linux
 
@@ -121,6 +138,9 @@ def main() -> None:
     ap.add_argument("--device", default=None, help="torch device for the pass's block products (default: numpy)")
     ap.add_argument("--profile", action="store_true",
                     help="print the protocol's CPU profile (cProfile on CPU time), the 15 largest by cumulative time")
+    ap.add_argument("--per-split-sample", action="store_true",
+                    help="also time the protocol with a tile sample per split for the automatic θ "
+                         "(before issue 13 §4)")
     args = ap.parse_args()
     places = args.n // (FRAMES * TRAVERSALS) if args.n else args.places
 
@@ -166,6 +186,33 @@ def main() -> None:
         ev, w_fast, c_fast = timed(protocol)
     print(f"fast paper protocol ({args.runs} splits):        {w_fast:8.1f} s wall  {c_fast:8.1f} s CPU   "
           f"peak RSS {peak_gib():.2f} GiB", flush=True)
+    if args.per_split_sample:
+        autos: dict[str, list[float]] = {"pooled": [], "per split": []}
+
+        def recording(factory, into):  # the sample's θ per split, as the protocol takes them
+            def make(*a, **k):
+                sample = factory(*a, **k)
+                return type("Recorded", (), {"theta": lambda self, r: into.append(sample.theta(r)) or into[-1]})()
+            return make
+
+        pooled_sample = scale.pooled_pair_sample
+        try:
+            scale.pooled_pair_sample = recording(pooled_sample, autos["pooled"])
+            _, w_pooled, c_pooled = timed(protocol)
+            scale.pooled_pair_sample = recording(PerSplitSample, autos["per split"])
+            ev_old, w_old, c_old = timed(protocol)
+        finally:
+            scale.pooled_pair_sample = pooled_sample
+        new, old = np.array(autos["pooled"]), np.array(autos["per split"])
+        print(f"again, side by side: pooled sample {w_pooled:8.1f} s wall {c_pooled:8.1f} s CPU;  per-split samples "
+              f"{w_old:8.1f} s wall {c_old:8.1f} s CPU;  per-split / pooled = {w_old / w_pooled:.2f}× wall, "
+              f"{c_old / c_pooled:.2f}× CPU", flush=True)
+        print(f"automatic θ over the {args.runs} splits: pooled mean {new.mean():.6f} sd {new.std(ddof=1):.2e}; "
+              f"per split mean {old.mean():.6f} sd {old.std(ddof=1):.2e}; means differ by "
+              f"{(new.mean() - old.mean()) / old.std(ddof=1):+.2f} sd of the per-split θ")
+        same = [r.key for r, q in zip(ev.rows, ev_old.rows) if r.key != "global-auto" and all(
+            np.array_equal(r.recall[k], q.recall[k]) for k in ev.ks)]
+        print(f"rows other than the automatic θ with identical recall: {len(same)} of {len(ev.rows) - 1}")
     if not args.skip_floor:
         # timed again after: on a shared machine the load can change between the two phases
         _, w_again, c_again = timed(lambda: full_similarity_pass(d))

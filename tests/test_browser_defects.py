@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from streamlit_server import streamlit_server
-from test_browser import CHROMIUM, CHROMIUM_ARGS, assert_no_exception, settle
+from test_browser import assert_no_exception, browser, settle  # noqa: F401  (browser: the fixture)
 
 from vpr_explorer.database import explain_query
 from vpr_explorer.places import PlaceSpec
@@ -27,14 +27,6 @@ pytestmark = [pytest.mark.browser, pytest.mark.realdata]
 sync_api = pytest.importorskip("playwright.sync_api")
 
 TIMEOUT_MS = 180_000
-
-
-@pytest.fixture(scope="module")
-def browser():
-    with sync_api.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        yield b
-        b.close()
 
 
 @pytest.fixture(scope="module")

@@ -22,19 +22,9 @@ from urllib.parse import parse_qs, quote, urlparse
 import pytest
 
 from streamlit_server import streamlit_server
-from test_browser import CHROMIUM, CHROMIUM_ARGS, SCREENSHOTS, WIDTH, assert_no_exception, go, settle
+from test_browser import SCREENSHOTS, WIDTH, assert_no_exception, browser, go, settle  # noqa: F401  (browser: the fixture)
 
 pytestmark = [pytest.mark.browser, pytest.mark.realdata]
-
-
-@pytest.fixture(scope="module")
-def browser():
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        yield b
-        b.close()
 
 
 def charts(page) -> list[dict]:

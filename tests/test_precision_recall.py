@@ -321,3 +321,100 @@ def test_float32_raw_counts_as_float64():
         a = family_counts(s.raw, s.thresholds["weighted"], s.spread, s.correct, rule, ks)
         b = family_counts(raw32, s.thresholds["weighted"], s.spread, s.correct, rule, ks)
         np.testing.assert_array_equal(a, b)
+
+
+# --------------------------------------------------------------------------- the counts against the previous loop
+
+
+def _family_counts_by_methods(raw, theta, spread, correct, rule, ks):
+    """The counts as ``family_counts`` computed them before (issue 12 §2): ``retrieval``'s own
+    ``ranking_scores``, ``top_answer`` and ``pessimistic_rank`` at every k, on the whole matrix."""
+    from vpr_explorer.retrieval import pessimistic_rank, ranking_scores, top_answer
+
+    r = np.asarray(raw, dtype=np.float64)
+    tp, acc = [], []
+    for k in ks:
+        scores = ranking_scores(r, theta + k * spread, Rule(rule))
+        accepted = top_answer(scores) >= 0
+        acc.append(int(accepted.sum()))
+        tp.append(int((accepted & (pessimistic_rank(scores, correct) == 1)).sum()))
+    return np.array(tp), np.array(acc)
+
+
+def _awkward_family(seed):
+    """Raw scores on a grid of 1/64 (exact), θ_p and s_p in 1/64 and 1/16: θ_p + k·s_p hits raw_p
+    exactly at grid k; places 1e-5 apart (the tie tolerance) and 1e-5 ± 1 ulp; NaN θ, s = 0,
+    -inf raw (a place with no image to match), queries with two right places, unknown queries."""
+    rng = np.random.default_rng(seed)
+    nq, n_p = 300, 40
+    raw = rng.integers(16, 60, (nq, n_p)) / 64
+    raw[:, 5] = raw[:, 4] - TIE_TOLERANCE
+    raw[:, 6] = np.nextafter(raw[:, 4] - TIE_TOLERANCE, 0.0)
+    raw[:, 7] = np.nextafter(raw[:, 4] - TIE_TOLERANCE, 1.0)
+    raw[rng.random((nq, n_p)) < 0.05] = -np.inf
+    theta = rng.integers(30, 50, n_p) / 64
+    spread = rng.integers(1, 4, n_p) / 16
+    theta[[8, 9]], spread[[8, 9]] = [50 / 64, 70 / 64], 0.0  # do not move with k: kept by raw ≥ 50/64, never
+    theta[3] = np.nan
+    spread[3] = np.nan
+    correct = np.zeros((nq, n_p), bool)
+    truth = rng.integers(0, n_p, nq)
+    correct[np.arange(nq), truth] = True
+    twice = rng.random(nq) < 0.2
+    correct[np.flatnonzero(twice), (truth[twice] + 1) % n_p] = True
+    correct[rng.random(nq) < 0.2] = False  # unknown queries
+    correct[:40, 4] = True  # right place 4, with wrong places 5-7 at the tolerance's edge
+    correct[:40, 5:8] = False
+    return raw, theta, spread, correct
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("rule", [Rule.MARGIN, Rule.RAW])
+@pytest.mark.parametrize("mode", ["default", "dense", "kept pairs", "blocks"])
+def test_family_counts_equal_the_previous_loop(monkeypatch, seed, rule, mode):
+    # default: a dense pass at the low k where many places are kept, the kept pairs above; "dense":
+    # dense passes at every k; "kept pairs": the kept pairs at every k; "blocks": blocks of 25
+    # queries, each with more kept pairs than _BLOCK_CELLS = 1000, so dense passes throughout
+    import vpr_explorer.precision_recall as precision_recall
+
+    calls = []
+    dense_counts = precision_recall._dense_counts
+    monkeypatch.setattr(precision_recall, "_dense_counts", lambda r, c, th, rule: calls.append(len(th)) or
+                        dense_counts(r, c, th, rule))
+    share = {"default": precision_recall._DENSE_KEPT, "dense": -1.0, "kept pairs": 1.0, "blocks": 1.0}[mode]
+    monkeypatch.setattr(precision_recall, "_DENSE_KEPT", share)
+    if mode == "blocks":
+        monkeypatch.setattr(precision_recall, "_BLOCK_CELLS", 1000)
+    raw, theta, spread, correct = _awkward_family(seed)
+    ks = np.r_[np.arange(-4, 4.01, 0.25), family_grid(*family_range(raw, theta, spread), 50)]
+    tp, acc = family_counts(raw, theta, spread, correct, rule, ks)
+    ref_tp, ref_acc = _family_counts_by_methods(raw, theta, spread, correct, rule, ks)
+    np.testing.assert_array_equal(tp, ref_tp)
+    np.testing.assert_array_equal(acc, ref_acc)
+    assert len(set(zip(tp.tolist(), acc.tolist()))) > 10  # the counts move along the grid
+    expect = {"default": lambda: len(calls) == 1 and 0 < calls[0] < len(ks), "dense": lambda: calls == [len(ks)],
+              "kept pairs": lambda: calls == [], "blocks": lambda: calls == [len(ks)] * 12}
+    assert expect[mode](), calls
+
+
+@pytest.mark.realdata
+def test_family_counts_equal_the_previous_loop_on_gardens_point(monkeypatch, gardens_point, gp_pixels):
+    # real raw_p, θ_p and s_p: an open-set run with a frame tolerance of 1 (two right places)
+    import vpr_explorer.evaluation as evaluation
+    from vpr_explorer.places import PlaceSpec, make_places
+
+    captured = []
+    pooled = evaluation._pooled_splits
+    monkeypatch.setattr(evaluation, "_pooled_splits", lambda *a, **k: captured.extend(pooled(*a, **k)) or captured)
+    places = make_places(gardens_point, PlaceSpec(2, 2))  # adjacent places: a frame's neighbour is right too
+    evaluation.open_set_protocol(gp_pixels, places.image_place, gardens_point.image_traversal, places.n_places,
+                                 runs=2, tolerance=1, image_frame=gardens_point.image_frame,
+                                 frame_place=places.frame_place)
+    assert any(s.correct.sum(axis=1).max() > 1 for s in captured)
+    for s in captured:
+        for base in ("simple", "weighted"):
+            ks = family_grid(*family_range(s.raw, s.thresholds[base], s.spread), 80)
+            for rule in (Rule.MARGIN, Rule.RAW):
+                got = family_counts(s.raw, s.thresholds[base], s.spread, s.correct, rule, ks)
+                want = _family_counts_by_methods(s.raw, s.thresholds[base], s.spread, s.correct, rule, ks)
+                np.testing.assert_array_equal(got, want)

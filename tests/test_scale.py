@@ -16,6 +16,7 @@ import vpr_explorer.evaluation as evaluation
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.evaluation import draw_splits, paper_protocol
 from vpr_explorer.scale import fast_paper_protocol, make_layout, scale_splits
+from vpr_explorer.thresholds import pooled_pair_sample
 
 THETA_TOL = 1e-8  # per-place θ: float32 rounding in the downdated σ (typically 1e-11 here)
 
@@ -147,7 +148,7 @@ def data3000():
 @pytest.mark.parametrize("fast_kw", [{}, {"block": 640, "table_memory": 0}])
 def test_equals_paper_protocol_structured(monkeypatch, data3000, fast_kw):
     # 3,000 × 256 in 300 places of 10: 2,700 training images, so the automatic θ samples
-    # its 2M pairs (the mirrored branch); block=640 makes 5 blocks, table_memory=0 spills
+    # about 2M pairs (from the run's pooled tiles); block=640 makes 5 blocks, table_memory=0 spills
     d, labels, trav = data3000
     ref, fast = check(monkeypatch, d, labels, trav, 300, user_theta=0.3, fast_kw=fast_kw)
     r1 = ref.row("place-baseline").recall[1][0]
@@ -171,6 +172,21 @@ def test_equals_paper_protocol_hard_queries(monkeypatch):
     # heavy noise: many wrong places above the own one, image-level records overflow K
     d, labels, trav = awkward(seed=1, noise=4.0)
     check(monkeypatch, d, labels, trav, 260, runs=2, ks=(1, 3), fast_kw={"block": 600})
+
+
+def test_the_automatic_theta_is_the_runs_pooled_sample(monkeypatch):
+    # 2,400 images in 300 places of 8: 2,100 training images (2.2·10⁶ pairs), so sampled: both
+    # paths take split r's θ from one tile sample of the run (thresholds.pooled_pair_sample)
+    d, labels, trav = structured(seed=5, n_places=300, per_place=8, dim=32)
+    _, ref_splits = reference_with_splits(monkeypatch, d, labels, trav, 300, runs=3, seed=2)
+    splits = draw_splits(labels, 300, runs=3, seed=2)
+    sample = pooled_pair_sample(d, [sp.train for sp in splits], seed=2)
+    assert 0 < len(sample.scores(0)) < 2_100 * 2_099 // 2  # a sample, not every pair
+    want = [sample.theta(r) for r in range(3)]
+    assert [s.thresholds["auto"] for s in ref_splits] == want
+    fast = scale_splits(d, labels, trav, 300, splits, seed=2, block=800)
+    assert [s.thresholds["auto"] for s in fast] == want
+    assert len(set(want)) == 3  # each split's own training pairs: three different θ
 
 
 def test_equals_paper_protocol_small_exact_pair_branch(monkeypatch):

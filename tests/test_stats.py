@@ -142,6 +142,29 @@ def test_float32_does_not_depend_on_threads(tmp_path):
     assert (np.abs(sigma1**2 - sigma2**2) <= 2 * bound + FLOAT64_SLACK).all()
 
 
+@pytest.mark.parametrize("dim", [96, 256])
+def test_centred_gram_in_halves_is_one_syrk_bit_for_bit(dim):
+    # a full block's Gram comes as two syrks and a GEMM run side by side (BLAS in one thread
+    # each), the last partial block's as one syrk: together, the numbers of one syrk per block
+    from concurrent.futures import ThreadPoolExecutor
+
+    from vpr_explorer.stats import BLOCK, _centre, _centred_gram
+
+    rng = np.random.default_rng(4)
+    d = unit_rows(rng, 2 * BLOCK + 123, dim).astype(np.float32)
+    m = _centre(d)
+    expected = np.zeros((dim, dim))
+    for lo in range(0, len(d), BLOCK):
+        e = d[lo : lo + BLOCK] - m
+        expected += np.matmul(e.T, e)
+    for threads in (1, 2):
+        with ThreadPoolExecutor(threads) as pool:
+            gram, total = _centred_gram(d, m, BLOCK, pool, threads > 1)
+        np.testing.assert_array_equal(gram, expected)
+        np.testing.assert_array_equal(gram, gram.T)
+        np.testing.assert_allclose(total, d.sum(axis=0, dtype=np.float64), rtol=0, atol=1e-9)
+
+
 def test_float32_and_float64_side_by_side():
     rng = np.random.default_rng(10)
     d, labels = shared_component(rng, 2000, 128, 300)
@@ -236,6 +259,41 @@ def test_positive_means_against_pairs():
         sub = s[np.ix_(idx, idx)]
         assert abs(pm[p] - sub[~np.eye(len(idx), dtype=bool)].mean()) < 1e-12
     assert np.isnan(pm[2])
+
+
+def _positive_means_one_product(d, labels, n_places, rows):
+    """``positive_means`` as it was before its threads: one sparse indicator product per block."""
+    from scipy import sparse
+
+    sums, sq = np.zeros((n_places, d.shape[1])), np.empty(len(labels))
+    for lo in range(0, len(labels), rows):
+        x = np.asarray(d[lo : lo + rows], dtype=np.float64)
+        part = sparse.csr_matrix((np.ones(len(x)), (labels[lo : lo + len(x)], np.arange(len(x)))),
+                                 shape=(n_places, len(x)))
+        sums += part @ x
+        sq[lo : lo + len(x)] = np.einsum("ij,ij->i", x, x)
+    counts = np.bincount(labels, minlength=n_places).astype(np.float64)
+    pairs = counts * (counts - 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = (np.einsum("ij,ij->i", sums, sums) - np.bincount(labels, weights=sq, minlength=n_places)) / pairs
+    out[pairs == 0] = np.nan
+    return out
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32, np.float16])
+def test_positive_means_are_the_same_sums_whatever_the_threads(monkeypatch, dtype):
+    # float64 rows make the order of the sums visible in the last bits (float32 sums are exact)
+    from vpr_explorer import stats
+
+    monkeypatch.setattr(stats, "_MEAN_ROWS", 97)  # several blocks, places split across them
+    rng = np.random.default_rng(3)
+    labels = rng.integers(0, 23, 700)
+    labels[labels == 5] = 6  # a place without images
+    d = (rng.standard_normal((700, 33)) * np.exp(rng.uniform(-8, 8, (700, 1)))).astype(dtype)
+    expected = _positive_means_one_product(d, labels, 24, 97)
+    for threads in (1, 2, 3, 8):
+        np.testing.assert_array_equal(positive_means(d, labels, 24, threads=threads), expected)
+    assert np.isnan(expected[5]) and np.isfinite(expected[6])
 
 
 @pytest.mark.parametrize(

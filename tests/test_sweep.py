@@ -21,6 +21,7 @@ from vpr_explorer.cli import main
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.pipeline import evaluate_dataset
 from vpr_explorer.places import PlaceSpec
+from vpr_explorer.shared_scores import SharedScores
 from vpr_explorer.sweep import (
     Metric,
     SweepCache,
@@ -139,6 +140,23 @@ def test_readings_share_places_and_cache(paper_sweep, gardens_point, gp_pixels):
     assert two.cells[0].cached and two.cells[0].evaluation is one.cells[0].evaluation
     other = SweepSpec(groups=(2,), steps=(3,), readings=("stride",), protocol="traversal", tolerance=1)
     assert sweep_cost(gardens_point, other, cache=cache, descriptors_key=key).runs == 1  # options are in the key
+
+
+def test_cells_share_one_set_of_scores(gardens_point, gp_pixels):
+    # one float32 similarity and one float64 Gram of all 600 images serve every paper and open-set cell;
+    # the traversal protocol's Gram is over its database traversals' images, also one for every cell
+    shared = SharedScores(gp_pixels)
+    spec = SweepSpec(groups=(2, 3), steps=(5,), readings=("stride",), protocol="open-set", runs=1, pr=False)
+    result = sweep(gardens_point, gp_pixels, spec, descriptor="pixels", shared=shared)
+    assert all(c.empty is None for c in result.cells)
+    assert shared._full is not None and [len(g.images) for g in shared._grams.values()] == [600]
+    sweep(gardens_point, gp_pixels, SweepSpec(groups=(2, 3), steps=(5,), readings=("stride",),
+                                              protocol="traversal", pr=False), shared=shared)
+    assert sorted(len(g.images) for g in shared._grams.values()) == [200, 600]  # the database traversal: 200 frames
+    alone = evaluate_dataset(gardens_point.root, PlaceSpec(3, 5), "pixels", "open-set", runs=1)
+    assert _everything(result.cells[1].evaluation) == _everything(alone)
+    with pytest.raises(VPRInputError, match="shared scores were built from other descriptors"):
+        sweep(gardens_point, gp_pixels.copy(), spec, shared=shared)
 
 
 def test_bad_settings_are_refused_by_name(gardens_point, gp_pixels):

@@ -13,6 +13,7 @@ from vpr_explorer.thresholds import (
     auto_global_threshold,
     mixture_spread,
     place_thresholds,
+    pooled_pair_sample,
     threshold_family,
     training_pair_scores,
 )
@@ -186,3 +187,95 @@ def test_tile_sample_threshold_agrees_with_independent_pairs_within_sampling_err
     assert abs(theta["tiles"].mean() - theta["pairs"].mean()) < 3 * se
     assert sd["tiles"] < 1.5 * sd["pairs"]
     assert np.abs(theta["tiles"] - full).max() < 4 * sd["pairs"]
+
+
+# --------------------------------------------------------------------------- one sample for all splits
+
+
+def _kept(sample, r):
+    """Which pooled pairs have both images in split r's training set (a plain membership test)."""
+    train = sample.trains[r]
+    return np.isin(sample.image_a, train) & np.isin(sample.image_b, train)
+
+
+@pytest.mark.parametrize("unknown_share", [None, 0.3])
+def test_pooled_sample_keeps_exactly_each_splits_training_pairs(unknown_share):
+    from vpr_explorer.evaluation import draw_splits
+
+    rng = np.random.default_rng(2)
+    n_places, per_place, dim = 200, 6, 24
+    labels = np.repeat(np.arange(n_places), per_place)
+    labels[::97] = -1  # skipped frames: in no training set, so in no pooled pair
+    d = unit_rows(rng, len(labels), dim).astype(np.float32)
+    splits = draw_splits(labels, n_places, runs=4, seed=1, unknown_share=unknown_share)
+    sample = pooled_pair_sample(d, [sp.train for sp in splits], max_pairs=20_000, seed=5, workers=3)
+    pooled = set(zip(sample.image_a.tolist(), sample.image_b.tolist()))
+    assert len(pooled) == len(sample.pooled)  # distinct ordered pairs ...
+    assert len({(min(i, j), max(i, j)) for i, j in pooled}) == len(pooled)  # ... and distinct unordered
+    assert (sample.image_a != sample.image_b).all() and (labels[sample.image_a] >= 0).all()
+    union = np.unique(np.concatenate([sp.train for sp in splits]))  # images that train in some split
+    counts = np.bincount(np.r_[sample.image_a, sample.image_b], minlength=len(d))
+    assert counts[union].max() - counts[union].min() <= 2  # every pooled image in as many pairs (to within 2)
+    assert counts.sum() == counts[union].sum()  # and no other image
+    exact = np.einsum("ij,ij->i", d[sample.image_a].astype(np.float64), d[sample.image_b].astype(np.float64))
+    np.testing.assert_allclose(sample.pooled, exact, rtol=0, atol=1e-6)
+    assert (np.diff(sample.pooled) >= 0).all()
+    for r, sp in enumerate(splits):
+        keep = _kept(sample, r)
+        a, b = sample.image_a[keep], sample.image_b[keep]
+        train = set(sp.train.tolist())
+        want = [(i, j) for i, j in pooled if i in train and j in train]  # the pooled pairs of training images
+        assert sorted(zip(a.tolist(), b.tolist())) == sorted(want)
+        assert not set(a.tolist()) & set(sp.queries.tolist())  # the queries' rows and columns are dropped
+        if unknown_share:
+            assert not sp.unknown[labels[np.r_[a, b]]].any()  # so are the held-out places' images
+        scores = sample.scores(r)
+        assert 0.8 * 20_000 < len(scores) <= 1.05 * 20_000  # about max_pairs for every split
+        np.testing.assert_array_equal(scores, sample.pooled[keep])  # those pairs' scores, ascending
+        assert sample.theta(r) == auto_global_threshold(scores)  # bit for bit
+    # the same sample whatever the threads; a training set of at most max_pairs pairs uses all of them
+    again = pooled_pair_sample(d, [sp.train for sp in splits], max_pairs=20_000, seed=5, workers=1)
+    np.testing.assert_array_equal(again.pooled, sample.pooled)
+    small = pooled_pair_sample(d, [sp.train[:150] for sp in splits], max_pairs=20_000, seed=5)
+    assert small.pooled.size == 0
+    np.testing.assert_array_equal(small.scores(1), training_pair_scores(d[splits[1].train[:150]]))
+    assert small.theta(1) == auto_global_threshold(training_pair_scores(d[splits[1].train[:150]]))
+
+
+def test_theta_from_sorted_scores_is_np_median_bit_for_bit():
+    from vpr_explorer.thresholds import _sorted_auto_threshold
+
+    rng = np.random.default_rng(0)
+    for t in range(2_000):
+        n = int(rng.integers(1, 80))
+        if t % 2:  # many ties: a few distinct values
+            s = rng.choice(np.round(rng.normal(size=6), 1), n).astype(np.float32)
+        else:
+            s = rng.normal(0.3, 0.1, n).astype(np.float32)
+        s = np.sort(s)
+        assert _sorted_auto_threshold(s) == auto_global_threshold(s), (t, s)
+    assert _sorted_auto_threshold(np.array([0.5], dtype=np.float32)) == 0.5
+    with pytest.raises(VPRInputError, match="at least one training score"):
+        _sorted_auto_threshold(np.empty(0, dtype=np.float32))
+
+
+def test_pooled_threshold_agrees_with_a_per_split_sample_within_sampling_error():
+    # One run's splits share one pooled sample; over seeds, a split's θ from it must centre on
+    # the θ of its own tile sample (``training_pair_scores`` per split) within their sampling
+    # error, spread no wider, and sit near the θ of all its training pairs.
+    from vpr_explorer.evaluation import draw_splits
+
+    d = hub_descriptors(n=2_750)
+    labels = np.arange(len(d)) % 250  # 250 places of 11: 2,500 training images, 3.1·10⁶ pairs
+    trains = [sp.train for sp in draw_splits(labels, 250, runs=3, seed=0)]
+    train = trains[0]  # the pooled tiles cover all 2,750 images; split 0 drops its 250 queries
+    full = auto_global_threshold(training_pair_scores(d[train], max_pairs=10**8))
+    seeds = 40
+    pooled = np.array([pooled_pair_sample(d, trains, max_pairs=20_000, seed=s).theta(0) for s in range(seeds)])
+    own = np.array([auto_global_threshold(training_pair_scores(d[train], max_pairs=20_000, seed=s))
+                    for s in range(seeds)])
+    sd_pooled, sd_own = pooled.std(ddof=1), own.std(ddof=1)
+    assert 1e-3 < sd_own < 0.05  # a real sampling error to compare against
+    assert abs(pooled.mean() - own.mean()) < 3 * np.sqrt((sd_pooled**2 + sd_own**2) / seeds)
+    assert sd_pooled < 1.5 * sd_own
+    assert np.abs(pooled - full).max() < 4 * sd_own

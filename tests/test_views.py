@@ -33,13 +33,18 @@ def full(demo, demo_pixels, fitted):
 def pairs(monkeypatch):
     """Counts the query x database similarities computed (the real function runs)."""
     counter = {"pairs": 0}
-    real = database.similarity
+    real, real_t = database.similarity, database.similarity_t
 
     def counting(a, b):
         counter["pairs"] += len(a) * len(b)
         return real(a, b)
 
+    def counting_t(a, b, out=None):  # the fused decisions: database rows × queries, a piece at a time
+        counter["pairs"] += len(a) * len(b)
+        return real_t(a, b, out=out)
+
     monkeypatch.setattr(database, "similarity", counting)
+    monkeypatch.setattr(database, "similarity_t", counting_t)
     monkeypatch.setattr(views, "similarity", counting)
     return counter
 

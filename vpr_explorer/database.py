@@ -7,7 +7,9 @@ the negative statistics and thresholds on their images only, then decide any que
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from enum import StrEnum
 
@@ -19,13 +21,17 @@ from vpr_explorer.places import Places, right_places
 from vpr_explorer.retrieval import (
     METHODS_BY_KEY,
     Outcome,
+    PlaceLayout,
     QueryDecision,
     decide,
+    layout_place_scores,
     place_scores,
+    score_layout_block,
     score_queries,
     similarity,
+    similarity_t,
 )
-from vpr_explorer.stats import NegativeStats, mixture_moments, negative_stats, positive_means
+from vpr_explorer.stats import NegativeStats, mixture_moments, negative_stats, one_blas_thread, positive_means
 from vpr_explorer.thresholds import (
     ThresholdMethod,
     adaptive_k,
@@ -37,6 +43,10 @@ from vpr_explorer.thresholds import (
 
 #: Query × database similarities held at once by ``decide_traversal`` (64 MB of float32).
 PAIRS_PER_BLOCK = 1 << 24
+#: Query frames from which ``decide_traversal`` takes the fused path by default: it copies the
+#: database rows grouped by place once per call (about 0.1 s at 33,108 × 2,048, quiet), and
+#: saves about 1.3 ms per query frame there (906 frames: ``bench_app_scale.py --move-only``).
+FUSED_MIN_FRAMES = 64
 
 
 @dataclass(frozen=True, eq=False)
@@ -242,6 +252,8 @@ def decide_traversal(
     tolerance: int = 0,
     frames: np.ndarray | None = None,
     block: int = 4096,
+    threads: int | None = None,
+    fused: bool | None = None,
 ) -> TraversalDecisions:
     """Decide every frame of ``query_traversal`` (or only ``frames``); similarities computed in blocks of frames.
 
@@ -249,6 +261,16 @@ def decide_traversal(
         frames: query frame numbers to decide, in the order wanted (default: all, in order).
             Deciding a sample is how an overview of a 100k-image dataset stays interactive
             (``views.regroup``): the cost is ``len(frames) × n_database`` similarities.
+        block: query frames per block (at most ``PAIRS_PER_BLOCK`` similarities held at once).
+        threads: threads sharing a block's products and place maxima (default: CPU count, at
+            most 8); the results do not depend on it.
+        fused: ``True``: the database rows grouped by place (``retrieval.PlaceLayout``), copied
+            once per call, and each block's similarities computed a piece of places at a time
+            with their maxima while the piece is in cache (``_decide_block``). ``False``: the
+            straightforward path (``retrieval.place_scores`` and ``score_queries`` on each
+            block), which the fused path equals in every rank, answer and image
+            (``tests/test_decide_fused.py``). ``None`` (default): fused from ``FUSED_MIN_FRAMES``
+            query frames on, below which the copy costs more than it saves.
     """
     q = dataset.traversal_index(query_traversal)
     if q in model.traversals:
@@ -260,20 +282,32 @@ def decide_traversal(
         if frames.ndim != 1 or (frames.size and (frames.min() < 0 or frames.max() >= dataset.n_frames)):
             raise VPRInputError(f"frames: must be frame numbers in 0..{dataset.n_frames - 1}")
         qi = q * dataset.n_frames + frames  # image order: traversal by traversal (Dataset.image_index)
+    if not len(qi):
+        raise VPRInputError("frames: no query frame to decide; choose at least one")
     truth = query_places(dataset, places, qi, tolerance)
     th = model.thresholds(k, user_theta)
     d = np.asarray(descriptors)
-    db = database_rows(d, model.images)
-    block = max(1, min(block, PAIRS_PER_BLOCK // max(1, len(db))))
+    block = max(1, min(block, PAIRS_PER_BLOCK // max(1, len(model.images))))
     parts_raw, parts_best, parts_out = [], [], []
-    for lo in range(0, len(qi), block):
-        sims = similarity(d[qi[lo:lo + block]], db)
-        raw, best = place_scores(sims, model.places, model.n_places)
-        parts_raw.append(raw.astype(np.float32))
-        parts_best.append(best.astype(np.int32))
-        parts_out.append(score_queries(sims, model.places, model.n_places, th, truth[lo:lo + block], raw_best=(raw, best)))
-    if not len(qi):
-        raise VPRInputError("frames: no query frame to decide; choose at least one")
+    if fused or (fused is None and len(qi) >= FUSED_MIN_FRAMES):
+        layout = PlaceLayout.of(model.places, model.n_places)
+        threads = min(os.cpu_count() or 1, 8) if threads is None else max(1, int(threads))
+        with one_blas_thread(), ThreadPoolExecutor(threads, thread_name_prefix="vpr-decide") as pool:
+            db = _gather_rows(d, model.images[layout.order], pool)  # rows grouped by place
+            for lo in range(0, len(qi), block):
+                raw, best, out = _decide_block(model, d, db, layout, qi[lo:lo + block], th, truth[lo:lo + block], pool)
+                parts_raw.append(raw.astype(np.float32))
+                parts_best.append(best.astype(np.int32))
+                parts_out.append(out)
+    else:
+        db = database_rows(d, model.images)
+        for lo in range(0, len(qi), block):
+            sims = similarity(d[qi[lo:lo + block]], db)
+            raw, best = place_scores(sims, model.places, model.n_places)
+            parts_raw.append(raw.astype(np.float32))
+            parts_best.append(best.astype(np.int32))
+            parts_out.append(score_queries(sims, model.places, model.n_places, th, truth[lo:lo + block],
+                                           raw_best=(raw, best)))
     outcomes = {
         key: Outcome(
             method=parts_out[0][key].method,
@@ -282,3 +316,58 @@ def decide_traversal(
         for key in parts_out[0]
     }
     return TraversalDecisions(qi, truth, np.concatenate(parts_raw), np.concatenate(parts_best), outcomes, th)
+
+
+def _gather_rows(d: np.ndarray, rows: np.ndarray, pool: ThreadPoolExecutor, part: int = 4096) -> np.ndarray:
+    """float32 ``d[rows]``, gathered by the pool's threads ``part`` rows at a time."""
+    out = np.empty((len(rows), d.shape[1]), dtype=np.float32)
+
+    def gather(lo: int) -> None:
+        np.copyto(out[lo : lo + part], d[rows[lo : lo + part]], casting="same_kind")
+
+    list(pool.map(gather, range(0, len(rows), part)))
+    return out
+
+
+#: Database rows per piece of ``_decide_block`` (whole places): a piece's similarities with a
+#: block's queries (1,024 × 506 float32 at 33,108 images, 2 MB) are still in the core's L2
+#: cache when their maxima are taken.
+PIECE_ROWS = 1024
+
+
+def _decide_block(
+    model: DatabaseModel,
+    d: np.ndarray,
+    db: np.ndarray,
+    layout: PlaceLayout,
+    qi: np.ndarray,
+    th: dict[str, np.ndarray | float],
+    truth: np.ndarray,
+    pool: ThreadPoolExecutor,
+) -> tuple[np.ndarray, np.ndarray, dict[str, Outcome]]:
+    """One block of query images: raw_p, the image behind it and every method's ``Outcome``.
+
+    The pool's threads each take pieces of whole places: one float32 GEMM of the piece's
+    database rows against the block's queries (each similarity the same float32 number as
+    ``similarity`` gives: a GEMM splits rows and columns, never the sum, and the values do not
+    depend on the rows' order or the BLAS threads), then the piece's place maxima. The
+    image-level baseline reads back only the places within the tolerance of its thresholds
+    (``retrieval.score_layout_block``). A block with a non-finite similarity (a NaN or inf
+    in a descriptor) takes the straightforward path, which defines what that means.
+    """
+    queries = np.asarray(d[qi], dtype=np.float32)
+    scores_t = np.empty((len(db), len(qi)), dtype=np.float32)
+    raw_t = np.empty((len(layout.places), len(qi)), dtype=np.float32)
+    best_t = np.empty((len(layout.places), len(qi)), dtype=np.int64)
+
+    def piece(p: tuple[int, int, int, int]) -> None:
+        rows = slice(p[0], p[0] + p[2] * p[3])
+        similarity_t(db[rows], queries, out=scores_t[rows])
+        layout_place_scores(scores_t, layout, p, raw_t, best_t)
+
+    list(pool.map(piece, layout.pieces(PIECE_ROWS)))
+    if not np.isfinite(raw_t).all():
+        sims = similarity(queries, database_rows(d, model.images))
+        raw, best = place_scores(sims, model.places, model.n_places)
+        return raw, best, score_queries(sims, model.places, model.n_places, th, truth, raw_best=(raw, best))
+    return score_layout_block(scores_t, layout, raw_t, best_t, th, truth, model.places, pool=pool)

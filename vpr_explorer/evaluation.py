@@ -12,7 +12,12 @@
   unknown-place rejection rate beside known-place Recall@1 and the precision of accepted
   matches, over the threshold family θ_p(k) = θ_p + k·s_p and a sweep of global θ.
 
-All functions are pure: descriptors and labels in, a frozen ``Evaluation`` out.
+All functions are pure: descriptors and labels in, a frozen ``Evaluation`` out. Up to
+``shared_scores.SHARED_LIMIT`` images the paper, open-set and traversal protocols score every
+image pair once (``shared_scores.SharedScores``: the float32 similarity that scores the
+queries, the float64 Gram each split's negative statistics come from, pairwise); a caller
+running several protocols on the same descriptors (a group/step sweep) passes one as
+``shared=``, and the numbers are the same, bit for bit, as when each run builds its own.
 """
 
 from __future__ import annotations
@@ -40,13 +45,22 @@ from vpr_explorer.retrieval import (
     similarity,
     top_answer,
 )
-from vpr_explorer.stats import Precision, mixture_moments, negative_stats, positive_means, validate_descriptors
+from vpr_explorer.shared_scores import Negatives, SharedScores, resolve
+from vpr_explorer.stats import (
+    NegativeStats,
+    Precision,
+    mixture_moments,
+    negative_stats,
+    positive_means,
+    validate_descriptors,
+)
 from vpr_explorer.thresholds import (
     ThresholdMethod,
     adaptive_k,
     auto_global_threshold,
     mixture_spread,
     place_thresholds,
+    pooled_pair_sample,
     threshold_family,
     training_pair_scores,
 )
@@ -223,13 +237,19 @@ def oracle_global_threshold(top_raw: np.ndarray, right_if_accepted: np.ndarray, 
     return float(v[j]) if j < n else float(np.nextafter(v[-1], np.inf))
 
 
-def _thresholds(d_train, lab_train, n_places, *, user_theta, seed):
-    # the protocols are the reference the blocked pass (scale.py) must equal: σ from float64 products
-    stats = negative_stats(d_train, lab_train, n_places, precision=Precision.FLOAT64)
+def _thresholds(d_train, lab_train, n_places, *, user_theta, seed, stats: NegativeStats | None = None,
+                auto_theta: float | None = None):
+    # the protocols are the reference the blocked pass (scale.py) must equal: σ from float64 products,
+    # pairwise from the shared Gram (``shared_scores.Negatives``) up to SHARED_LIMIT images, else in closed form;
+    # the automatic θ from the run's pooled sample when given (``thresholds.pooled_pair_sample``)
+    if stats is None:
+        stats = negative_stats(d_train, lab_train, n_places, precision=Precision.FLOAT64)
+    if auto_theta is None:
+        auto_theta = auto_global_threshold(training_pair_scores(d_train, seed=seed))
     th: dict[str, np.ndarray | float] = {
         ThresholdMethod.SIMPLE.value: place_thresholds(stats, ThresholdMethod.SIMPLE),
         ThresholdMethod.WEIGHTED.value: place_thresholds(stats, ThresholdMethod.WEIGHTED),
-        "auto": auto_global_threshold(training_pair_scores(d_train, seed=seed)),
+        "auto": float(auto_theta),
     }
     if user_theta is not None:
         th["user"] = float(user_theta)
@@ -250,6 +270,8 @@ def run_split(
     cross_condition: bool = False,
     user_theta: float | None = None,
     seed: int = 0,
+    stats: NegativeStats | None = None,
+    auto_theta: float | None = None,
 ) -> SplitScores:
     """Thresholds from the training images, then every method on the queries.
 
@@ -260,8 +282,13 @@ def run_split(
             query of an unknown place.
         trav_query: ``(n_queries,)`` each query's traversal.
         cross_condition: score each query only against training images of other traversals.
+        stats: the training images' negative statistics when already known (pairwise from
+            ``shared_scores``); default the float64 closed form of ``d_train``.
+        auto_theta: the automatic global θ when already known (the pooled protocols':
+            ``thresholds.PooledPairSample.theta``); default from ``training_pair_scores(d_train, seed=seed)``.
     """
-    th, spread, k_ad = _thresholds(d_train, lab_train, n_places, user_theta=user_theta, seed=seed)
+    th, spread, k_ad = _thresholds(d_train, lab_train, n_places, user_theta=user_theta, seed=seed, stats=stats,
+                                   auto_theta=auto_theta)
     sims = np.array(sims, dtype=np.float64)
     if cross_condition:
         sims[trav_query[:, None] == trav_train[None, :]] = -np.inf
@@ -494,11 +521,22 @@ def pooled_truth(
 
 
 def _pooled_splits(d, image_place, image_traversal, n_places, *, runs, seed, unknown_share, cross_condition,
-                   user_theta, progress, extra_truth=None) -> list[SplitScores]:
+                   user_theta, progress, extra_truth=None, shared: SharedScores | None = None) -> list[SplitScores]:
+    """Every split of the paper / open-set protocol, scored (``run_split``).
+
+    With ``shared`` (``shared_scores.resolve``: up to ``SHARED_LIMIT`` images), the queries'
+    scores come from its float32 similarity of all images and each split's negative
+    statistics pairwise from its float64 Gram; without, each split scores its queries
+    against its training images and fits the statistics in closed form. The automatic θ of
+    every split comes from one tile sample of the run (``thresholds.pooled_pair_sample``,
+    seeded with ``seed``), as ``scale.scale_splits`` takes it.
+    """
     if cross_condition and len(np.unique(image_traversal[image_place >= 0])) < 2:
         raise VPRInputError("cross_condition needs at least 2 traversals")
     splits = draw_splits(image_place, n_places, runs=runs, seed=seed, unknown_share=unknown_share)
-    full = similarity(d, d) if len(d) <= 8000 else None
+    sample = pooled_pair_sample(d, [sp.train for sp in splits], seed=seed)
+    full = shared.full() if shared is not None else None
+    negatives = Negatives(shared.gram(), np.flatnonzero(image_place >= 0)) if shared is not None else None
     extra = None
     if extra_truth is not None:  # image -> its other right places, as a sparse (image, place) list
         extra = np.zeros((len(d), n_places), dtype=bool) if len(d) * n_places <= 50_000_000 else None
@@ -515,9 +553,11 @@ def _pooled_splits(d, image_place, image_traversal, n_places, *, runs, seed, unk
         correct[np.flatnonzero(known), image_place[pick][known]] = True
         if extra is not None:  # neighbouring places within the frame tolerance, if they are in the database
             correct |= extra[pick] & ~sp.unknown[None, :]
+        stats = negatives.stats(train, image_place[train], n_places) if negatives is not None else None
         out.append(run_split(
             d[train], image_place[train], image_traversal[train], sims, correct, image_traversal[pick], n_places,
-            cross_condition=cross_condition, user_theta=user_theta, seed=seed + r,
+            cross_condition=cross_condition, user_theta=user_theta, seed=seed + r, stats=stats,
+            auto_theta=sample.theta(r),
         ))
         if progress:
             progress(r + 1, runs, f"split {r + 1}/{runs}")
@@ -541,6 +581,7 @@ def paper_protocol(
     image_frame: np.ndarray | None = None,
     frame_place: np.ndarray | None = None,
     pr: bool = False,
+    shared: SharedScores | None = None,
 ) -> Evaluation:
     """The paper's closed-set protocol over ``runs`` seeded splits.
 
@@ -552,13 +593,17 @@ def paper_protocol(
             the query's frame is right too (the authors count ±2); needs ``image_frame``
             ``(n_images,)`` and ``frame_place`` ``(n_frames,)``.
         pr: also the precision–recall rows and curves (``split_pr``).
+        shared: ``shared_scores.SharedScores`` of these same ``descriptors`` (a sweep shares one
+            between its cells); up to ``SHARED_LIMIT`` images one is built when not given, so
+            the numbers are the same either way, bit for bit. Not used above the limit.
     """
     t0 = time.perf_counter()
     d, image_place, image_traversal, ks = _check_common(descriptors, image_place, image_traversal, runs, ks)
+    shared = resolve(shared, descriptors, len(d))
     extra = pooled_truth(image_place, image_frame, frame_place, tolerance, n_places)
     splits = _pooled_splits(d, image_place, image_traversal, n_places, runs=runs, seed=seed, unknown_share=None,
                             cross_condition=cross_condition, user_theta=user_theta, progress=progress,
-                            extra_truth=extra)
+                            extra_truth=extra, shared=shared)
     notes = []
     if not cross_condition:
         notes.append("queries are matched against all traversals, their own included: see the own-traversal "
@@ -592,21 +637,23 @@ def open_set_protocol(
     image_frame: np.ndarray | None = None,
     frame_place: np.ndarray | None = None,
     pr: bool = False,
+    shared: SharedScores | None = None,
 ) -> Evaluation:
     """Open set: ``unknown_share`` of the places are held out of the database in each split.
 
-    ``tolerance``, ``image_frame``, ``frame_place`` as for ``paper_protocol``: a query of a
-    held-out place with a known place within the tolerance counts as a known-place query.
+    ``tolerance``, ``image_frame``, ``frame_place``, ``shared`` as for ``paper_protocol``: a query
+    of a held-out place with a known place within the tolerance counts as a known-place query.
     """
     t0 = time.perf_counter()
     d, image_place, image_traversal, ks = _check_common(descriptors, image_place, image_traversal, runs, ks)
+    shared = resolve(shared, descriptors, len(d))
     k_grid = tuple(float(k) for k in k_grid)
     if not k_grid or not all(np.isfinite(k_grid)):
         raise VPRInputError(f"k grid {k_grid}: give finite values of k, e.g. -1 0 0.5 1 2")
     extra = pooled_truth(image_place, image_frame, frame_place, tolerance, n_places)
     splits = _pooled_splits(d, image_place, image_traversal, n_places, runs=runs, seed=seed,
                             unknown_share=unknown_share, cross_condition=cross_condition,
-                            user_theta=user_theta, progress=progress, extra_truth=extra)
+                            user_theta=user_theta, progress=progress, extra_truth=extra, shared=shared)
     n_unknown = int((~splits[0].known).sum())
     pr_rows_, pr_curves = split_pr(splits) if pr else ((), {})
     return Evaluation(
@@ -640,11 +687,15 @@ def traversal_protocol(
     traversal_names: Sequence[str] | None = None,
     settings: dict | None = None,
     pr: bool = False,
+    shared: SharedScores | None = None,
 ) -> Evaluation:
     """Database traversal(s) against a query traversal; thresholds from the database only.
 
     A query frame's right places are those holding a frame within ``tolerance`` frames of
     it; query frames with none (between places) are left out and counted in the settings.
+    ``shared`` as for ``paper_protocol``: the database images' statistics come pairwise from
+    its float64 Gram of the database traversals' images (every image of them, whatever the
+    places, so a sweep computes it once), up to ``SHARED_LIMIT`` such images.
     """
     t0 = time.perf_counter()
     d, image_place, image_traversal, ks = _check_common(descriptors, image_place, image_traversal, 1, ks)
@@ -663,8 +714,13 @@ def traversal_protocol(
     qs, truth = qs[keep], truth[keep]
     if len(qs) == 0:
         raise VPRInputError("no query frame falls in a place; lower step or raise tolerance")
+    db_traversals = np.flatnonzero(np.isin(image_traversal, database))
+    shared = resolve(shared, descriptors, len(db_traversals))
+    stats = None
+    if shared is not None and len(db):
+        stats = Negatives(shared.gram(db_traversals), db).stats(db, image_place[db], n_places)
     split = run_split(d[db], image_place[db], image_traversal[db], similarity(d[qs], d[db]), truth,
-                      image_traversal[qs], n_places, user_theta=user_theta)
+                      image_traversal[qs], n_places, user_theta=user_theta, stats=stats)
     names = list(traversal_names) if traversal_names else None
     pr_rows_, pr_curves = split_pr([split]) if pr else ((), {})
     return Evaluation(

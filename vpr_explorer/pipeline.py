@@ -23,6 +23,7 @@ from vpr_explorer.evaluation import (
 )
 from vpr_explorer.places import Places, PlaceSpec, make_places
 from vpr_explorer.scale import fast_paper_protocol
+from vpr_explorer.shared_scores import SharedScores
 from vpr_explorer.settings import check_cache_root
 
 DEMO = "demo"
@@ -46,6 +47,7 @@ def dataset_descriptors(
     batch_size: int = 32,
     dtype: str = "float32",
     storage: str | None = None,
+    mmap: bool | str = False,
 ) -> np.ndarray:
     """``(n_images, D)`` L2-normalised descriptors of every image, through the on-disk cache.
 
@@ -56,9 +58,14 @@ def dataset_descriptors(
         storage: the dtype new vectors are cached in on disk; default ``dtype``. A
             float16 cache reads shards of either dtype; a float32 one only float32 shards,
             so a float32 run after a float16 one recomputes rather than return rounded vectors.
+        mmap: ``True``: once every image is cached, the result is the cache's float16
+            dataset view (``DescriptorCache.dataset_view``: written once, then memory-mapped;
+            a million images × 2,048 are 4 GB on disk and never a float32 copy in memory),
+            whatever ``dtype``; ``"auto"``: the same once the float32 copy would reach
+            ``descriptors.store.mmap_min_bytes()``; ``False`` (default): in memory.
 
     Returns:
-        ``(n_images, D)`` in ``dtype``, read-only.
+        ``(n_images, D)`` in ``dtype`` (float16 memmap when mapped), read-only.
 
     Raises:
         VPRInputError: naming ``dtype`` or ``storage`` when not float32/float16, or what
@@ -67,13 +74,56 @@ def dataset_descriptors(
     from vpr_explorer.descriptors import DescriptorCache, extract_descriptors, get_extractor
     from vpr_explorer.descriptors.cache import check_dtype
 
+    from vpr_explorer.descriptors.store import check_mmap, wants_mmap
+
     dtype = check_dtype(dtype, "dtype")
     storage = dtype if storage is None else check_dtype(storage, "storage", "cache storage type")
+    mmap = check_mmap(mmap)
     extractor = get_extractor(descriptor)
-    return extract_descriptors(
-        list(dataset.image_paths), extractor, cache=DescriptorCache(cache_root, dtype=storage),
-        batch_size=batch_size, progress=progress, dtype=dtype,
-    )
+    cache = DescriptorCache(cache_root, dtype=storage)
+    paths = list(dataset.image_paths)
+    if mmap == "off" or not wants_mmap(mmap, len(paths), extractor.dim):
+        return extract_descriptors(paths, extractor, cache=cache, batch_size=batch_size, progress=progress,
+                                   dtype=dtype)
+    return cached_view(paths, extractor, cache, batch_size=batch_size, progress=progress)
+
+
+def cached_view(paths: Sequence[Path], extractor, cache, *, batch_size: int = 32,
+                progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+    """The float16 memmap of ``paths``' descriptors from ``cache`` (``DescriptorCache.dataset_view``).
+
+    Images not cached yet are extracted first, into the cache, a ``VIEW_BATCH`` at a time (the
+    vectors are dropped as they go: the view is then written from the shards).
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    from vpr_explorer.descriptors import extract_descriptors
+    from vpr_explorer.descriptors.extract import default_workers, hash_paths
+
+    cache.check_writable()
+    with ThreadPoolExecutor(max_workers=default_workers()) as pool:
+        hashes = hash_paths(paths, pool)
+    view = cache.dataset_view(extractor.cache_key, hashes)
+    if view is None:
+        missing = np.flatnonzero(~cache.contains(extractor.cache_key, hashes))
+        for lo in range(0, len(missing), VIEW_BATCH):
+            part = missing[lo:lo + VIEW_BATCH]
+            extract_descriptors([paths[i] for i in part], extractor, cache=cache, batch_size=batch_size,
+                                dtype="float16",
+                                progress=None if progress is None else
+                                (lambda done, total, lo=lo: progress(len(paths) - len(missing) + lo + done,
+                                                                     len(paths))))
+        view = cache.dataset_view(extractor.cache_key, hashes)
+        if view is None:  # pragma: no cover (every image was just cached)
+            raise VPRInputError(f"{cache.root}: descriptors just extracted are missing from the cache; "
+                                "is another process clearing it?")
+    if progress:
+        progress(len(paths), len(paths))
+    return view
+
+
+VIEW_BATCH = 65_536
+"""Images extracted per call before a dataset view is written (their vectors are not kept)."""
 
 
 MAX_RUNS = 1000
@@ -204,12 +254,14 @@ def run_protocol(
     progress: Progress | None = None,
     settings: dict | None = None,
     pr: bool = False,
+    shared: SharedScores | None = None,
 ) -> Evaluation:
     """Run one protocol of ``evaluation`` on a dataset's descriptors.
 
     Options are checked first (``check_options``). The result's settings hold every option
     that shaped the run: group/step/reading, the user's θ and the tolerance beside the
-    protocol's own (runs, seed, …).
+    protocol's own (runs, seed, …). ``shared``: the ``shared_scores.SharedScores`` of these
+    descriptors, to reuse between runs (a sweep's cells); the numbers are the same without.
     """
     protocol = check_options(protocol, dataset, runs=runs, seed=seed, unknown_share=unknown_share, database=database,
                              queries=queries, tolerance=tolerance, user_theta=user_theta, k_grid=k_grid)
@@ -217,6 +269,8 @@ def run_protocol(
         raise VPRInputError(
             f"{len(descriptors)} descriptors for {dataset.n_images} images of {dataset.name!r}: recompute them"
         )
+    if shared is not None:
+        shared.check(descriptors)
     spec = places.spec
     settings = {
         "dataset": dataset.name, "places": places.describe(), **(settings or {}),
@@ -232,17 +286,17 @@ def run_protocol(
         return traversal_protocol(
             descriptors, places.image_place, dataset.image_traversal, dataset.image_frame, places.frame_place,
             database=db, query=q, tolerance=tolerance, traversal_names=dataset.traversals, user_theta=user_theta,
-            settings=settings, pr=pr,
+            settings=settings, pr=pr, shared=shared,
         )
     pooled = dict(runs=runs, seed=seed, cross_condition=cross_condition, user_theta=user_theta, settings=settings,
                   tolerance=tolerance, image_frame=dataset.image_frame, frame_place=places.frame_place, pr=pr)
     if protocol is Protocol.PAPER:
         # evaluation.paper_protocol's numbers (tests/test_scale.py) in one pass over the image pairs
         return fast_paper_protocol(descriptors, places.image_place, dataset.image_traversal, places.n_places,
-                                   progress=_paper_progress(progress, runs), **pooled)
+                                   progress=_paper_progress(progress, runs), shared=shared, **pooled)
     return open_set_protocol(
         descriptors, places.image_place, dataset.image_traversal, places.n_places,
-        unknown_share=unknown_share, k_grid=k_grid, progress=progress, **pooled,
+        unknown_share=unknown_share, k_grid=k_grid, progress=progress, shared=shared, **pooled,
     )
 
 
@@ -286,15 +340,37 @@ def evaluate_dataset(
                         **options)
 
 
-def imported_descriptors(dataset, path: Path, *, names_file: Path | None = None, dtype: str = "float32"):
+def imported_descriptors(dataset, path: Path, *, names_file: Path | None = None, dtype: str = "float32",
+                         mmap: bool | str = "auto"):
     """Descriptors computed elsewhere, read from ``path`` in ``dataset``'s image order (:mod:`.descriptors.imported`).
 
     Works for a ``Dataset`` and a ``layouts.RetrievalDataset`` alike (both list ``image_paths``
     and a ``root``); the result's ``name`` (the file's stem) names the descriptor, its
     ``key`` (a content hash) keys any cache of results.
+
+    A ``.npy`` (float16 or float32) whose rows are in the dataset's order is memory-mapped as
+    stored (``descriptors.store.open_npy``, whatever ``dtype``) when ``mmap`` is ``True``, or
+    ``"auto"`` (default), the dataset is a database/queries one (``layouts.RetrievalDataset``,
+    whose views and protocol read a map in blocks) and the file's float32 copy would reach
+    ``store.mmap_min_bytes()`` (1 GiB): a million-image database is never copied into memory.
+    Other files are read as before.
     """
     from vpr_explorer.descriptors.imported import load_descriptor_file
+    from vpr_explorer.descriptors.store import check_mmap, open_npy, wants_mmap
+    from vpr_explorer.layouts import RetrievalDataset
 
+    mode = check_mmap(mmap)
+    if mode == "auto" and not isinstance(dataset, RetrievalDataset):
+        mode = "off"
+    if mode != "off" and Path(path).suffix.lower() == ".npy":
+        try:
+            shape = np.load(Path(path).expanduser(), mmap_mode="r", allow_pickle=False).shape
+        except (OSError, ValueError, EOFError):
+            shape = ()  # load_descriptor_file names what is wrong with it
+        if len(shape) == 2 and wants_mmap(mode, shape[0], shape[1]):
+            found = open_npy(path, dataset.image_paths, dataset.root, names_file=names_file)
+            if found is not None:
+                return found
     return load_descriptor_file(path, dataset.image_paths, dataset.root, names_file=names_file, dtype=dtype)
 
 
@@ -373,7 +449,13 @@ def evaluate_retrieval(
     progress: Progress | None = None,
     pr: bool = False,
 ) -> Evaluation:
-    """The database/queries protocol on a ``RetrievalDataset`` with its descriptors (database rows first)."""
+    """The database/queries protocol on a ``RetrievalDataset`` with its descriptors (database rows first).
+
+    In-memory float32 descriptors go to ``evaluation.retrieval_protocol``. A memory-mapped
+    (or float16) matrix, such as a million-image database (``descriptors.store``), goes to
+    ``retrieval_views.evaluate_fitted``: the same table, the database read a block at a time
+    and never converted whole, with the thresholds of the explorer's (kept) fit of these places.
+    """
     from vpr_explorer.evaluation import retrieval_protocol
 
     if len(descriptors) != dataset.n_images:
@@ -384,10 +466,19 @@ def evaluate_retrieval(
     place, n_places = retrieval_places(dataset, spec, metric)
     how = ("places from the layout" if dataset.database_place is not None
            else metric.describe() if metric is not None else spec.describe())
+    settings = {"dataset": dataset.name, "layout": dataset.layout.value, "places": f"{n_places} places ({how})",
+                **({"theta": user_theta} if user_theta is not None else {}), **(settings or {})}
+    from vpr_explorer import retrieval_views as rv
+
+    if not rv.dense(descriptors):
+        geometry = None if dataset.database_place is not None else (
+            metric.geometry if metric is not None else rv.PlaceGeometry.FRAMES)
+        fitted = rv.fit_retrieval(descriptors, dataset, rv.RetrievalPlaces(
+            geometry, None if metric is not None else spec, metric))
+        return rv.evaluate_fitted(fitted, descriptors, user_theta=user_theta, settings=settings, progress=progress,
+                                  pr=pr)
     d = np.asarray(descriptors)
     return retrieval_protocol(
         d[:dataset.n_database], d[dataset.n_database:], place, n_places, dataset.ground_truth,
-        user_theta=user_theta, progress=progress, pr=pr,
-        settings={"dataset": dataset.name, "layout": dataset.layout.value, "places": f"{n_places} places ({how})",
-                  **({"theta": user_theta} if user_theta is not None else {}), **(settings or {})},
+        user_theta=user_theta, progress=progress, pr=pr, settings=settings,
     )

@@ -24,11 +24,14 @@ below any difference that tells two places apart. Comparisons with a threshold s
 
 A query for which every place is dropped is **rejected**.
 
-Similarity matrices are ``(n_queries, n_database)`` throughout.
+Similarity matrices are ``(n_queries, n_database)`` throughout, except the database-major
+``(n_database, n_queries)`` ones of ``similarity_t`` and the place layout (``PlaceLayout``),
+which the fused decisions of ``database.decide_traversal`` use.
 """
 
 from __future__ import annotations
 
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from enum import StrEnum
 
@@ -83,6 +86,19 @@ def methods_for(thresholds: dict[str, object]) -> tuple[Method, ...]:
 def similarity(queries: np.ndarray, database: np.ndarray) -> np.ndarray:
     """``(n_queries, n_database)`` cosine similarity of L2-normalised descriptors."""
     return np.asarray(queries, dtype=np.float32) @ np.asarray(database, dtype=np.float32).T
+
+
+def similarity_t(database: np.ndarray, queries: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """``similarity(queries, database).T``, computed as ``(n_database, n_queries)`` (into ``out``).
+
+    On products of a few hundred rows and queries these are the same float32 numbers as
+    ``similarity`` gives, bit for bit: a GEMM computes each as one dot product, never split,
+    whichever operand comes first (``tests/test_decide_fused.py``, and the 110k-image route in
+    ``benchmarks/bench_app_scale.py --move-only``). Tiny products (one query, a few rows) take
+    other BLAS kernels and may differ in the last bits, as ``similarity`` itself does between a
+    one-query block and a larger one; the tolerance rule (module doc) absorbs that.
+    """
+    return np.matmul(np.asarray(database, dtype=np.float32), np.asarray(queries, dtype=np.float32).T, out=out)
 
 
 def place_scores(
@@ -216,7 +232,6 @@ def score_queries(
     """
     methods = methods_for(thresholds) if methods is None else methods
     raw, best = place_scores(sims, db_places, n_places) if raw_best is None else raw_best
-    rows = np.arange(len(raw))
     out: dict[str, Outcome] = {}
     for m in methods:
         if m.level == "image":
@@ -226,15 +241,173 @@ def score_queries(
             img = top_answer(scores)
             place = np.where(img >= 0, db_places[img], -1)
             kept = np.isfinite(scores).sum(axis=1)
+            out[m.key] = Outcome(method=m, rank=rank, answer_place=place, answer_image=img, n_kept=kept)
         else:
-            theta = None if m.threshold is None else thresholds[m.threshold]
-            scores = ranking_scores(raw, theta, m.rule)
-            rank = pessimistic_rank(scores, correct)
-            place = top_answer(scores)
-            img = np.where(place >= 0, best[rows, np.maximum(place, 0)], -1)
-            kept = np.isfinite(scores).sum(axis=1)
-        out[m.key] = Outcome(method=m, rank=rank, answer_place=place, answer_image=img, n_kept=kept)
+            out[m.key] = _place_outcome(m, raw, best, thresholds, correct)
     return out
+
+
+def _place_outcome(
+    m: Method, raw: np.ndarray, best: np.ndarray, thresholds: dict[str, np.ndarray | float], correct: np.ndarray
+) -> Outcome:
+    """One place-level method's ``Outcome`` from raw_p and the image behind it (``score_queries``)."""
+    theta = None if m.threshold is None else thresholds[m.threshold]
+    scores = ranking_scores(raw, theta, m.rule)
+    rank = pessimistic_rank(scores, correct)
+    place = top_answer(scores)
+    img = np.where(place >= 0, best[np.arange(len(raw)), np.maximum(place, 0)], -1)
+    return Outcome(method=m, rank=rank, answer_place=place, answer_image=img, n_kept=np.isfinite(scores).sum(axis=1))
+
+
+# --------------------------------------------------------------------------- database rows grouped by place
+
+
+@dataclass(frozen=True, eq=False)
+class PlaceLayout:
+    """Database images ordered so that a place's images are adjacent rows, places of one size in runs.
+
+    Places are ordered by size, then id; a place's images by database index. A run of ``g``
+    places of size ``k`` starting at row ``r`` is then ``scores[r : r + g·k].reshape(g, k, n_queries)``
+    for database × query scores in this order, and raw_p is a maximum over its middle axis:
+    no column gather and no ``reduceat`` (``layout_place_scores``). The lowest-index image of
+    a place is its first row, so "the lowest index within the tolerance" is the first hit.
+
+    Attributes:
+        order: ``(n_database,)`` database index of each row.
+        places: ``(n_groups,)`` place of each group of rows (the places with database images).
+        runs: ``(row, group, n_groups, k)`` for each run of places of size ``k``.
+        n_places: number of place ids.
+    """
+
+    order: np.ndarray
+    places: np.ndarray
+    runs: tuple[tuple[int, int, int, int], ...]
+    n_places: int
+
+    @classmethod
+    def of(cls, db_places: np.ndarray, n_places: int) -> PlaceLayout:
+        db_places = np.asarray(db_places)
+        if db_places.ndim != 1 or not len(db_places) or db_places.min() < 0 or db_places.max() >= n_places:
+            raise VPRInputError(f"db_places: expected database place ids in 0..{n_places - 1}")
+        counts = np.bincount(db_places, minlength=n_places)
+        order = np.lexsort((np.arange(len(db_places)), db_places, counts[db_places]))
+        sorted_places = db_places[order]
+        starts = np.flatnonzero(np.r_[True, sorted_places[1:] != sorted_places[:-1]])
+        places = sorted_places[starts]
+        sizes = counts[places]
+        run_starts = np.flatnonzero(np.r_[True, sizes[1:] != sizes[:-1]])
+        run_ends = np.r_[run_starts[1:], len(places)]
+        runs = tuple((int(starts[a]), int(a), int(b - a), int(sizes[a])) for a, b in zip(run_starts, run_ends))
+        return cls(order=order, places=places, runs=runs, n_places=int(n_places))
+
+    def pieces(self, rows: int) -> list[tuple[int, int, int, int]]:
+        """The runs cut into pieces of whole places, at most ``rows`` rows each (or one place)."""
+        out = []
+        for row, group, n, k in self.runs:
+            step = max(1, rows // k)
+            out += [(row + g * k, group + g, min(step, n - g), k) for g in range(0, n, step)]
+        return out
+
+
+def layout_place_scores(
+    scores_t: np.ndarray, layout: PlaceLayout, piece: tuple[int, int, int, int], raw_t: np.ndarray, best_t: np.ndarray
+) -> None:
+    """raw_p and the image behind it for the places of one piece (``place_scores``, in the layout).
+
+    Args:
+        scores_t: ``(n_database, n_queries)`` float32 similarities, rows in ``layout.order``.
+        piece: ``(row, group, n_groups, k)`` from ``layout.pieces``.
+        raw_t, best_t: ``(n_groups, n_queries)`` outputs: the place maxima (float32, exact), and
+            the database index of the first image of the place within ``TIE_TOLERANCE`` of
+            them, the tolerance subtracted in the scores' precision as ``place_scores`` does.
+    """
+    row, group, n, k = piece
+    x = scores_t[row : row + n * k].reshape(n, k, -1)
+    top = x.max(axis=1)
+    raw_t[group : group + n] = top
+    floor = top - scores_t.dtype.type(TIE_TOLERANCE)  # float32 − 1e-5 rounds as in ``place_scores``
+    first = np.argmax(x >= floor[:, None, :], axis=1)  # the first hit (the maximum itself hits)
+    best_t[group : group + n] = layout.order[row + k * np.arange(n)[:, None] + first]
+
+
+def score_layout_block(
+    scores_t: np.ndarray,
+    layout: PlaceLayout,
+    raw_t: np.ndarray,
+    best_t: np.ndarray,
+    thresholds: dict[str, np.ndarray | float],
+    correct: np.ndarray,
+    db_places: np.ndarray,
+    methods: tuple[Method, ...] | None = None,
+    max_elems: int = 1 << 22,
+    pool: Executor | None = None,
+) -> tuple[np.ndarray, np.ndarray, dict[str, Outcome]]:
+    """``place_scores`` and ``score_queries`` of a block of queries from scores in the layout.
+
+    Equal to ``score_queries(scores_t[layout.order.argsort()].T, ...)`` in every rank, answer
+    and image, for finite scores (the caller checks ``raw_t``): the place-level methods run on
+    the same raw_p and images, and the image-level baseline reads only the places that can
+    matter. Its rank counts wrong images at or above b − 1e-5 (b the best right image's score),
+    which can only lie in wrong places with raw_p ≥ b − 1e-5; its answer is the lowest index
+    at or above top − 1e-5, only in places with raw_p ≥ top − 1e-5. Both comparisons are in
+    float64, as ``score_queries`` makes them on float64 scores; ``max(raw_p)`` over the right
+    places is b exactly (a maximum of the same float32 numbers).
+
+    Args:
+        raw_t, best_t: ``(n_groups, n_queries)`` from ``layout_place_scores`` over every piece.
+        correct: ``(n_queries, n_places)`` right places.
+        db_places: ``(n_database,)`` place of each database image (database order).
+        max_elems: scores read back at a time by the image-level baseline.
+        pool: runs the methods side by side (each reads only the shared arrays).
+    Returns:
+        raw ``(n_queries, n_places)`` float64 and best ``(n_queries, n_places)`` int64 as
+        ``place_scores`` gives them, and method key -> ``Outcome``.
+    """
+    nq = scores_t.shape[1]
+    n_db = len(layout.order)
+    methods = methods_for(thresholds) if methods is None else methods
+    raw = np.full((nq, layout.n_places), -np.inf)
+    best = np.full((nq, layout.n_places), -1, dtype=np.int64)
+    raw[:, layout.places] = raw_t.T
+    best[:, layout.places] = best_t.T
+    best[~np.isfinite(raw)] = -1
+
+    def outcome(m: Method) -> Outcome:
+        if m.level != "image":
+            return _place_outcome(m, raw, best, thresholds, correct)
+        raw_g = raw[:, layout.places]
+        right = correct[:, layout.places]
+        b = np.where(right, raw_g, -np.inf).max(axis=1)
+        top = raw_g.max(axis=1)
+        above = np.zeros(nq, dtype=np.int64)
+        img = np.full(nq, n_db, dtype=np.int64)
+        with np.errstate(invalid="ignore"):
+            wrong_near = (raw_g >= (b - TIE_TOLERANCE)[:, None]) & ~right & np.isfinite(b)[:, None]
+            near_top = raw_g >= (top - TIE_TOLERANCE)[:, None]
+        for row, group, n, k in layout.runs:
+            x = scores_t[row : row + n * k].reshape(n, k, nq)
+            step = max(1, max_elems // k)
+            q, g = np.nonzero(wrong_near[:, group : group + n])
+            for lo in range(0, len(q), step):
+                qs, gs = q[lo : lo + step], g[lo : lo + step]
+                hits = (x[gs, :, qs] >= (b[qs] - TIE_TOLERANCE)[:, None]).sum(axis=1)
+                np.add.at(above, qs, hits)
+            q, g = np.nonzero(near_top[:, group : group + n])
+            for lo in range(0, len(q), step):
+                qs, gs = q[lo : lo + step], g[lo : lo + step]
+                index = layout.order[row + k * gs[:, None] + np.arange(k)]
+                hit = x[gs, :, qs] >= (top[qs] - TIE_TOLERANCE)[:, None]
+                np.minimum.at(img, qs, np.where(hit, index, n_db).min(axis=1))
+        rank = 1.0 + above
+        rank[~np.isfinite(b)] = np.inf
+        img[~np.isfinite(top)] = -1
+        place = np.where(img >= 0, db_places[np.maximum(img, 0)], -1)
+        return Outcome(method=m, rank=rank, answer_place=place, answer_image=img,
+                       n_kept=np.full(nq, n_db, dtype=np.int64))
+
+    outcomes = map(outcome, methods) if pool is None else pool.map(outcome, methods)
+    out = {m.key: o for m, o in zip(methods, outcomes)}
+    return raw, best, out
 
 
 def _ordinal(n: float) -> str:

@@ -21,6 +21,7 @@ Pure functions over arrays; never imports streamlit.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,13 +29,38 @@ import numpy as np
 
 from vpr_explorer.database import DatabaseModel, database_rows
 from vpr_explorer.errors import VPRInputError
+from vpr_explorer.evaluation import (
+    KS,
+    PR_RAW_CELLS,
+    Evaluation,
+    Protocol,
+    SplitScores,
+    _summarise,
+    oracle_global_threshold,
+)
 from vpr_explorer.layouts import Layout, RetrievalDataset
 from vpr_explorer.pipeline import retrieval_places
 from vpr_explorer.places import GEOMETRY_LABELS, MetricPlaceSpec, PlaceGeometry, PlaceSpec
-from vpr_explorer.retrieval import Outcome, QueryDecision, decide, place_scores, score_queries, similarity
-from vpr_explorer.stats import mixture_moments, negative_stats, positive_means
-from vpr_explorer.thresholds import ThresholdMethod, auto_global_threshold, place_thresholds, training_pair_scores
-from vpr_explorer.views import FIND_KINDS, PAIR_BUDGET, overview_frames
+from vpr_explorer.precision_recall import PRSplit, pr_rows
+from vpr_explorer.retrieval import (
+    METHODS_BY_KEY,
+    TIE_TOLERANCE,
+    Outcome,
+    QueryDecision,
+    decide,
+    place_scores,
+    score_queries,
+    similarity,
+)
+from vpr_explorer.stats import CHECK_ELEMS, RowsOf, mixture_moments, negative_stats_rows, positive_means_rows
+from vpr_explorer.thresholds import (
+    ThresholdMethod,
+    adaptive_k,
+    auto_global_threshold,
+    place_thresholds,
+    training_pair_scores,
+)
+from vpr_explorer.views import FIND_KINDS, PAIR_BUDGET, PlaceDetail, overview_frames
 
 #: Group and step in metres the app starts with: a place about as long as the field's 25 m
 #: radius, one every 100 m (GardensPoint at 10 m a frame: the paper's group 3, step 10).
@@ -43,6 +69,47 @@ DEFAULT_STEP_M = 100.0
 
 #: What a query's ground truth makes of it (``query_status``).
 KNOWN, BETWEEN, UNKNOWN = "known", "between places", "unknown place"
+
+#: float32 scores one block of queries may hold (``decide_queries``): 2²⁵, 128 MB, so that
+#: at a million database images a block is 32 queries, not 2,048 (8 GB).
+SCORE_ELEMS = 1 << 25
+#: float32 scores the database/queries protocol's block may hold (``evaluate_fitted``): 2²⁸,
+#: 1 GB; the database is read (and converted from float16) once per block, so bigger
+#: blocks convert it fewer times; the per-query work then goes ``EVAL_ROWS`` rows at a time.
+EVAL_SCORE_ELEMS = 1 << 28
+EVAL_ROWS = 32
+
+
+# --------------------------------------------------------------------------- scores over a large database
+
+
+def dense(descriptors: np.ndarray) -> bool:
+    """Whether ``descriptors`` is an in-memory float32 matrix (scored in one product), not a memmap or float16."""
+    return (isinstance(descriptors, np.ndarray) and not isinstance(descriptors, np.memmap)
+            and descriptors.dtype == np.float32)
+
+
+def score_rows(descriptors: np.ndarray, images: np.ndarray, rows: np.ndarray | int) -> np.ndarray:
+    """``(len(images), n_rows)`` float32 similarities of images ``images`` against the rows ``rows``.
+
+    Args:
+        descriptors: ``(n_images, D)`` unit rows: float32 in memory (one product, as
+            ``retrieval.similarity``), or a float16/memory-mapped matrix, read ``CHECK_ELEMS``
+            entries at a time, each block converted to float32, scored and dropped (never a
+            float32 copy of the database).
+        rows: indices of the rows to score against, or ``n`` for the first ``n`` rows (the database).
+    """
+    d = descriptors
+    q = np.asarray(d[np.asarray(images, dtype=np.int64)], dtype=np.float32)
+    if dense(d):
+        return similarity(q, d[:rows] if isinstance(rows, (int, np.integer)) else database_rows(d, rows))
+    view = RowsOf(d, np.arange(int(rows)) if isinstance(rows, (int, np.integer)) else rows)
+    out = np.empty((len(q), len(view)), dtype=np.float32)
+    step = max(1, CHECK_ELEMS // d.shape[1])
+    for lo in range(0, len(view), step):
+        x = np.asarray(view[lo : lo + step], dtype=np.float32)  # float16 to float32: exact
+        np.matmul(q, x.T, out=out[:, lo : lo + len(x)])
+    return out
 
 
 # --------------------------------------------------------------------------- places
@@ -155,26 +222,48 @@ class RetrievalFitted:
         return KNOWN if self.right_places([query]).any() else BETWEEN
 
 
+#: fits of memory-mapped databases kept per (dataset, descriptors, places): moving back to a
+#: group/step fitted before is free (the app keeps its own cache too; the protocol reuses these)
+FIT_MEMO = 8
+_FITS: dict[tuple, tuple] = {}
+
+
 def fit_retrieval(descriptors: np.ndarray, dataset: RetrievalDataset, places: RetrievalPlaces) -> RetrievalFitted:
     """Label the database images with ``places`` and fit the thresholds on those in a place.
 
     Args:
-        descriptors: ``(n_images, D)`` L2-normalised, database rows first (``dataset.image_paths``' order).
+        descriptors: ``(n_images, D)`` L2-normalised, database rows first (``dataset.image_paths``' order),
+            in memory or memory-mapped (float16 or float32; read a block at a time, never copied whole).
+            The fits of a memory-mapped (read-only) matrix are kept, the last ``FIT_MEMO``.
     """
+    if dense(descriptors):
+        return _fit(descriptors, dataset, places)
+    key = (id(dataset), id(descriptors), places)
+    hit = _FITS.pop(key, None)
+    if hit is None:
+        hit = (dataset, descriptors, _fit(descriptors, dataset, places))  # holding both keeps their ids unique
+    _FITS[key] = hit
+    while len(_FITS) > FIT_MEMO:
+        _FITS.pop(next(iter(_FITS)))
+    return hit[2]
+
+
+def _fit(descriptors: np.ndarray, dataset: RetrievalDataset, places: RetrievalPlaces) -> RetrievalFitted:
     if len(descriptors) != dataset.n_images:
         raise VPRInputError(f"{len(descriptors)} descriptors for {dataset.n_images} images of {dataset.name!r}: "
                             "recompute them")
     place, n_places = retrieval_places(dataset, places.spec, places.metric)
     images = np.flatnonzero(place >= 0)
     labels = place[images]
-    d = database_rows(descriptors, images)
-    stats = negative_stats(d, labels, n_places)
+    # the rows in places, read a block at a time (a memory-mapped float16 database is never
+    # gathered nor converted whole); the same sums as on descriptors[images]
+    stats = negative_stats_rows(descriptors, images, labels, n_places)
     neg_mean, spread = mixture_moments(stats)
     model = DatabaseModel(
         images=images, places=labels, traversals=tuple(int(t) for t in np.unique(dataset.database_traversal)),
         n_places=n_places, stats=stats, theta={m.value: place_thresholds(stats, m) for m in ThresholdMethod},
-        spread=spread, negative_mean=neg_mean, positive_mean=positive_means(d, labels, n_places),
-        auto=auto_global_threshold(training_pair_scores(d)),
+        spread=spread, negative_mean=neg_mean, positive_mean=positive_means_rows(descriptors, images, labels, n_places),
+        auto=auto_global_threshold(training_pair_scores(descriptors, rows=images)),
     )
     return RetrievalFitted(dataset, places, np.asarray(place, dtype=np.int64), n_places, model)
 
@@ -194,11 +283,36 @@ def explain_query(fitted: RetrievalFitted, descriptors: np.ndarray, query: int, 
     query or one whose positives lie between places (rejecting it is then right).
     """
     q = _check_query(fitted, query)
-    d = np.asarray(descriptors)
-    sims = similarity(d[[fitted.dataset.n_database + q]], database_rows(d, fitted.model.images))[0]
+    sims = score_rows(descriptors, [fitted.dataset.n_database + q], fitted.model.images)[0]
     truth = fitted.right_places([q])[0]
     return decide(sims, fitted.model.places, fitted.n_places, fitted.model.thresholds(k, user_theta),
                   np.flatnonzero(truth))
+
+
+def place_detail(fitted: RetrievalFitted, descriptors: np.ndarray, place: int) -> PlaceDetail:
+    """One place's negative mixture, its scores and thresholds (``views.PlaceDetail``, for ``plots.mixture_figure``).
+
+    Scores only the place's own rows: its database images against every database image in a
+    place (n_p × n_placed, a block of the database at a time on a memory map), never all
+    pairs. There are no query frames of a place here (queries are decided against places):
+    ``query_images`` is empty.
+    """
+    model = fitted.model
+    if isinstance(place, bool) or not isinstance(place, (int, np.integer)) or not 0 <= place < fitted.n_places:
+        raise VPRInputError(f"place {place!r}: choose a place from 0 to {fitted.n_places - 1}")
+    mine = model.places == place
+    own = model.images[mine]
+    mu, sigma, weight = model.stats.components(int(place))
+    sims = score_rows(descriptors, own, model.images) if len(own) else np.zeros((0, len(model.images)), np.float32)
+    same = sims[:, mine]
+    return PlaceDetail(
+        place=int(place), images=own, mu=mu, sigma=sigma, weight=weight,
+        negatives=sims[:, ~mine].ravel().astype(np.float64),
+        positives=same[np.triu_indices(len(own), k=1)].astype(np.float64),
+        query_images=np.zeros(0, dtype=np.int64), query_raw=np.zeros(0),
+        theta={name: float(t[place]) for name, t in model.theta.items()},
+        spread=float(model.spread[place]), auto=float(model.auto), k_adaptive=float(model.k_adaptive[place]),
+    )
 
 
 @dataclass(frozen=True)
@@ -220,8 +334,7 @@ class ImageAnswer:
 
 def image_answer(dataset: RetrievalDataset, descriptors: np.ndarray, query: int) -> ImageAnswer:
     """The top database image of ``query`` over every database image (the field's image-level retrieval)."""
-    d = np.asarray(descriptors)
-    sims = similarity(d[[dataset.n_database + query]], d[:dataset.n_database])[0]
+    sims = score_rows(descriptors, [dataset.n_database + query], dataset.n_database)[0]
     top = int(np.argmax(sims))
     distance = (float(np.linalg.norm(dataset.database_xy[top] - dataset.query_xy[query]))
                 if dataset.database_xy is not None and dataset.query_xy is not None else None)
@@ -233,18 +346,21 @@ def image_answer(dataset: RetrievalDataset, descriptors: np.ndarray, query: int)
 
 def decide_queries(fitted: RetrievalFitted, descriptors: np.ndarray, queries: np.ndarray, *, k: float = 0.0,
                    user_theta: float | None = None, block: int = 2048) -> tuple[np.ndarray, dict[str, Outcome]]:
-    """Right places ``(n, n_places)`` and every method's ``Outcome`` for query images ``queries`` (blocks of rows)."""
+    """Right places ``(n, n_places)`` and every method's ``Outcome`` for query images ``queries`` (blocks of rows).
+
+    A block holds at most ``SCORE_ELEMS`` scores (fewer queries than ``block`` on a big database).
+    """
     queries = np.asarray(queries, dtype=np.int64)
     if not len(queries):
         raise VPRInputError("queries: no query image to decide; choose at least one")
-    d = np.asarray(descriptors)
-    db = database_rows(d, fitted.model.images)
+    images = fitted.model.images
+    block = max(1, min(block, SCORE_ELEMS // max(1, len(images))))
     th = fitted.model.thresholds(k, user_theta)
     truth = fitted.right_places(queries)
     parts = []
     for lo in range(0, len(queries), block):
         rows = queries[lo:lo + block]
-        sims = similarity(d[fitted.dataset.n_database + rows], db)
+        sims = score_rows(descriptors, fitted.dataset.n_database + rows, images)
         raw, best = place_scores(sims, fitted.model.places, fitted.n_places)
         parts.append(score_queries(sims, fitted.model.places, fitted.n_places, th, truth[lo:lo + block],
                                    raw_best=(raw, best)))
@@ -252,6 +368,146 @@ def decide_queries(fitted: RetrievalFitted, descriptors: np.ndarray, queries: np
                                                      for f in ("rank", "answer_place", "answer_image", "n_kept")))
                 for key in parts[0]}
     return truth, outcomes
+
+
+def image_level(sims: np.ndarray, gt, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The field's image level of some queries: ``retrieval.top_answer`` and ``retrieval.pessimistic_rank`` of
+    their float64 scores against ``gt.dense(rows)``, and each top score, without either dense copy.
+
+    ``sims`` stays float32: comparing it with a float64 bound casts each score to float64 on the
+    way (exactly), so every comparison is the float64 one; the positives are read from the
+    sparse ground truth, and a rank is 1 + the scores at least the best positive's − tolerance,
+    less the positives among them. ``tests/test_million.py`` checks it against the two functions.
+    """
+    top = sims.max(axis=1).astype(np.float64)
+    answer = np.argmax(sims >= (top - TIE_TOLERANCE)[:, None], axis=1)
+    answer[~np.isfinite(top)] = -1
+    _, r, j = gt._pairs(rows)
+    pos = sims[r, j].astype(np.float64)
+    best = np.full(len(rows), -np.inf)
+    np.maximum.at(best, r, pos)
+    bound = best - TIE_TOLERANCE
+    count = (sims >= bound[:, None]).sum(axis=1)
+    count -= np.bincount(r, weights=pos >= bound[r], minlength=len(rows)).astype(np.int64)
+    rank = 1.0 + count
+    rank[~np.isfinite(best)] = np.inf
+    return answer, rank, top
+
+
+def evaluate_fitted(fitted: RetrievalFitted, descriptors: np.ndarray, *, user_theta: float | None = None,
+                    settings: dict | None = None, progress=None, pr: bool = False,
+                    score_elems: int = EVAL_SCORE_ELEMS) -> Evaluation:
+    """The database/queries protocol (``evaluation.retrieval_protocol``'s table) with the fit's thresholds.
+
+    What ``pipeline.evaluate_retrieval`` runs on a memory-mapped (or float16) database: the
+    thresholds are ``fitted``'s (float32 closed-form products, as the app fits, within
+    ``stats.sigma_sq_error_bound`` of the protocol's float64 ones, so a group/step already
+    fitted is not fitted again), and the queries are scored in blocks of at most
+    ``score_elems`` float32 scores, the database read once per block a ``CHECK_ELEMS`` slice
+    at a time (``score_rows``); every per-query step after the scores is
+    ``retrieval_protocol``'s, on ``EVAL_ROWS`` queries at a time. ``tests/test_million.py``
+    checks the table equals ``retrieval_protocol``'s on the same data.
+    """
+    t0 = time.perf_counter()
+    ds = fitted.dataset
+    gt = ds.ground_truth
+    n_db, n_q, n_places = ds.n_database, ds.n_queries, fitted.n_places
+    model = fitted.model
+    placed, labels = model.images, model.places
+    database_place = fitted.database_place
+    th: dict = {ThresholdMethod.SIMPLE.value: model.theta[ThresholdMethod.SIMPLE.value],
+                ThresholdMethod.WEIGHTED.value: model.theta[ThresholdMethod.WEIGHTED.value], "auto": model.auto}
+    if user_theta is not None:
+        th["user"] = float(user_theta)
+    spread = model.spread
+    k_ad = adaptive_k(model.positive_mean, model.negative_mean, spread)
+    place_methods = tuple(m for m in METHODS_BY_KEY.values() if m.level == "place" and m.key != "global-oracle"
+                          and (m.threshold is None or m.threshold in th))
+    parts: dict[str, list[Outcome]] = {}
+    tops, bests, base_right, place_known = [], [], [], []
+    keep_raw = pr and n_q * n_places <= PR_RAW_CELLS
+    raws, corrects, image_tops = [], [], []
+    block = max(EVAL_ROWS, score_elems // max(1, n_db))
+    for b0 in range(0, n_q, block):
+        sims_block = score_rows(descriptors, n_db + np.arange(b0, min(b0 + block, n_q)), n_db)
+        for lo in range(b0, min(b0 + block, n_q), EVAL_ROWS):
+            rows = np.arange(lo, min(lo + EVAL_ROWS, b0 + len(sims_block), n_q))
+            sims = sims_block[rows - b0]
+            correct = gt.places(database_place, n_places, rows)
+            sims_placed = sims[:, placed]
+            raw, best = place_scores(sims_placed, labels, n_places)
+            out = score_queries(sims_placed, labels, n_places, th, correct, place_methods, raw_best=(raw, best))
+            for key, o in out.items():  # answers as database positions
+                img = np.where(o.answer_image >= 0, placed[np.maximum(o.answer_image, 0)], -1)
+                parts.setdefault(key, []).append(Outcome(o.method, o.rank, o.answer_place, img, o.n_kept))
+            img, img_rank, img_top = image_level(sims, gt, rows)
+            parts.setdefault("image-baseline", []).append(Outcome(
+                METHODS_BY_KEY["image-baseline"], img_rank, img, img, np.full(len(rows), n_db)))
+            tops.append(raw.max(axis=1))
+            bests.append(np.where(correct, raw, -np.inf).max(axis=1))
+            if pr:
+                image_tops.append(img_top)
+            if keep_raw:
+                raws.append(raw.astype(np.float32))
+                corrects.append(correct)
+            base_right.append(out["place-baseline"].rank == 1)
+            place_known.append(correct.any(axis=1))
+        del sims_block
+        if progress:
+            done = min(b0 + block, n_q)
+            progress(done, n_q, f"queries {done}/{n_q}")
+    outcomes = {key: Outcome(ps[0].method, *(np.concatenate([getattr(p, f) for p in ps])
+                                             for f in ("rank", "answer_place", "answer_image", "n_kept")))
+                for key, ps in parts.items()}
+    known = np.concatenate(place_known)
+    top = np.concatenate(tops)
+    scored = known | ~gt.known
+    th["oracle"] = oracle_global_threshold(top[scored], np.concatenate(base_right)[scored], known[scored])
+    base = outcomes["place-baseline"]
+    acc = top >= th["oracle"]
+    outcomes["global-oracle"] = Outcome(METHODS_BY_KEY["global-oracle"],
+                                        np.where(np.concatenate(bests) >= th["oracle"], base.rank, np.inf),
+                                        np.where(acc, base.answer_place, -1), np.where(acc, base.answer_image, -1),
+                                        base.n_kept)
+    order = ["image-baseline", *[m.key for m in place_methods], "global-oracle"]
+    outcomes = {k: outcomes[k] for k in order}
+    empty = np.empty((0, n_places))
+
+    def summary(outs: dict[str, Outcome], known_rows: np.ndarray):
+        split = SplitScores(outs, empty, empty.astype(np.int64), empty.astype(bool), known_rows,
+                            np.zeros(len(known_rows), dtype=np.int64), np.ones(n_db, dtype=np.int64), th, spread,
+                            k_ad)
+        return _summarise([split], KS, own_traversal=False)
+
+    place_outs = {k: Outcome(o.method, o.rank[scored], o.answer_place[scored], o.answer_image[scored],
+                             o.n_kept[scored]) for k, o in outcomes.items()}
+    rows_ = list(summary(place_outs, known[scored]))
+    rows_[0] = summary(outcomes, gt.known)[0]  # the image level counts every query
+    pr_rows_, pr_curves, notes = (), {}, []
+    if pr:
+        image_rows, image_curves = pr_rows([PRSplit({"image-baseline": outcomes["image-baseline"]}, gt.known,
+                                                    np.concatenate(image_tops))])
+        place_rows, place_curves = pr_rows([PRSplit(
+            {k: o for k, o in place_outs.items() if k != "image-baseline"}, known[scored], top[scored],
+            np.concatenate(raws)[scored] if keep_raw else None, np.concatenate(corrects)[scored] if keep_raw else None,
+            th, spread)])
+        pr_rows_, pr_curves = (*image_rows, *place_rows), {**image_curves, **place_curves}
+        if not keep_raw:
+            notes.append(f"precision–recall of the per-place methods left out: {n_q:,} queries × {n_places:,} "
+                         f"places exceed {PR_RAW_CELLS:,} raw_p cells")
+    notes.append("thresholds from the explorer's fit of these places (float32 closed-form products; the command "
+                 "line's protocol uses float64 ones, within the bound of stats.sigma_sq_error_bound); descriptors "
+                 f"read as {np.dtype(descriptors.dtype).name} a block at a time")
+    return Evaluation(
+        protocol=Protocol.DATABASE,
+        settings={**(settings or {}), "ground_truth": gt.description, "queries": int(n_q),
+                  "database_images": int(n_db), "database_images_in_places": int(len(placed)),
+                  "queries_without_positive": int(gt.n_unknown),
+                  "queries_between_places": int((~scored).sum())},
+        ks=KS, rows=tuple(rows_), seconds=time.perf_counter() - t0, pr=pr_rows_, pr_curves=pr_curves,
+        notes=("image level: a query counts at K when one of its top K database images is a positive; place "
+               "level: when the top K places hold one", *notes),
+    )
 
 
 @dataclass(frozen=True, eq=False)

@@ -60,10 +60,12 @@ named at its end.
    ``_blocked_pass``, ``_floor``, ``_Entries``, ``_Records``.
 3. **Per split thresholds** from the downdated moments through the library's own
    ``NegativeStats`` and ``place_thresholds``. ``_split_thresholds``.
-4. **The automatic global θ** is the reference's own call, ``training_pair_scores`` on the
-   split's training rows (``rows=``, so they are not copied): its tile sample (2·10⁶ scores
-   in dense tiles, one small GEMM each, ~0.3 CPU s per split at 110k × 1,280) is cheap
-   enough to run as is, and so equals the reference bit for bit. ``scale_splits``.
+4. **The automatic global θ** is the reference's own: one tile sample for the whole run
+   (``thresholds.pooled_pair_sample``: ~2.4·10⁶ scores in dense tiles over every image in a
+   place, drawn once), of which each split keeps the pairs of its training images and reads
+   median and MAD off the sorted scores (~0.02 s per split at 110k × 1,280, where a tile
+   sample per split took ~0.4 CPU s); the reference protocol makes the same calls, so the
+   θ are equal bit for bit. ``scale_splits``.
 5. **Per split scoring**, one row block of queries at a time, reads each query's table
    entries at or above its cutoff — the lowest score that can still reach a rank or an
    answer under any method of the split, with every weighted θ anywhere within its error
@@ -118,13 +120,13 @@ from vpr_explorer.evaluation import (
     split_pr,
 )
 from vpr_explorer.retrieval import METHODS_BY_KEY, TIE_TOLERANCE, Outcome
+from vpr_explorer.shared_scores import SharedScores
 from vpr_explorer.stats import SIGMA_FLOOR, NegativeStats, mixture_moments
 from vpr_explorer.thresholds import (
     ThresholdMethod,
     adaptive_k,
-    auto_global_threshold,
     place_thresholds,
-    training_pair_scores,
+    pooled_pair_sample,
 )
 
 #: Default rows per block of the pass: a 4,096 × 4,096 float32 block is 64 MiB.
@@ -1199,7 +1201,7 @@ def scale_splits(
             so a float16 memory-mapped array works and is never copied whole.
         image_place, image_traversal: ``(n_images,)`` labels (place ``-1``: a skipped frame).
         splits: from ``evaluation.draw_splits`` without unknown places.
-        seed: the protocol's seed (split r's automatic threshold samples with seed + r).
+        seed: the protocol's seed (the automatic threshold's pooled sample is drawn with it).
         max_k: image-level ranks beyond it are reported as ``max_k + 1``.
         block, table_memory, spill_dir, threads, device: see ``fast_paper_protocol``.
         progress: ``progress(done, total, message)`` over the splits (their automatic θ), the
@@ -1232,10 +1234,11 @@ def scale_splits(
     n_pairs = lay.n_blocks * (lay.n_blocks + 1) // 2
     steps = runs + n_pairs + lay.n_blocks  # per split (automatic θ), per block pair, per row block
     report = (lambda done, what: progress(done, steps, what)) if progress else None
-    # automatic θ (step 4): the reference's own call on the split's training rows
+    # automatic θ (step 4): the reference's own pooled sample, drawn once for the run
+    sample = pooled_pair_sample(d, [sp.train for sp in splits], seed=seed)
     autos: dict[int, float] = {}
-    for r, sp in enumerate(splits):
-        autos[r] = auto_global_threshold(training_pair_scores(d, rows=sp.train, seed=seed + r))
+    for r in range(runs):
+        autos[r] = sample.theta(r)
         if report:
             report(r + 1, f"split {r + 1}/{runs}: automatic θ")
     row_traversal = None
@@ -1286,6 +1289,7 @@ def fast_paper_protocol(
     frame_place: np.ndarray | None = None,
     pr: bool = False,
     device: object | None = None,
+    shared: SharedScores | None = None,
 ) -> Evaluation:
     """``evaluation.paper_protocol`` through one blocked pass: the same ``Evaluation``.
 
@@ -1307,6 +1311,8 @@ def fast_paper_protocol(
             the run goes to ``paper_protocol`` (the same numbers), above it they are left out.
         device: ``None`` (numpy) or a torch device ("cpu", "cuda") for the pass's block
             products; the same numbers (the tie tolerance absorbs last-bit differences).
+        shared: ``shared_scores.SharedScores`` of ``descriptors``, for a run handed to
+            ``paper_protocol`` (a sweep builds one for all its cells); the pass does not need it.
     """
     t0 = time.perf_counter()
     d, image_place, image_traversal, ks = _check_common(descriptors, image_place, image_traversal, runs, ks)
@@ -1323,7 +1329,7 @@ def fast_paper_protocol(
         ev = paper_protocol(d, image_place, image_traversal, n_places, runs=runs, seed=seed,
                             cross_condition=cross_condition, user_theta=user_theta, ks=ks, progress=progress,
                             settings=settings, tolerance=tolerance, image_frame=image_frame, frame_place=frame_place,
-                            pr=pr)
+                            pr=pr, shared=shared)
         return dataclasses.replace(ev, notes=(*ev.notes, straight), seconds=time.perf_counter() - t0)
     splits = draw_splits(image_place, n_places, runs=runs, seed=seed)
     scored = scale_splits(

@@ -60,8 +60,10 @@ It is a worst case: rounding errors of both signs add like √k, and measured |�
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
+import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -126,17 +128,28 @@ class NegativeStats:
 
 
 def validate_descriptors(descriptors: np.ndarray, what: str = "descriptors") -> np.ndarray:
-    """Return ``descriptors`` as a 2-D float array; raise on NaN, inf or zero rows."""
-    d = np.asarray(descriptors)
+    """Return ``descriptors`` as a 2-D float array; raise on NaN, inf or zero rows.
+
+    Checked ``CHECK_ELEMS`` entries at a time, so a memory-mapped float16 matrix (a million
+    rows) is never converted whole: the result is ``descriptors`` itself (a memmap stays one).
+    """
+    d = descriptors if isinstance(descriptors, np.ndarray) else np.asarray(descriptors)
     if d.ndim != 2 or d.shape[0] == 0 or d.shape[1] == 0:
         raise VPRInputError(f"{what}: expected a non-empty (n_images, dim) array, got shape {d.shape}")
     if not np.issubdtype(d.dtype, np.floating):
         d = d.astype(np.float32)
     # One pass: a NaN or inf makes the row's sum of squares NaN or inf (so does overflow, which
     # the second look at those rows tells apart). A full isfinite pass cost as much as the stats.
-    sq = np.einsum("ij,ij->i", d, d, dtype=np.promote_types(d.dtype, np.float32))
+    sq = np.empty(len(d), dtype=np.promote_types(d.dtype, np.float32))
+    step = max(1, CHECK_ELEMS // d.shape[1])
+    for lo in range(0, len(d), step):
+        x = d[lo : lo + step]
+        sq[lo : lo + len(x)] = np.einsum("ij,ij->i", x, x, dtype=sq.dtype)
     bad = ~np.isfinite(sq)
-    bad[bad] = ~np.isfinite(d[bad]).all(axis=1)
+    suspects = np.flatnonzero(bad)
+    for lo in range(0, len(suspects), step):
+        part = suspects[lo : lo + step]
+        bad[part] = ~np.isfinite(d[part]).all(axis=1)
     if bad.any():
         raise VPRInputError(
             f"{what}: rows {_first(bad)} contain NaN or inf; recompute the descriptors (clear the cache) "
@@ -301,28 +314,42 @@ def _closed_form_float32(
     the quadratic forms. Elementwise work runs in ``threads`` threads over fixed parts.
     """
     centre = _centre(d)
-    with ThreadPoolExecutor(threads) as pool:
-        gram, total = _centred_gram(d, centre, block, pool)
+    # BLAS in one thread throughout when the products run side by side (entered once: each
+    # entry asks threadpoolctl for the loaded libraries)
+    with ThreadPoolExecutor(threads) as pool, one_blas_thread() if threads > 1 else contextlib.nullcontext():
+        gram, total = _centred_gram(d, centre, block, pool, threads > 1)
         dot_total, a, same, same_sq = _place_terms(d, labels, counts, np.stack([total, centre]), pool)
-        quad = _quadratic_forms(d, gram, block, pool)
+        quad = _quadratic_forms(d, gram, block, pool, threads > 1)
     mu = (dot_total - same) / n_neg  # Σ_{j∉p} sᵢⱼ / n⁻ᵢ
     # E⁻[(s − aᵢ)²]: Σ_all (sᵢⱼ − aᵢ)² = dᵢᵀEdᵢ, less the same-place terms
     return mu, (quad - same_sq) / n_neg - (mu - a) ** 2
 
 
 def _centred_gram(
-    d: np.ndarray, centre: np.ndarray, block: int, pool: ThreadPoolExecutor
+    d: np.ndarray, centre: np.ndarray, block: int, pool: ThreadPoolExecutor, side_by_side: bool = True
 ) -> tuple[np.ndarray, np.ndarray]:
     """E = Σⱼ (dⱼ − m)(dⱼ − m)ᵀ ``(D, D)`` and T = Σⱼ dⱼ ``(D,)``, both float64.
 
     Per block of rows: the centred rows, each rounded once from dⱼ − m itself (so the error
-    is relative to |dⱼ − m|, not |dⱼ|), then one float32 syrk, added to a float64 E. The
+    is relative to |dⱼ − m|, not |dⱼ|), then the float32 Gram, added to a float64 E. The
     buffers are reused: a fresh 20 MB array per block costs more in page faults than the sums.
+
+    The Gram of a block of ``BLOCK`` rows is cut at h = D/2 into two syrks (the diagonal
+    halves) and one GEMM (the off-diagonal half, mirrored): equal work, run as two pool tasks
+    with BLAS in one thread each when ``side_by_side`` (numpy's one syrk ran its two threads at
+    about 70% of their rate, then mirrored the triangle in one thread). Each entry is still one
+    inner product of depth L, so the error bound is unchanged; at depth ``BLOCK`` (4,096) they
+    are also the same float32 numbers as one syrk, since OpenBLAS cuts that depth alike for
+    both, while at some other depths (a last block of 1,234 or 3,000 rows) the GEMM's cut
+    differs in the last bits. So other blocks keep the one syrk: the statistics are those of
+    the code before, bit for bit (``tests/test_stats.py``).
     """
     n, dim = d.shape
     m = centre if d.dtype == np.float32 else centre.astype(np.float64)  # float32 − float32: one rounding
+    h = dim // 2
     gram = np.zeros((dim, dim))
-    gram32 = np.empty((dim, dim), dtype=np.float32)
+    halves = (np.empty((h, h), dtype=np.float32), np.empty((dim - h, dim - h), dtype=np.float32),
+              np.empty((h, dim - h), dtype=np.float32))
     e = np.empty((min(block, n), dim), dtype=np.float32)
     sums = []
     for lo in range(0, n, block):
@@ -332,10 +359,47 @@ def _centred_gram(
             np.subtract(x[sl], m, out=eb[sl], casting="same_kind")
             return x[sl].sum(axis=0, dtype=np.float64)
 
+        def diagonal(eb: np.ndarray = eb) -> None:  # numpy hands Xᵀ X to syrk: half the products of a GEMM
+            np.matmul(eb[:, :h].T, eb[:, :h], out=halves[0])
+            np.matmul(eb[:, h:].T, eb[:, h:], out=halves[1])
+
+        def off_diagonal(eb: np.ndarray = eb) -> None:
+            np.matmul(eb[:, :h].T, eb[:, h:], out=halves[2])
+
         sums += _parts(pool, centre_part, len(x))
-        np.matmul(eb.T, eb, out=gram32)  # numpy hands Xᵀ X to syrk: half the products of a GEMM
-        _parts(pool, lambda sl: np.add(gram[sl], gram32[sl], out=gram[sl]), dim)
+        if len(x) == BLOCK:
+            _side_by_side(pool, (diagonal, off_diagonal), side_by_side)
+        else:  # one syrk, mirrored: its halves taken apart (see the docstring)
+            whole = np.matmul(eb.T, eb)
+            np.copyto(halves[0], whole[:h, :h]), np.copyto(halves[1], whole[h:, h:]), np.copyto(halves[2], whole[:h, h:])
+        _parts(pool, lambda sl: _add_gram_rows(gram, halves, h, sl), dim)
     return gram, np.sum(sums, axis=0)  # in part order: the same sum whatever the thread count
+
+
+def _add_gram_rows(gram: np.ndarray, halves: tuple[np.ndarray, np.ndarray, np.ndarray], h: int, rows: slice) -> None:
+    """``gram[rows] += G[rows]`` for the block Gram G held as its halves ``(G₁₁, G₂₂, G₁₂)`` (G₂₁ = G₁₂ᵀ)."""
+    top = slice(rows.start, min(rows.stop, h))
+    bottom = slice(max(rows.start, h) - h, max(rows.stop, h) - h)
+    for row, left, right in ((top, halves[0][top], halves[2][top]), (slice(bottom.start + h, bottom.stop + h),
+                                                                        halves[2][:, bottom].T, halves[1][bottom])):
+        if row.stop > row.start:
+            np.add(gram[row, :h], left, out=gram[row, :h])
+            np.add(gram[row, h:], right, out=gram[row, h:])
+
+
+def _side_by_side(pool: ThreadPoolExecutor, tasks: tuple[Callable[[], None], ...], parallel: bool) -> None:
+    """Run BLAS-bound ``tasks`` as pool tasks with BLAS in one thread each, or in turn with BLAS's own threads.
+
+    Either way each product gives the same numbers: a GEMM or syrk splits rows and columns
+    between threads, never an inner product.
+    """
+    if not parallel:
+        for task in tasks:
+            task()
+        return
+    with one_blas_thread():
+        for future in [pool.submit(task) for task in tasks]:
+            future.result()
 
 
 def _place_terms(
@@ -378,12 +442,15 @@ def _terms(g: np.ndarray, k: int) -> np.ndarray:
     return np.stack([g[:, k], a, g[:, :k].sum(axis=1), ((g[:, :k] - a[:, None]) ** 2).sum(axis=1)])
 
 
-def _quadratic_forms(d: np.ndarray, gram: np.ndarray, block: int, pool: ThreadPoolExecutor) -> np.ndarray:
+def _quadratic_forms(
+    d: np.ndarray, gram: np.ndarray, block: int, pool: ThreadPoolExecutor, side_by_side: bool = True
+) -> np.ndarray:
     """``(n,)`` dᵢᵀ E dᵢ: float32 GEMMs with E as float32, float64 row sums.
 
     E is symmetric, so dᵀEd = dᵀWd with W block upper triangular (``_TRI_BLOCKS`` column
     blocks: 2·E_IJ above the diagonal blocks, E_JJ on them, exact in float32): column block
-    J of dW is d[:, :J_end] @ W[:J_end, J], (1 + 1/4)·N·D² flops instead of 2·N·D².
+    J of dW is d[:, :J_end] @ W[:J_end, J], (1 + 1/4)·N·D² flops instead of 2·N·D². The
+    column blocks go to two pool tasks of equal work when ``side_by_side`` (``_side_by_side``).
     """
     n, dim = d.shape
     edges = np.linspace(0, dim, min(_TRI_BLOCKS, dim) + 1).round().astype(int)
@@ -391,6 +458,9 @@ def _quadratic_forms(d: np.ndarray, gram: np.ndarray, block: int, pool: ThreadPo
     w = [np.asarray(gram[:hi, lo:hi], dtype=np.float32) for lo, hi in cols]
     for wj, (lo, _) in zip(w, cols):
         wj[:lo] *= 2
+    shares: list[list[int]] = [[], []]  # column block J costs ∝ J_end: the largest first, to the lighter task
+    for j in sorted(range(len(cols)), key=lambda j: -cols[j][1]):
+        min(shares, key=lambda share: sum(cols[i][1] for i in share)).append(j)
     x32 = None if d.dtype == np.float32 else np.empty((min(block, n), dim), dtype=np.float32)
     y = np.empty((min(block, n), dim), dtype=np.float32)
     quad = np.empty(n)
@@ -401,8 +471,13 @@ def _quadratic_forms(d: np.ndarray, gram: np.ndarray, block: int, pool: ThreadPo
             _parts(pool, lambda sl, x=x, xb=xb: np.copyto(xb[sl], x[sl], casting="same_kind"), len(x))
             x = xb
         yb = y[: len(x)]
-        for wj, (c0, c1) in zip(w, cols):
-            np.matmul(x[:, :c1], wj, out=yb[:, c0:c1])
+
+        def products(share: list[int], x: np.ndarray = x, yb: np.ndarray = yb) -> None:
+            for j in share:
+                (c0, c1), wj = cols[j], w[j]
+                np.matmul(x[:, :c1], wj, out=yb[:, c0:c1])
+
+        _side_by_side(pool, tuple(functools.partial(products, share) for share in shares), side_by_side)
 
         def rows(sl: slice, lo: int = lo, x: np.ndarray = x, yb: np.ndarray = yb) -> None:
             quad[lo + sl.start : lo + sl.stop] = np.einsum("ij,ij->i", yb[sl], x[sl], dtype=np.float64)
@@ -495,6 +570,41 @@ def _parts(pool: ThreadPoolExecutor, fn: Callable[[slice], object], n: int) -> l
     return list(pool.map(fn, [slice(lo, min(lo + _PART, n)) for lo in range(0, n, _PART)]))
 
 
+_BLAS_LOCK = threading.Lock()
+_BLAS_USERS = [0, None]  # callers inside ``one_blas_thread``, and the limiter they share
+
+
+@contextlib.contextmanager
+def one_blas_thread():
+    """BLAS in one thread while inside, for callers whose own threads parallelise: the closed
+    form's halves (``_side_by_side``), ``thresholds``' tiles (a multithreaded GEMM of 80 ×
+    2,048 × 80 waits more on its threads than it computes: 15× slower on a loaded machine) and
+    ``database.decide_traversal``'s pieces of places.
+
+    Process-wide (OpenBLAS has one setting): nested and concurrent callers share one limiter,
+    the last to leave restores the count. The GEMMs used here give the same value per element
+    whatever the thread count (they split rows and columns between threads, never the sum).
+    Without threadpoolctl, nothing is changed.
+    """
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover
+        yield
+        return
+    with _BLAS_LOCK:
+        if _BLAS_USERS[0] == 0:
+            _BLAS_USERS[1] = threadpool_limits(limits=1, user_api="blas")
+        _BLAS_USERS[0] += 1
+    try:
+        yield
+    finally:
+        with _BLAS_LOCK:
+            _BLAS_USERS[0] -= 1
+            if _BLAS_USERS[0] == 0:
+                _BLAS_USERS[1].restore_original_limits()
+                _BLAS_USERS[1] = None
+
+
 def _centre(d: np.ndarray) -> np.ndarray:
     """``(D,)`` m: the mean of up to ``_CENTRE_ROWS`` evenly spaced rows, rounded to float32.
 
@@ -581,13 +691,17 @@ def mixture_pdf(x: np.ndarray, mu: np.ndarray, sigma: np.ndarray, weights: np.nd
     return dens @ np.asarray(weights, dtype=np.float64)
 
 
-def positive_means(descriptors: np.ndarray, labels: np.ndarray, n_places: int) -> np.ndarray:
+def positive_means(
+    descriptors: np.ndarray, labels: np.ndarray, n_places: int, *, threads: int | None = None
+) -> np.ndarray:
     """``(n_places,)`` mean same-place score over pairs i ≠ j; NaN where a place has < 2 images.
 
     Σ_{i≠j∈p} dᵢ·dⱼ = ‖T_p‖² − Σ_{i∈p} ‖dᵢ‖², so no pairwise matrix is needed. Rows are
     converted to float64 ``_MEAN_ROWS`` at a time into one buffer (a whole float64 copy of a
     33,000 × 2,048 database was 14% of the app's fit, mostly page faults); up to that many
-    rows the sums are the single product they were before.
+    rows the sums are the single product they were before. ``threads`` (default: CPU count, at
+    most 8) share the conversion and ‖dᵢ‖² by rows and the place sums by bands of places:
+    each number comes from the same operations in the same order whatever their count.
     """
     d = np.asarray(descriptors)
     n = len(labels)
@@ -595,9 +709,121 @@ def positive_means(descriptors: np.ndarray, labels: np.ndarray, n_places: int) -
     sums = np.zeros((n_places, d.shape[1]))
     sq = np.empty(n)
     buf = np.empty((min(_MEAN_ROWS, n), d.shape[1]))
+    threads = min(os.cpu_count() or 1, 8) if threads is None else max(1, int(threads))
+    bands = [slice(lo, min(lo + -(-n_places // threads), n_places)) for lo in range(0, n_places, -(-n_places // threads))]
+    with ThreadPoolExecutor(threads) as pool:
+        for lo in range(0, n, _MEAN_ROWS):
+            x = buf[: min(_MEAN_ROWS, n - lo)]
+
+            def convert(sl: slice, lo: int = lo, x: np.ndarray = x) -> None:
+                np.copyto(x[sl], d[lo + sl.start : lo + sl.stop], casting="same_kind")  # float32/float16 to float64: exact
+                sq[lo + sl.start : lo + sl.stop] = np.einsum("ij,ij->i", x[sl], x[sl])
+
+            _parts(pool, convert, len(x))
+            part = sparse.csr_matrix((np.ones(len(x)), (labels[lo : lo + len(x)], np.arange(len(x)))),
+                                     shape=(n_places, len(x)))
+
+            def band_sums(band: slice, part: sparse.csr_matrix = part, x: np.ndarray = x) -> None:
+                sums[band] += part[band] @ x  # each place's row of the product is computed alone
+
+            list(pool.map(band_sums, bands))
+    norms = np.bincount(labels, weights=sq, minlength=n_places)
+    pairs = counts * (counts - 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = (np.einsum("ij,ij->i", sums, sums) - norms) / pairs
+    out[pairs == 0] = np.nan
+    return out
+
+
+# --------------------------------------------------------------------------- rows of a large (memory-mapped) matrix
+
+#: entries per chunk of ``validate_descriptors`` and of the row views below: 16 M floats, 64 MB as float32
+CHECK_ELEMS = 1 << 24
+
+
+class RowsOf:
+    """Rows ``rows`` of a matrix, read a block at a time: ``descriptors[rows]`` never formed.
+
+    What the closed form needs of its input (``shape``, ``dtype``, ``len`` and indexing by a
+    slice or an index array), so ``negative_stats_rows`` runs on the database images in places
+    of a memory-mapped float16 database (``descriptors.store``) without gathering them: each
+    block is gathered (and converted) when the pass reaches it. A slice whose rows are one
+    ascending run is a view of the matrix (a memmap reads only those pages).
+    """
+
+    def __init__(self, base: np.ndarray, rows: np.ndarray | None = None) -> None:
+        self.base = base
+        self.rows = None if rows is None else np.asarray(rows, dtype=np.int64)
+        n = len(base) if rows is None else len(self.rows)
+        self.shape = (n, base.shape[1])
+        # float16 blocks come out as float32 (exactly): the closed form then centres them in
+        # float32, one rounding of the exact difference as the float64 route gives, without
+        # float16 → float64 arithmetic; the result is that of the float32 copy, bit for bit
+        self.dtype = np.dtype(np.float32) if base.dtype == np.float16 else base.dtype
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, key) -> np.ndarray:
+        if self.rows is None:
+            block = self.base[key]
+        else:
+            idx = self.rows[key]
+            if isinstance(key, slice) and len(idx) and idx[-1] - idx[0] + 1 == len(idx) and (key.step or 1) == 1:
+                block = self.base[idx[0] : idx[-1] + 1]
+            else:
+                block = self.base[idx]
+        return np.asarray(block, dtype=self.dtype)
+
+
+def validate_rows(view: RowsOf, what: str = "descriptors") -> None:
+    """``validate_descriptors`` on the rows of a ``RowsOf``, a block at a time (rows named by their index in it)."""
+    step = max(1, CHECK_ELEMS // view.shape[1])
+    for lo in range(0, len(view), step):
+        try:
+            validate_descriptors(view[lo : lo + step], what)
+        except VPRInputError as exc:  # rows of the block -> rows of the view
+            raise VPRInputError(f"{exc} (counting from row {lo:,})") from None
+
+
+def negative_stats_rows(
+    descriptors: np.ndarray, rows: np.ndarray | None, labels: np.ndarray, n_places: int | None = None, *,
+    block: int = BLOCK, threads: int | None = None,
+) -> NegativeStats:
+    """``negative_stats(descriptors[rows], labels, n_places)`` (float32 products) without forming ``descriptors[rows]``.
+
+    ``descriptors`` may be a memory-mapped float16 ``(N, D)`` matrix: the three passes of the
+    closed form read it a block of ``block`` rows at a time, each converted to float32 and
+    dropped, so the memory beyond the D×D Gram is a few blocks (``tests/test_million.py``
+    bounds it). The operations are those of ``negative_stats`` on the gathered rows (as float32
+    when stored as float16), in the same order: the result is bit-identical to it.
+    """
+    view = RowsOf(descriptors, rows)
+    if view.shape[0] == 0 or view.shape[1] == 0:
+        raise VPRInputError(f"training descriptors: expected a non-empty (n_images, dim) array, got {view.shape}")
+    validate_rows(view, "training descriptors")
+    n = len(view)
+    labels, n_places = _check_labels(labels, n, n_places)
+    threads = min(os.cpu_count() or 1, 8) if threads is None else max(1, int(threads))
+    counts = np.bincount(labels, minlength=n_places)
+    n_neg = n - counts[labels]
+    mu, var = _closed_form_float32(view, labels, counts, n_neg, int(block), threads)
+    sigma = np.sqrt(np.clip(var, 0.0, None))
+    return NegativeStats(mu=mu, sigma=sigma, n_neg=n_neg.astype(np.int64), labels=labels, n_places=n_places)
+
+
+def positive_means_rows(descriptors: np.ndarray, rows: np.ndarray | None, labels: np.ndarray,
+                        n_places: int) -> np.ndarray:
+    """``positive_means(descriptors[rows], labels, n_places)``, reading ``_MEAN_ROWS`` rows at a time (same sums)."""
+    view = RowsOf(descriptors, rows)
+    n = len(labels)
+    counts = np.bincount(labels, minlength=n_places).astype(np.float64)
+    sums = np.zeros((n_places, view.shape[1]))
+    sq = np.empty(n)
+    buf = np.empty((min(_MEAN_ROWS, n), view.shape[1]))
     for lo in range(0, n, _MEAN_ROWS):
         x = buf[: min(_MEAN_ROWS, n - lo)]
-        np.copyto(x, d[lo : lo + len(x)], casting="same_kind")  # float32/float16 to float64: exact
+        np.copyto(x, view[lo : lo + len(x)], casting="same_kind")
         part = sparse.csr_matrix((np.ones(len(x)), (labels[lo : lo + len(x)], np.arange(len(x)))),
                                  shape=(n_places, len(x)))
         sums += part @ x

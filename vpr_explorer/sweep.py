@@ -26,9 +26,13 @@ What is shared between cells, and what is not:
 * every evaluation is kept in a ``SweepCache`` keyed by the descriptors, the protocol's
   options and the places: a second sweep over an overlapping grid, or the same sweep with
   another metric shown, evaluates only the new cells;
-* the negative statistics themselves are not shared: a split's thresholds come from its
-  training images, and which images train depends on group and step (the places, the query
-  drawn from each, the held-out places), so each cell's μᵢ, σᵢ are its own (DESIGN.md §2).
+* every image pair's score (``shared_scores.SharedScores``, up to ``SHARED_LIMIT`` images):
+  the float32 similarity of all images that scores the queries, and a float64 Gram from
+  which each split's negative statistics come pairwise. A split's μᵢ, σᵢ are still its own
+  (its training images depend on group and step: the places, the query drawn from each, the
+  held-out places; DESIGN.md §2), but they are sums over the Gram's rows, not a closed form
+  of O(n·D²) per split. A run outside a sweep builds the same scores itself, so a cell and a
+  separate ``evaluate`` agree bit for bit. Above the limit each cell fits its own in closed form.
 
 A cell with no numbers says why (``Cell.empty``): the stride reading with ``step < group``
 would overlap places; a group/step that leaves fewer than two places; a protocol that
@@ -61,6 +65,7 @@ from vpr_explorer.pipeline import check_finite, check_options, check_whole, run_
 from vpr_explorer.places import MAX_FRAMES, PlaceSpec, Reading, make_places
 from vpr_explorer.precision_recall import GLOBAL_CURVE
 from vpr_explorer.retrieval import METHODS_BY_KEY
+from vpr_explorer.shared_scores import SharedScores
 
 MAX_CELLS = 400
 """Most cells one sweep may hold (all readings together): each is a full protocol run."""
@@ -511,6 +516,7 @@ def sweep(
     cache: SweepCache | None = None,
     progress: Progress | None = None,
     cell_progress: Progress | None = None,
+    shared: SharedScores | None = None,
 ) -> SweepResult:
     """Evaluate every cell of ``spec``'s grid on ``dataset`` with ``descriptors`` (module doc).
 
@@ -521,6 +527,9 @@ def sweep(
         cache: evaluations kept between sweeps; default a fresh one (within this sweep only).
         progress: ``progress(done, total, message)`` after each cell (``total`` = cells).
         cell_progress: the running cell's own protocol progress (its splits or blocks).
+        shared: the ``SharedScores`` of ``descriptors`` to reuse (e.g. kept between sweeps);
+            default one built for this sweep (its matrices on first use, and only up to
+            ``shared_scores.SHARED_LIMIT`` images).
 
     Raises:
         VPRInputError: bad protocol options, a dataset whose places are fixed by file names, or
@@ -537,6 +546,8 @@ def sweep(
         from vpr_explorer.descriptors import fingerprint
 
         descriptors_key = fingerprint(descriptors)
+    scores = SharedScores(descriptors) if shared is None else shared
+    scores.check(descriptors)
     cache = SweepCache() if cache is None else cache
     plan = _plan(dataset, spec)
     o = spec.options()
@@ -550,27 +561,27 @@ def sweep(
             key = _cache_key(descriptors_key, dataset, spec, pk)
             cost = protocol_pairs(spec.protocol.value, places, dataset, runs=spec.runs, database=o.get("database"),
                                   unknown_share=spec.unknown_share)
-            shared = first_of.get(pk)
+            earlier = first_of.get(pk)  # a cell of the same places, evaluated before
             hit = cache.get(key)
             start = time.perf_counter()
             if hit is None:
                 try:
                     value = run_protocol(spec.protocol, dataset, places, descriptors, progress=cell_progress,
                                          settings={"descriptor": descriptor, "dtype": str(descriptors.dtype)},
-                                         pr=spec.pr, **o)
+                                         pr=spec.pr, shared=scores, **o)
                 except VPRInputError as exc:
                     value = str(exc)
                 hit = (value, ps)
                 cache.put(key, hit)
                 cached = False
             else:
-                cached = shared is None
+                cached = earlier is None
             value, ran_as = hit
-            seconds = 0.0 if (cached or shared is not None) else time.perf_counter() - start
+            seconds = 0.0 if (cached or earlier is not None) else time.perf_counter() - start
             first_of.setdefault(pk, ps)
             same_as = None
-            if shared is not None:
-                same_as = (shared.group, shared.step, shared.reading.value)
+            if earlier is not None:
+                same_as = (earlier.group, earlier.step, earlier.reading.value)
             if isinstance(value, str):
                 cells.append(Cell(g, s, r, n_places=places.n_places, empty=value, same_as=same_as, cached=cached,
                                   seconds=seconds, cost=cost))

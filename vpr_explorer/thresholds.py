@@ -6,22 +6,22 @@
 * family:   θ_p(k) = θ_p + k·s_p, s_p the standard deviation of the mixture M(p); k = 0 is
   the paper
 * automatic global (VPR_Tutorial, after Schubert et al. "Beyond ANN"):
-  θ = median(S) + Φ⁻¹(1 − 10⁻⁶)·MAD(S)/0.675 over the training similarity matrix
+  θ = median(S) + Φ⁻¹(1 − 10⁻⁶)·MAD(S)/0.675 over the training similarity matrix, or a
+  sample of it (``training_pair_scores``; a protocol's splits share one: ``pooled_pair_sample``)
 """
 
 from __future__ import annotations
 
-import contextlib
 import os
-import threading
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from enum import StrEnum
 
 import numpy as np
 from scipy.stats import norm
 
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.stats import SIGMA_FLOOR, NegativeStats, mixture_moments
+from vpr_explorer.stats import SIGMA_FLOOR, NegativeStats, mixture_moments, one_blas_thread
 
 #: Φ⁻¹(1 − 10⁻⁶) ≈ 4.753, the automatic threshold's multiple of the robust spread.
 AUTO_Z = float(norm.ppf(1 - 1e-6))
@@ -146,7 +146,7 @@ def training_pair_scores(
         return (d @ d.T)[iu]
     rng = np.random.default_rng(seed)
     if sample == "tiles":
-        return _tile_scores(gather, n, rng.permutation(n), max_pairs, max(1, workers))
+        return _tile_scores(gather, rng.permutation(n), *tile_groups(n, max_pairs), max(1, workers))
     i = rng.integers(0, n, size=max_pairs)
     j = rng.integers(0, n - 1, size=max_pairs)
     j = j + (j >= i)  # uniform over j != i
@@ -169,48 +169,17 @@ def tile_groups(n: int, max_pairs: int) -> tuple[np.ndarray, list[tuple[int, int
     return edges, [(a, (a + 1) % g) for a in range(g)]
 
 
-_BLAS_LOCK = threading.Lock()
-_BLAS_USERS = [0, None]  # callers inside ``_one_blas_thread``, and the limiter they share
-
-
-@contextlib.contextmanager
-def _one_blas_thread():
-    """BLAS in one thread while inside (the tiles' own threads parallelise; a multithreaded GEMM of
-    80 × 2,048 × 80 waits more on its threads than it computes: 15× slower on a loaded machine).
-
-    Process-wide (OpenBLAS has one setting): nested and concurrent callers share one limiter,
-    the last to leave restores the count. The GEMMs used here give the same value per element
-    whatever the thread count (they split rows and columns between threads, never the sum).
-    Without threadpoolctl, nothing is changed.
-    """
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover
-        yield
-        return
-    with _BLAS_LOCK:
-        if _BLAS_USERS[0] == 0:
-            _BLAS_USERS[1] = threadpool_limits(limits=1, user_api="blas")
-        _BLAS_USERS[0] += 1
-    try:
-        yield
-    finally:
-        with _BLAS_LOCK:
-            _BLAS_USERS[0] -= 1
-            if _BLAS_USERS[0] == 0:
-                _BLAS_USERS[1].restore_original_limits()
-                _BLAS_USERS[1] = None
-
-
-def _tile_scores(gather, n: int, perm: np.ndarray, max_pairs: int, workers: int) -> np.ndarray:
+def _tile_scores(gather, perm: np.ndarray, edges: np.ndarray, tiles: list[tuple[int, int]], workers: int) -> np.ndarray:
     """The ``"tiles"`` sample: scores of every pair between permuted groups a and a + 1, tile by tile.
+
+    ``gather(perm[lo:hi])`` gives the float32 rows of permuted positions lo..hi; ``edges`` and
+    ``tiles`` as ``tile_groups`` gives them.
 
     Groups are read ``TILE_ROWS`` rows at a time (with the next group, and group 0 for the
     last tile), so each image is gathered about once and memory stays at ~2·TILE_ROWS·D floats
     per worker. A tile's scores are ``x_a @ x_bᵀ``: one GEMM of fixed shape, whichever chunk
     or thread computes it.
     """
-    edges, tiles = tile_groups(n, max_pairs)
     sizes = np.diff(edges)
     counts = np.array([sizes[a] * sizes[b] for a, b in tiles], dtype=np.int64)
     offsets = np.r_[0, np.cumsum(counts)]
@@ -234,9 +203,144 @@ def _tile_scores(gather, n: int, perm: np.ndarray, max_pairs: int, workers: int)
                 xb = x[edges[b] - lo : edges[b + 1] - lo]
             np.matmul(xa, xb.T, out=out[offsets[k] : offsets[k + 1]].reshape(len(xa), len(xb)))
 
-    with _one_blas_thread(), ThreadPoolExecutor(max_workers=workers, thread_name_prefix="vpr-tiles") as pool:
+    with one_blas_thread(), ThreadPoolExecutor(max_workers=workers, thread_name_prefix="vpr-tiles") as pool:
         list(pool.map(score, chunks))
     return out
+
+
+def _tile_pairs(perm: np.ndarray, edges: np.ndarray, tiles: list[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
+    """``(m,)`` row and column images of every score ``_tile_scores`` gives, in its order."""
+    sizes = np.diff(edges)
+    a = np.array([t[0] for t in tiles], dtype=np.int64)
+    b = np.array([t[1] for t in tiles], dtype=np.int64)
+    counts = sizes[a] * sizes[b]
+    k = np.repeat(np.arange(len(tiles)), counts)
+    local = np.arange(int(counts.sum())) - np.repeat(np.r_[0, np.cumsum(counts)[:-1]], counts)
+    width = sizes[b][k]
+    return perm[edges[a][k] + local // width], perm[edges[b][k] + local % width]
+
+
+@dataclass(frozen=True, eq=False)
+class PooledPairSample:
+    """The automatic θ's training pairs for every split of one protocol run, sampled once.
+
+    Built by ``pooled_pair_sample``. Split r's scores (``scores(r)``) are every distinct pair
+    of its training images (``trains[r]``) when they have at most ``max_pairs`` pairs, as
+    ``training_pair_scores`` gives them; above, the pooled tiles' pairs whose two images
+    both train in split r (``pooled``, sorted, the scores of images ``image_a`` × ``image_b``).
+    """
+
+    descriptors: np.ndarray
+    trains: tuple[np.ndarray, ...]
+    max_pairs: int
+    pooled: np.ndarray  # (m,) float32 scores of the pooled tiles, ascending (empty when no split samples)
+    image_a: np.ndarray  # (m,) each score's row image, an index into ``descriptors``
+    image_b: np.ndarray  # (m,) its column image
+
+    def _sampled(self, r: int) -> bool:
+        n = len(self.trains[r])
+        return n * (n - 1) // 2 > self.max_pairs
+
+    def scores(self, r: int) -> np.ndarray:
+        """Split r's training pair scores, float32 (sampled: ascending)."""
+        train = self.trains[r]
+        if not self._sampled(r):
+            return training_pair_scores(self.descriptors, rows=train, max_pairs=self.max_pairs)
+        inside = np.zeros(len(self.descriptors), dtype=bool)
+        inside[train] = True
+        return self.pooled[inside[self.image_a] & inside[self.image_b]]
+
+    def theta(self, r: int) -> float:
+        """Split r's automatic global θ: ``auto_global_threshold(scores(r))``, the same float.
+
+        A sampled split's scores come sorted, so its median and MAD are read off them
+        (``_sorted_auto_threshold``) instead of partitioning 2·10⁶ values twice.
+        """
+        s = self.scores(r)
+        return _sorted_auto_threshold(s) if self._sampled(r) else auto_global_threshold(s)
+
+
+def _kth_of_two(a: np.ndarray, b: np.ndarray, k: int) -> float:
+    """The k-th smallest (0-based) of the values of two ascending arrays together."""
+    lo, hi = max(0, k + 1 - len(b)), min(k + 1, len(a))
+    while lo < hi:  # i values from a and k + 1 − i from b are the k + 1 smallest
+        i = (lo + hi) // 2
+        if a[i] < b[k - i]:
+            lo = i + 1
+        else:
+            hi = i
+    j = k + 1 - lo
+    return float(max(a[lo - 1] if lo > 0 else -np.inf, b[j - 1] if j > 0 else -np.inf))
+
+
+def _middle(kth, n: int) -> float:
+    # np.median's value: the middle element, or the mean of the two middle ones as np.mean forms it
+    return kth(n // 2) if n % 2 else (kth(n // 2 - 1) + kth(n // 2)) / 2
+
+
+def _sorted_auto_threshold(s: np.ndarray) -> float:
+    """``auto_global_threshold`` of ascending scores ``s``, the same float, in O(n) cheap steps.
+
+    The median is read off the sorted values; the deviations |s − med| are two ascending
+    runs (med − s below the median, reversed, and s − med above: the same float64 values
+    ``np.abs(s - med)`` holds), so their median is found by bisection across the two.
+    """
+    n = len(s)
+    if n == 0:
+        raise VPRInputError("the automatic global threshold needs at least one training score")
+    med = _middle(lambda k: float(s[k]), n)
+    split = int(np.searchsorted(s, med, side="right"))
+    below = med - np.asarray(s[:split][::-1], dtype=np.float64)
+    above = np.asarray(s[split:], dtype=np.float64) - med
+    mad = _middle(lambda k: _kth_of_two(below, above, k), n)
+    return float(med + AUTO_Z * mad / 0.675)
+
+
+def pooled_pair_sample(
+    descriptors: np.ndarray, trains, *, max_pairs: int = AUTO_MAX_PAIRS, seed: int = 0, workers: int = PAIR_WORKERS,
+) -> PooledPairSample:
+    """One tile sample for the automatic θ of all of a protocol run's splits (issue 13 §4).
+
+    ``training_pair_scores`` per split draws a tile sample of the split's own training images,
+    one set of small GEMMs per split. Here one seeded tile sample is drawn over the images
+    that train in any split whose training set has more than ``max_pairs`` pairs (their
+    union U: for the paper protocol every image in a place), and each such split keeps the
+    pooled pairs whose two images both train in it, dropping the rows and columns of its
+    queries (and, in the open set, of its held-out places' images).
+
+    The tiles are those of ``training_pair_scores`` (a seeded permutation of U in g groups,
+    every pair between group a and a + 1 mod g), with g = ⌈n_min²/max_pairs⌉ (at least 3)
+    for n_min the smallest such training set, so each split keeps about
+    (n_train/|U|)²·|U|²/g ≤ max_pairs·(n_train/n_min)² pairs: about ``max_pairs``. A split's
+    kept pairs are a block sample of its training pairs, all distinct, no image with
+    itself; every pooled image is in the same number of pooled pairs (to within 2), and a
+    training image keeps those whose partner also trains (a binomial share). Splits with
+    at most ``max_pairs`` training pairs score all of them, as ``training_pair_scores`` does.
+
+    Args:
+        descriptors: ``(n_images, D)``, any float dtype (a memory map is read in row chunks).
+        trains: per split, the indices of its training images.
+    """
+    trains = tuple(np.asarray(t, dtype=np.int64) for t in trains)
+    sampled = [t for t in trains if len(t) * (len(t) - 1) // 2 > max_pairs]
+    empty = np.empty(0, dtype=np.int64)
+    if not sampled:
+        return PooledPairSample(descriptors, trains, max_pairs, np.empty(0, dtype=np.float32), empty, empty)
+    images = np.unique(np.concatenate(sampled))
+    n_min = min(len(t) for t in sampled)
+    n = len(images)
+    g = min(n, max(3, -(-n_min * n_min // max_pairs)))
+    edges = np.arange(g + 1) * n // g
+    tiles = [(a, (a + 1) % g) for a in range(g)]
+    perm = images[np.random.default_rng(seed).permutation(n)]
+
+    def gather(idx: np.ndarray) -> np.ndarray:
+        return np.asarray(descriptors[idx], dtype=np.float32)
+
+    pooled = _tile_scores(gather, perm, edges, tiles, max(1, workers))
+    image_a, image_b = _tile_pairs(perm, edges, tiles)
+    order = np.argsort(pooled, kind="stable")
+    return PooledPairSample(descriptors, trains, max_pairs, pooled[order], image_a[order], image_b[order])
 
 
 def auto_global_threshold(scores: np.ndarray) -> float:

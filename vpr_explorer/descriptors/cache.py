@@ -29,6 +29,17 @@ reads rows from.
 
 Compaction (many small shards -> one) can be added without a format change: write the
 merged shard, then delete the old manifests, then their ``.npy`` files.
+
+**Dataset views** (:meth:`DescriptorCache.dataset_view`, for a million-image database): one
+float16 ``.npy`` holding a dataset's rows in its image order, written once from the shards
+(each shard's checksum verified as it is read) into ``<cache_key>/views/``, atomically (a
+temporary, fsync, rename; its manifest last), then memory-mapped. Its manifest records the
+sha256 of the whole file, computed when it is written, and its size and mtime. A 4 GB file
+is not hashed whole on every open: each open checks the size and mtime and re-hashes
+``VIEW_SPOTS`` blocks of ``VIEW_SPOT_BYTES`` spread over the file (the header, the last
+block, evenly between; their hashes are in the manifest); ``verify="full"`` re-hashes it
+all. A view that fails a check is reported (``DescriptorCacheWarning``), deleted and written
+again from the shards. Views are never read by :meth:`lookup`: the shards stay the source.
 """
 
 from __future__ import annotations
@@ -65,6 +76,12 @@ DEAD_WRITER_GRACE_S = 60
 STALE_AFTER_S = 3600
 # Shard file stems: ``<32 hex>.<host>.<pid>`` (older versions: ``<32 hex>``).
 _SHARD_STEM = re.compile(r"^[0-9a-f]{32}\.(?P<host>[A-Za-z0-9-]{1,32})\.(?P<pid>[0-9]{1,10})$")
+
+
+VIEW_FOLDER = "views"
+VIEW_SPOTS = 16
+VIEW_SPOT_BYTES = 1 << 16
+VIEW_KIND = "dataset-view"
 
 
 class DescriptorCacheWarning(UserWarning):
@@ -181,6 +198,22 @@ def _fsync_dir(folder: Path) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def _file_sha256(path: Path) -> str:
+    with open(path, "rb") as fh:
+        return hashlib.file_digest(fh, "sha256").hexdigest()
+
+
+def _spot_hashes(path: Path, size: int) -> list[str]:
+    """sha256 of ``VIEW_SPOTS`` blocks of ``VIEW_SPOT_BYTES``: the first, the last, evenly between."""
+    starts = np.unique(np.linspace(0, max(0, size - VIEW_SPOT_BYTES), VIEW_SPOTS).astype(np.int64))
+    out = []
+    with open(path, "rb") as fh:
+        for start in starts:
+            fh.seek(int(start))
+            out.append(hashlib.sha256(fh.read(VIEW_SPOT_BYTES)).hexdigest())
+    return out
 
 
 class DescriptorCache:
@@ -358,6 +391,151 @@ class DescriptorCache:
             vectors.resize((len(index), width), refcheck=False)  # no view of it exists
         return CacheHits(index, vectors)
 
+    def dataset_view(self, cache_key: str, hashes: Sequence[str], *, verify: str = "spots") -> np.ndarray | None:
+        """The rows of ``hashes``, in that order, as one read-only float16 memmap ``(len(hashes), D)``.
+
+        Written once per (``cache_key``, hashes in order) from the shards this cache reads
+        (as :meth:`lookup` reads them: a float32 cache only float32 shards), rounded to
+        float16, atomically; opened with ``np.load(mmap_mode="r")`` (module docstring).
+
+        Args:
+            verify: on opening an existing view, ``"spots"`` (size, mtime and the hashes of
+                ``VIEW_SPOTS`` blocks) or ``"full"`` (the whole file's sha256).
+
+        Returns:
+            The memmap, or ``None`` when some hash is not cached (extract those first).
+
+        Raises:
+            VPRInputError: a bad ``cache_key`` or ``verify``, or the folder cannot be written.
+        """
+        if verify not in ("spots", "full"):
+            raise VPRInputError(f"verify={verify!r}: choose 'spots' or 'full'")
+        hashes = list(hashes)
+        if not hashes:
+            raise VPRInputError("hashes: no images given; a dataset view needs at least one")
+        folder = self._folder(cache_key) / VIEW_FOLDER
+        digest = hashlib.sha256(f"{cache_key}|{self.dtype}|".encode())
+        digest.update("\n".join(hashes).encode())
+        stem = digest.hexdigest()[:40]
+        manifest_path = folder / f"{stem}.json"
+        if manifest_path.is_file():
+            try:
+                return self._open_view(manifest_path, len(hashes), verify)
+            except _Damaged as exc:
+                warnings.warn(f"{manifest_path}: damaged dataset view: {exc}; deleted it, it is written again "
+                              "from the shards", DescriptorCacheWarning, stacklevel=2)
+                manifest_path.unlink(missing_ok=True)
+                manifest_path.with_suffix(".npy").unlink(missing_ok=True)
+        if not self._write_view(cache_key, hashes, manifest_path):
+            return None
+        try:
+            return self._open_view(manifest_path, len(hashes), "spots")
+        except _Damaged as exc:  # pragma: no cover (written and checked just now)
+            raise VPRInputError(f"{manifest_path}: the dataset view just written fails its check ({exc})") from None
+
+    def _write_view(self, cache_key: str, hashes: list[str], manifest_path: Path) -> bool:
+        """Compaction: the rows of ``hashes`` from the shards into one float16 file; False if one is missing."""
+        wanted: dict[str, list[int]] = {}
+        for i, h in enumerate(hashes):
+            wanted.setdefault(h, []).append(i)
+        folder = manifest_path.parent
+        npy = manifest_path.with_suffix(".npy")
+        tmp = npy.with_name(settings.temporary_name(npy.name))
+        out = None
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            now = time.time()
+            for leftover in folder.glob(".*.tmp"):  # a killed compaction's temporary, once its writer is gone
+                if _is_stale(leftover, settings.temporary_owner(leftover.name), now):
+                    leftover.unlink(missing_ok=True)
+            for shard in self._manifests(self._folder(cache_key)):
+                if not wanted:
+                    break
+                try:
+                    manifest = self._read_manifest(shard)
+                    if self.dtype == "float32" and manifest["dtype"] != "float32":
+                        continue
+                    rows = [row for row, h in enumerate(manifest["hashes"]) if h in wanted]
+                    if not rows:
+                        continue
+                    if out is not None and manifest["shape"][1] != out.shape[1]:
+                        raise _Damaged(f"its vectors are {manifest['shape'][1]}-d, expected {out.shape[1]}-d")
+                    matrix = self._read_vectors(shard, manifest)
+                except _Damaged as exc:
+                    self._discard(shard, str(exc))
+                    continue
+                if out is None:
+                    out = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float16,
+                                                    shape=(len(hashes), manifest["shape"][1]))
+                dest, source = [], []
+                for row in rows:
+                    for i in wanted.pop(manifest["hashes"][row], ()):
+                        dest.append(i)
+                        source.append(row)
+                dest_a, source_a = np.asarray(dest, dtype=np.int64), np.asarray(source, dtype=np.int64)
+                step = max(1, GATHER_BYTES // (out.shape[1] * matrix.dtype.itemsize))
+                for lo in range(0, len(dest_a), step):
+                    out[dest_a[lo : lo + step]] = matrix[source_a[lo : lo + step]]
+                del matrix
+            if wanted or out is None:
+                return False
+            out.flush()
+            del out
+            out = None
+            with open(tmp, "rb+") as fh:
+                os.fsync(fh.fileno())
+            whole = _file_sha256(tmp)
+            os.replace(tmp, npy)
+            st = npy.stat()
+            view = {"format": FORMAT, "kind": VIEW_KIND, "cache_key": cache_key, "n": len(hashes),
+                    "dtype": "float16", "sha256": whole, "size": st.st_size, "mtime_ns": st.st_mtime_ns,
+                    "spots": _spot_hashes(npy, st.st_size)}
+            _atomic_write(manifest_path, json.dumps(view).encode())
+            _fsync_dir(folder)
+            return True
+        except OSError as exc:
+            raise VPRInputError(
+                f"cache folder {self.root}: cannot write a dataset view ({exc.strerror or exc}); free space "
+                f"(it takes {len(hashes):,} × D × 2 bytes), or choose another folder with --cache-dir or "
+                f"{settings.CACHE_ENV}"
+            ) from exc
+        finally:
+            del out
+            tmp.unlink(missing_ok=True)
+
+    @staticmethod
+    def _open_view(manifest_path: Path, n: int, verify: str) -> np.ndarray:
+        """The view's memmap after its checks (size, mtime, spot hashes; or the whole sha256)."""
+        npy = manifest_path.with_suffix(".npy")
+        try:
+            view = json.loads(manifest_path.read_text())
+            ok = isinstance(view, dict) and view.get("kind") == VIEW_KIND and view.get("n") == n \
+                and isinstance(view.get("spots"), list) and isinstance(view.get("sha256"), str)
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise _Damaged(f"unreadable manifest ({exc})") from exc
+        if not ok:
+            raise _Damaged("the manifest is not a dataset view's")
+        try:
+            st = npy.stat()
+        except FileNotFoundError as exc:
+            raise _Damaged(f"{npy.name} is missing") from exc
+        if st.st_size != view.get("size"):
+            raise _Damaged(f"{npy.name} is {st.st_size:,} bytes, the manifest says {view.get('size'):,}")
+        if st.st_mtime_ns != view.get("mtime_ns"):
+            raise _Damaged(f"{npy.name} was modified after it was written")
+        if verify == "full":
+            if _file_sha256(npy) != view["sha256"]:
+                raise _Damaged(f"{npy.name} does not match its checksum")
+        elif _spot_hashes(npy, st.st_size) != view["spots"]:
+            raise _Damaged(f"{npy.name} does not match the checksums of its sampled blocks")
+        try:
+            matrix = np.load(npy, mmap_mode="r", allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise _Damaged(f"{npy.name} is unreadable ({exc})") from exc
+        if matrix.dtype != np.float16 or matrix.ndim != 2 or len(matrix) != n:
+            raise _Damaged(f"{npy.name} holds {matrix.dtype} {matrix.shape}, expected float16 with {n} rows")
+        return matrix
+
     def contains(self, cache_key: str, hashes: Sequence[str]) -> np.ndarray:
         """``(len(hashes),)`` bool: whether a shard this cache would read lists each hash.
 
@@ -396,6 +574,15 @@ class DescriptorCache:
         for folder in folders:
             if not folder.is_dir():
                 continue
+            views = folder / VIEW_FOLDER
+            if views.is_dir():  # dataset views: manifests first, as below
+                for path in sorted(views.iterdir(), key=lambda p: p.suffix != ".json"):
+                    if path.is_file() and (path.suffix in (".npy", ".json") or path.name.endswith(".tmp")):
+                        path.unlink(missing_ok=True)
+                try:
+                    views.rmdir()
+                except OSError:
+                    pass
             # Manifests first, so concurrent readers stop seeing a shard before its
             # vectors go.
             for path in sorted(folder.iterdir(), key=lambda p: p.suffix != ".json"):

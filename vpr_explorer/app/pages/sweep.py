@@ -28,7 +28,7 @@ from vpr_explorer.sweep import (
     sweep_figure,
 )
 
-from vpr_explorer.app.ui import state
+from vpr_explorer.app.ui import cache, state
 from vpr_explorer.app.ui.current import current
 from vpr_explorer.app.ui.feedback import progress_reporter, stop_on_input_error
 from vpr_explorer.app.ui.routing import ensure_routed, page_file
@@ -203,7 +203,7 @@ def run_sweep():
     inner, clear_inner = progress_reporter("this cell")
     try:
         return sweep(ds, cur.data.descriptors, spec, descriptor=cur.data.descriptor, descriptors_key=cur.data.key,
-                     cache=_cells(), progress=progress, cell_progress=inner)
+                     cache=_cells(), shared=cache.shared_scores(cur.data), progress=progress, cell_progress=inner)
     finally:
         clear_inner()
         clear()

@@ -62,6 +62,7 @@ from vpr_explorer.pipeline import (
     run_protocol,
 )
 from vpr_explorer.places import PlaceSpec
+from vpr_explorer.shared_scores import SHARED_LIMIT, SharedScores
 from vpr_explorer import retrieval_views
 from vpr_explorer.retrieval_views import RetrievalFitted, RetrievalOverview, RetrievalPlaces
 from vpr_explorer.views import (
@@ -269,6 +270,29 @@ def _files_key(ds: Dataset | RetrievalDataset) -> str:
     return h.hexdigest()
 
 
+_NAMES_KEYS: dict[int, tuple[object, str]] = {}
+
+
+def _names_key(ds: Dataset | RetrievalDataset) -> str:
+    """A digest of every image's path only, once per dataset object: the images' key when the
+    descriptors come from a file (its own size and mtime are in the key; an edited image changes
+    no number then, only what the page shows), so a 1,000,000-image database is not stat'ed on
+    every script run (about 3 s, ``benchmarks/bench_million.py``)."""
+    hit = _NAMES_KEYS.get(id(ds))
+    if hit is not None and hit[0] is ds:
+        return hit[1]
+    digest = hashlib.sha256("\n".join(map(str, ds.image_paths)).encode()).hexdigest()
+    if len(_NAMES_KEYS) >= 8:
+        _NAMES_KEYS.clear()
+    _NAMES_KEYS[id(ds)] = (ds, digest)
+    return digest
+
+
+def _images_key(ds: Dataset | RetrievalDataset, path: Path | None) -> str:
+    """``_files_key`` for descriptors computed from the images, ``_names_key`` for a descriptor file."""
+    return _files_key(ds) if path is None else _names_key(ds)
+
+
 def check_descriptor_file(text: str) -> Path:
     """A typed descriptor file path, checked before it is read: it exists, its extension is one the
     library reads, and its stem (the descriptor's name) names no extractor."""
@@ -322,8 +346,8 @@ def load(source: str, descriptor: str, *, layout: str = Layout.AUTO.value, radiu
     so no cache below serves results of an edited file or another ground truth.
     """
     ds = dataset(source, layout, radius)
-    files = _files_key(ds)
     path = descriptor_path(descriptor, file)
+    files = _images_key(ds, path)
     dataset_key = (layout, radius) if isinstance(ds, RetrievalDataset) else ()
     key = _load_key(descriptor, files, path, dataset_key)
     suffix = "".join(f"-{x}" for x in dataset_key)
@@ -337,14 +361,16 @@ def load(source: str, descriptor: str, *, layout: str = Layout.AUTO.value, radiu
     on_disk = key[-1]
 
     def compute(progress):
-        if on_disk:
-            d = dataset_descriptors(ds, descriptor, progress=progress)
+        if on_disk:  # a database/queries dataset past 1 GiB of float32 is mapped from the cache (float16)
+            d = dataset_descriptors(ds, descriptor, progress=progress,
+                                    **({"mmap": "auto"} if isinstance(ds, RetrievalDataset) else {}))
         else:
             d = extract_descriptors(list(ds.image_paths), get_extractor(descriptor), progress=progress)
-        d = np.asarray(d, dtype=np.float32)  # already float32 and read-only: no copy
-        if d.flags.writeable:
-            d = d.copy()
-            d.setflags(write=False)
+        if not isinstance(d, np.memmap):  # a mapped float16 view stays mapped (read-only), never a float32 copy
+            d = np.asarray(d, dtype=np.float32)  # already float32 and read-only: no copy
+            if d.flags.writeable:
+                d = d.copy()
+                d.setflags(write=False)
         return Loaded(ds, descriptor, d, f"{files[:16]}-{fingerprint(d)[:24]}{suffix}")
 
     return _memoised(key, f"Computing {descriptor} descriptors of {ds.n_images} images", compute)
@@ -356,8 +382,8 @@ def loaded_in_memory(source: str, descriptor: str, *, layout: str = Layout.AUTO.
     try:
         ds = dataset(source, layout, radius)
         dataset_key = (layout, radius) if isinstance(ds, RetrievalDataset) else ()
-        return _memo().get(_load_key(descriptor, _files_key(ds), descriptor_path(descriptor, file),
-                                     dataset_key)) is not None
+        path = descriptor_path(descriptor, file)
+        return _memo().get(_load_key(descriptor, _images_key(ds, path), path, dataset_key)) is not None
     except VPRInputError:
         return False
 
@@ -449,6 +475,18 @@ def grid(data: Loaded, database: tuple[str, ...], query: str) -> SimilarityGrid:
     return _grid(data.key, tuple(database), query, data)
 
 
+@st.cache_resource(show_spinner=False, max_entries=1)
+def _shared(key: str, _data: Loaded) -> SharedScores | None:
+    return SharedScores(_data.descriptors) if len(_data.descriptors) <= SHARED_LIMIT else None
+
+
+def shared_scores(data: Loaded) -> SharedScores | None:
+    """The scores every protocol run on ``data`` shares (``shared_scores.SharedScores``), kept for the
+    latest descriptors: a second protocol, run or sweep on them computes no similarity or Gram again.
+    ``None`` above ``SHARED_LIMIT`` images (the protocols use the closed form there)."""
+    return _shared(data.key, data)
+
+
 def evaluation(data: Loaded, spec: PlaceSpec | None, protocol: str, *, peek: bool = False,
                **options) -> Evaluation | None:
     """A protocol run (see ``pipeline.run_protocol``), with a progress bar the first time.
@@ -466,7 +504,7 @@ def evaluation(data: Loaded, spec: PlaceSpec | None, protocol: str, *, peek: boo
         return hit if isinstance(hit, Evaluation) else None
     return _memoised(key, f"Running the {protocol} protocol", lambda progress: run_protocol(
         protocol, data.dataset, places, data.descriptors, progress=progress,
-        settings={"descriptor": data.descriptor}, **options))
+        settings={"descriptor": data.descriptor}, shared=shared_scores(data), **options))
 
 
 # --------------------------------------------------------------------------- database/queries datasets

@@ -15,7 +15,7 @@ import dataclasses
 import numpy as np
 import streamlit as st
 
-from vpr_explorer import maps, plots
+from vpr_explorer import maps, plots, retrieval_views
 from vpr_explorer.pipeline import retrieval_places
 from vpr_explorer.places import READING_LABELS, PlaceGeometry, Reading
 from vpr_explorer.retrieval_views import geometries, geometry_label, query_label, radius_of
@@ -30,6 +30,43 @@ MAP_CANDIDATES = 5
 """Candidate places outlined on the map: the selected query's best by raw_p."""
 MAP_METHOD = "margin-weighted"
 """The method whose answer the map marks: the paper's."""
+MAP_DATABASE = 20_000
+"""Database images the map draws at most: beyond, those nearest the selected query (and its candidate places')."""
+
+
+def map_window(ds, fitted, query: int, places: np.ndarray) -> np.ndarray | None:
+    """Database positions the map draws: all (``None``) up to ``MAP_DATABASE``, else the ``MAP_DATABASE`` nearest
+    the selected query plus the images of ``places`` (its candidates and answer), ascending."""
+    if ds.n_database <= MAP_DATABASE:
+        return None
+    dist = np.hypot(*(ds.database_xy - ds.query_xy[query]).T)
+    near = np.argpartition(dist, MAP_DATABASE - 1)[:MAP_DATABASE]
+    return np.union1d(near, np.flatnonzero(np.isin(fitted.database_place, places)))
+
+
+@st.cache_data(show_spinner="Scoring the place's images…", max_entries=8)
+def _place_detail(key: str, places: tuple, place: int, _data, _fitted):
+    return retrieval_views.place_detail(_fitted, _data.descriptors, place)
+
+
+def _one_place(cur: Current, fitted) -> None:
+    """One place: its negative mixture, its images' negative scores (their own rows only) and its thresholds."""
+    v = state.view()
+    model = fitted.model
+    place = v.place if v.place is not None and 0 <= v.place < fitted.n_places else int(np.median(model.places))
+    st.subheader("One place: its negative mixture and thresholds")
+    c1, c2 = st.columns([1, 3])
+    c1.number_input("place", 0, fitted.n_places - 1, step=1,
+                    help="A place's θ_p comes from the scores of its database images against the database images "
+                         "of every other place; only this place's rows are scored here.",
+                    **state.bind("w_place_one", "place", place))
+    with stop_on_input_error(hint="Choose another place."):
+        detail = _place_detail(cur.data.key, cache._places_key(cur.places), int(place), cur.data, fitted)
+    c2.markdown(f"**P{place}**: {len(detail.images)} database image(s), {detail.negatives.size:,} negative scores "
+                f"(against the {len(model.images) - len(detail.images):,} database images of other places); "
+                f"θ_p simple {detail.theta['simple']:.4f}, weighted {detail.theta['weighted']:.4f}, spread "
+                f"s_p {detail.spread:.4f}; automatic global θ {detail.auto:.4f}.")
+    st.plotly_chart(plots.mixture_figure(detail, k=v.k, user_theta=v.theta), key="place_mixture", width="stretch")
 
 
 def _controls(cur: Current) -> None:
@@ -115,15 +152,22 @@ def _map(cur: Current, fitted) -> None:
         if picked:
             state.update(frame=int(picked[0]))
 
-    fig = maps.layout_map(ds.database_xy, fitted.database_place, ds.query_xy, selected=q, radius=radius_of(ds),
-                          positives=positives, candidates=candidates, answer=answer,
+    shown = map_window(ds, fitted, q, np.r_[candidates, [answer] if answer >= 0 else []].astype(np.int64))
+    db_xy, db_place = ((ds.database_xy, fitted.database_place) if shown is None
+                       else (ds.database_xy[shown], fitted.database_place[shown]))
+    fig = maps.layout_map(db_xy, db_place, ds.query_xy, selected=q, radius=radius_of(ds),
+                          positives=positives if shown is None else np.searchsorted(shown, positives),
+                          candidates=candidates, answer=answer,
                           title=f"{fitted.n_places} places; query {q} with its radius and its {len(candidates)} best "
                                 "candidate places (outlined)")
     st.plotly_chart(fig, key="layout_map", on_select=pick, selection_mode="points", width="stretch")
     st.caption("Coloured dots: database images, one colour per place (colours repeat); grey: database images between "
                "places (skipped by group/step); ×: queries; ★: the selected query, the dashed circle its radius, green "
                "rings its positives; black outlines: its best candidate places by raw_p; red outline: the place the "
-               "paper's method answered. Plain metres, no map tiles.")
+               "paper's method answered. Plain metres, no map tiles."
+               + ("" if shown is None else f" Of the {ds.n_database:,} database images the map draws the "
+                  f"{MAP_DATABASE:,} nearest the selected query and its candidate places' ({len(shown):,} in all); "
+                  "choose another query to move the window."))
     if st.button("Open this query in the Query inspector", key="w_map_inspect", icon=":material/search:"):
         st.switch_page(page_file("inspector"))
 
@@ -162,6 +206,7 @@ def render(cur: Current) -> None:
                                          rejected={k: ov.rejected[k] for k in LIVE_METHODS},
                                          title="Recall@1 of the queries with a right place"),
                        key="recall_live", width="stretch")
+    _one_place(cur, fitted)
     if ds.database_xy is not None and ds.query_xy is not None:
         _map(cur, fitted)
     else:

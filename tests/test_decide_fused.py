@@ -1,0 +1,218 @@
+"""The fused decisions (``decide_traversal(fused=True)``) equal the straightforward path exactly.
+
+The fused path groups the database rows by place (``retrieval.PlaceLayout``), computes each
+block's similarities a piece of places at a time with their maxima (``layout_place_scores``)
+and reads back only the places that can change the image-level baseline
+(``score_layout_block``). Every rank, answer and image must equal those of
+``place_scores`` + ``score_queries`` on the same float32 similarities: checked on real
+GardensPoint and Nordland (whose tunnels are runs of byte-identical frames, so exact and
+near ties are real), and on adversarial score matrices, across block sizes, piece sizes and
+thread counts.
+
+Why decisions are equal, not merely close: on the shapes the app uses (pieces of
+``PIECE_ROWS`` database rows, blocks of two or more queries) each similarity is the same
+float32 number as ``similarity`` gives, bit for bit: one dot product, which a GEMM never
+splits, whichever operand comes first and however rows and columns are cut
+(``similarity_t`` is checked below, and on the 110k-image route by
+``benchmarks/bench_app_scale.py --move-only``). Every comparison is then made in the
+precision of the straightforward path (a place's tie floor raw − 1e-5 in float32, the
+image-level rank and answer floors in float64), so equal numbers give equal decisions.
+
+The tolerance rule covers the rest: tiny products (a single query, a few rows) go to other
+BLAS kernels, in both paths (the straightforward path's one-query block is not bit-equal to
+its 500-query block either), and move a score by a few ulp (~1e-7). Ranks, answers and
+images are then still equal unless two scores differ by 1e-5 ± 1e-7 or a score lies within
+1e-7 of its threshold (``retrieval`` module doc): the tests below with tiny pieces compare
+raw_p within 1e-6 and every decision exactly.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vpr_explorer import database
+from vpr_explorer.database import decide_traversal, fit_database
+from vpr_explorer.places import PlaceSpec, make_places
+from vpr_explorer.retrieval import (
+    PlaceLayout,
+    layout_place_scores,
+    place_scores,
+    score_layout_block,
+    score_queries,
+    similarity,
+    similarity_t,
+)
+
+FIELDS = ("rank", "answer_place", "answer_image", "n_kept")
+DEFAULT_PIECE_ROWS = database.PIECE_ROWS  # the app's pieces: similarities bit for bit
+
+
+def assert_same_decisions(a, b, exact_scores=True):
+    """Equal ranks, answers and images; raw_p bit for bit, or (``exact_scores=False``: tiny
+    products, where BLAS takes other kernels) within a few float32 ulp."""
+    if exact_scores:
+        np.testing.assert_array_equal(a.raw, b.raw)
+    else:
+        np.testing.assert_allclose(a.raw, b.raw, rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(a.best, b.best)
+    assert a.raw.dtype == b.raw.dtype and a.best.dtype == b.best.dtype
+    assert a.outcomes.keys() == b.outcomes.keys()
+    for key in a.outcomes:
+        for f in FIELDS:
+            x, y = getattr(a.outcomes[key], f), getattr(b.outcomes[key], f)
+            np.testing.assert_array_equal(x, y, err_msg=f"{key}.{f}")
+            assert x.dtype == y.dtype, (key, f)
+
+
+def assert_same_outcomes(a, b):
+    assert a.keys() == b.keys()
+    for key in a:
+        for f in FIELDS:
+            np.testing.assert_array_equal(getattr(a[key], f), getattr(b[key], f), err_msg=f"{key}.{f}")
+
+
+def layout_decisions(sims, db_places, n_places, th, correct, piece_rows):
+    """The fused path's retrieval steps on a given ``(n_queries, n_database)`` float32 matrix."""
+    layout = PlaceLayout.of(db_places, n_places)
+    scores_t = np.ascontiguousarray(sims.T[layout.order])
+    raw_t = np.empty((len(layout.places), sims.shape[0]), dtype=sims.dtype)
+    best_t = np.empty(raw_t.shape, dtype=np.int64)
+    for piece in layout.pieces(piece_rows):
+        layout_place_scores(scores_t, layout, piece, raw_t, best_t)
+    return score_layout_block(scores_t, layout, raw_t, best_t, th, correct, db_places)
+
+
+def test_similarity_t_is_the_same_float32_numbers(gp_pixels):
+    rng = np.random.default_rng(0)
+    q, db = gp_pixels[rng.choice(600, 37, replace=False)], gp_pixels[rng.permutation(600)[:411]]
+    reference = similarity(q, db)
+    np.testing.assert_array_equal(similarity_t(db, q), reference.T)
+    out = np.empty((100, 37), dtype=np.float32)
+    similarity_t(db[200:300], q, out=out)  # a piece: rows cut differently
+    np.testing.assert_array_equal(out, reference[:, 200:300].T)
+
+
+def test_layout_groups_each_place_in_index_order_and_runs_by_size():
+    places = np.array([4, 1, 1, 0, 4, 4, 2, 0, 1, 4, 6])
+    layout = PlaceLayout.of(places, 7)
+    np.testing.assert_array_equal(layout.places, [2, 6, 0, 1, 4])  # sizes 1, 1, 2, 3, 4
+    assert layout.runs == ((0, 0, 2, 1), (2, 2, 1, 2), (4, 3, 1, 3), (7, 4, 1, 4))
+    np.testing.assert_array_equal(layout.order, [6, 10, 3, 7, 1, 2, 8, 0, 4, 5, 9])
+    assert layout.pieces(2) == [(0, 0, 2, 1), (2, 2, 1, 2), (4, 3, 1, 3), (7, 4, 1, 4)]
+    assert layout.pieces(1) == [(0, 0, 1, 1), (1, 1, 1, 1), (2, 2, 1, 2), (4, 3, 1, 3), (7, 4, 1, 4)]
+    assert sum(n * k for _, _, n, k in layout.pieces(3)) == len(places)
+
+
+def adversarial(seed):
+    """Scores with exact ties, ties within 1e-5, near misses just beyond it, duplicates, places
+    of many sizes, queries with no right place and right places without database images."""
+    rng = np.random.default_rng(seed)
+    n_places = 40
+    sizes = rng.integers(0, 7, n_places)
+    db_places = rng.permutation(np.repeat(np.arange(n_places), sizes))
+    nq, n = 120, len(db_places)
+    levels = np.float32([0.9, 0.9 - 4e-6, 0.9 - 1e-5, 0.9 - 1.1e-5, 0.9 - 2e-5, 0.8, 0.5])
+    sims = levels[rng.integers(0, len(levels), (nq, n))]
+    sims += np.spacing(sims) * rng.integers(-2, 3, sims.shape).astype(np.float32)  # last-bit noise
+    spread = rng.random(sims.shape) < 0.3
+    sims[spread] = rng.uniform(0.1, 1.0, int(spread.sum()))
+    sims[:5] = sims[5]  # identical rows
+    sims[:, :3] = sims[:, [3]]  # identical database images
+    correct = rng.random((nq, n_places)) < 0.08
+    correct[10:14] = False  # between places
+    th = {
+        "simple": rng.uniform(0.5, 0.95, n_places),
+        "weighted": np.where(rng.random(n_places) < 0.1, np.nan, rng.uniform(0.5, 0.95, n_places)),
+        "auto": float(levels[2]),  # a threshold equal to a score: kept (raw >= θ)
+        "user": 0.85,
+    }
+    return sims.astype(np.float32), db_places, n_places, th, correct
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("piece_rows", [1, 5, 4096])
+def test_layout_scores_equal_place_scores_and_score_queries_on_ties(seed, piece_rows):
+    sims, db_places, n_places, th, correct = adversarial(seed)
+    raw, best = place_scores(sims, db_places, n_places)
+    expected = score_queries(sims, db_places, n_places, th, correct, raw_best=(raw, best))
+    raw2, best2, got = layout_decisions(sims, db_places, n_places, th, correct, piece_rows)
+    np.testing.assert_array_equal(raw2, raw)
+    np.testing.assert_array_equal(best2, best)
+    assert_same_outcomes(got, expected)
+    # the ties are there: some image-level ranks > 1 come from scores within 1e-5, and
+    # some places' best image is not their argmax
+    assert (expected["image-baseline"].rank > 1).any() and np.isinf(expected["image-baseline"].rank).any()
+    argmax = np.full_like(best, -1)
+    order = np.argsort(db_places, kind="stable")
+    for p in np.unique(db_places):
+        cols = order[db_places[order] == p]
+        argmax[:, p] = cols[np.argmax(sims[:, cols], axis=1)]
+    assert ((best != argmax) & (best >= 0)).any()
+
+
+def test_layout_scores_with_a_small_chunk_of_candidates():
+    sims, db_places, n_places, th, correct = adversarial(0)
+    layout = PlaceLayout.of(db_places, n_places)
+    scores_t = np.ascontiguousarray(sims.T[layout.order])
+    raw_t = np.empty((len(layout.places), sims.shape[0]), dtype=np.float32)
+    best_t = np.empty(raw_t.shape, dtype=np.int64)
+    for piece in layout.pieces(7):
+        layout_place_scores(scores_t, layout, piece, raw_t, best_t)
+    expected = score_queries(sims, db_places, n_places, th, correct)
+    _, _, got = score_layout_block(scores_t, layout, raw_t, best_t, th, correct, db_places, max_elems=3)
+    assert_same_outcomes(got, expected)
+
+
+@pytest.fixture(scope="module")
+def gp_model(gardens_point, gp_pixels):
+    places = make_places(gardens_point, PlaceSpec(3, 5))
+    return places, fit_database(gp_pixels, gardens_point, places, ["day_left", "day_right"])
+
+
+@pytest.mark.parametrize("block, threads, piece_rows", [(4096, None, 2048), (7, 2, 4), (64, 1, 64), (200, 3, 1)])
+def test_gardens_point_fused_equals_straightforward(monkeypatch, gardens_point, gp_pixels, gp_model, block, threads,
+                                                    piece_rows):
+    places, model = gp_model
+    expected = decide_traversal(model, gp_pixels, gardens_point, places, "night_right", k=1.0, user_theta=0.6,
+                                fused=False)
+    monkeypatch.setattr(database, "PIECE_ROWS", piece_rows)
+    got = decide_traversal(model, gp_pixels, gardens_point, places, "night_right", k=1.0, user_theta=0.6,
+                           block=block, threads=threads, fused=True)
+    assert_same_decisions(got, expected, exact_scores=piece_rows == DEFAULT_PIECE_ROWS)
+
+
+def test_float16_descriptors_fused_equals_straightforward(gardens_point, gp_pixels, gp_model):
+    # descriptors held as float16 (``--dtype float16``): both paths convert them to float32 exactly
+    places, model = gp_model
+    d = gp_pixels.astype(np.float16)
+    expected = decide_traversal(model, d, gardens_point, places, "night_right", fused=False)
+    got = decide_traversal(model, d, gardens_point, places, "night_right", fused=True)
+    assert_same_decisions(got, expected)
+
+
+def test_a_nan_query_takes_the_straightforward_path(gardens_point, gp_pixels, gp_model):
+    places, model = gp_model
+    d = gp_pixels.copy()
+    d[gardens_point.image_index("night_right", 7)] = np.nan
+    frames = np.arange(0, 200, 3)
+    expected = decide_traversal(model, d, gardens_point, places, "night_right", frames=frames, fused=False)
+    got = decide_traversal(model, d, gardens_point, places, "night_right", frames=frames, block=10, fused=True)
+    assert_same_decisions(got, expected)
+
+
+def test_nordland_tunnels_fused_equals_straightforward(data_root):
+    # Nordland's tunnels are runs of byte-identical frames: ties at 1.0 and within 1e-5
+    from vpr_explorer.datasets import load_dataset
+    from vpr_explorer.pipeline import dataset_descriptors
+
+    dataset = load_dataset(data_root / "Nordland_64x32")
+    d = dataset_descriptors(dataset, "pixels")
+    places = make_places(dataset, PlaceSpec(3, 3))
+    model = fit_database(d, dataset, places, ["summer"])
+    frames = np.arange(0, dataset.n_frames, 2)
+    expected = decide_traversal(model, d, dataset, places, "winter", frames=frames, fused=False)
+    got = decide_traversal(model, d, dataset, places, "winter", frames=frames, block=512, fused=True)
+    assert_same_decisions(got, expected)
+    image = expected.outcomes["image-baseline"]
+    assert (np.isfinite(image.rank) & (image.rank > 1)).any()
