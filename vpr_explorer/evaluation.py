@@ -736,6 +736,110 @@ def traversal_protocol(
 # --------------------------------------------------------------------------- database and queries with a relation
 
 
+class RetrievalTally:
+    """The database/queries protocol's outcomes, block of queries by block, and the table they make.
+
+    Shared by ``retrieval_protocol`` and ``retrieval_views.evaluate_fitted`` (a memory-mapped
+    database): they differ in how a block's scores and its image-level answers are computed,
+    not in what is counted.
+
+    Args:
+        th: the thresholds (``_thresholds``' dict); the oracle θ is added by ``table``.
+        placed, labels: database positions of the images in a place, and their places.
+        n_queries: queries in all; with ``pr``, every query's raw_p is kept up to ``PR_RAW_CELLS``.
+    """
+
+    def __init__(self, th: dict, n_places: int, placed: np.ndarray, labels: np.ndarray, *, n_queries: int,
+                 pr: bool) -> None:
+        self.th, self.n_places, self.placed, self.labels, self.pr = th, n_places, placed, labels, pr
+        self.place_methods = tuple(m for m in METHODS_BY_KEY.values() if m.level == "place" and m.key != "global-oracle"
+                                   and (m.threshold is None or m.threshold in th))
+        self.keep_raw = pr and n_queries * n_places <= PR_RAW_CELLS
+        self.n_queries = n_queries
+        self.parts: dict[str, list[Outcome]] = {}
+        self.tops: list[np.ndarray] = []
+        self.bests: list[np.ndarray] = []
+        self.base_right: list[np.ndarray] = []
+        self.place_known: list[np.ndarray] = []
+        self.raws: list[np.ndarray] = []
+        self.corrects: list[np.ndarray] = []
+        self.image_tops: list[np.ndarray] = []
+
+    def add(self, sims: np.ndarray, correct: np.ndarray, image: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+        """One block of queries: ``sims`` ``(rows, n_database)``, ``correct`` ``(rows, n_places)`` their right
+        places, ``image`` their image-level (answer, rank, top score) over every database image."""
+        sims_placed = sims[:, self.placed]
+        raw, best = place_scores(sims_placed, self.labels, self.n_places)
+        out = score_queries(sims_placed, self.labels, self.n_places, self.th, correct, self.place_methods,
+                            raw_best=(raw, best))
+        for key, o in out.items():  # answers as database positions
+            img = np.where(o.answer_image >= 0, self.placed[np.maximum(o.answer_image, 0)], -1)
+            self.parts.setdefault(key, []).append(Outcome(o.method, o.rank, o.answer_place, img, o.n_kept))
+        answer, rank, top = image
+        self.parts.setdefault("image-baseline", []).append(Outcome(
+            METHODS_BY_KEY["image-baseline"], rank, answer, answer, np.full(len(sims), sims.shape[1])))
+        self.n_database = sims.shape[1]
+        self.tops.append(raw.max(axis=1))
+        self.bests.append(np.where(correct, raw, -np.inf).max(axis=1))
+        if self.pr:
+            self.image_tops.append(top)
+        if self.keep_raw:  # raw_p is a float32 score: exact in float32
+            self.raws.append(raw.astype(np.float32))
+            self.corrects.append(correct)
+        self.base_right.append(out["place-baseline"].rank == 1)
+        self.place_known.append(correct.any(axis=1))
+
+    def table(self, known_any: np.ndarray, spread: np.ndarray, k_ad: np.ndarray, ks: tuple[int, ...]):
+        """``(rows, pr_rows, pr_curves, notes, scored)`` once every query is added; ``known_any``: each query
+        has a positive at all (``GroundTruth.known``); ``scored``: the queries the place level counts."""
+        th, n_places = self.th, self.n_places
+        outcomes = {key: Outcome(ps[0].method, *(np.concatenate([getattr(p, f) for p in ps])
+                                                 for f in ("rank", "answer_place", "answer_image", "n_kept")))
+                    for key, ps in self.parts.items()}
+        known = np.concatenate(self.place_known)
+        top = np.concatenate(self.tops)
+        # place level: queries whose positives all lie outside places are left out (as the traversal
+        # protocol leaves out frames between places); queries with no positive at all stay, as unknown
+        scored = known | ~known_any
+        th["oracle"] = oracle_global_threshold(top[scored], np.concatenate(self.base_right)[scored], known[scored])
+        base = outcomes["place-baseline"]
+        # the raw rule with one θ: the right place stays iff its raw ≥ θ, and then so does every place
+        # above it, so the rank is the baseline's; the top answer stays iff it is ≥ θ
+        acc = top >= th["oracle"]
+        outcomes["global-oracle"] = Outcome(METHODS_BY_KEY["global-oracle"],
+                                            np.where(np.concatenate(self.bests) >= th["oracle"], base.rank, np.inf),
+                                            np.where(acc, base.answer_place, -1), np.where(acc, base.answer_image, -1),
+                                            base.n_kept)
+        order = ["image-baseline", *[m.key for m in self.place_methods], "global-oracle"]
+        outcomes = {k: outcomes[k] for k in order}
+        empty = np.empty((0, n_places))
+
+        def summary(outs: dict[str, Outcome], known_rows: np.ndarray) -> tuple[MethodRow, ...]:
+            split = SplitScores(outs, empty, empty.astype(np.int64), empty.astype(bool), known_rows,
+                                np.zeros(len(known_rows), dtype=np.int64), np.ones(self.n_database, dtype=np.int64),
+                                th, spread, k_ad)
+            return _summarise([split], ks, own_traversal=False)
+
+        place_outs = {k: Outcome(o.method, o.rank[scored], o.answer_place[scored], o.answer_image[scored],
+                                 o.n_kept[scored]) for k, o in outcomes.items()}
+        rows_ = list(summary(place_outs, known[scored]))
+        rows_[0] = summary(outcomes, known_any)[0]  # the image level counts every query
+        pr_rows_, pr_curves, notes = (), {}, []
+        if self.pr:
+            image_rows, image_curves = pr_rows([PRSplit({"image-baseline": outcomes["image-baseline"]}, known_any,
+                                                        np.concatenate(self.image_tops))])
+            raws = np.concatenate(self.raws)[scored] if self.keep_raw else None
+            corrects = np.concatenate(self.corrects)[scored] if self.keep_raw else None
+            place_rows, place_curves = pr_rows([PRSplit(
+                {k: o for k, o in place_outs.items() if k != "image-baseline"}, known[scored], top[scored],
+                raws, corrects, th, spread)])
+            pr_rows_, pr_curves = (*image_rows, *place_rows), {**image_curves, **place_curves}
+            if not self.keep_raw:
+                notes.append(f"precision–recall of the per-place methods left out: {self.n_queries:,} queries × "
+                             f"{n_places:,} places exceed {PR_RAW_CELLS:,} raw_p cells")
+        return tuple(rows_), pr_rows_, pr_curves, notes, scored
+
+
 def retrieval_protocol(
     database: np.ndarray,
     queries: np.ndarray,
@@ -788,90 +892,25 @@ def retrieval_protocol(
                             "lower group or step")
     labels = database_place[placed]
     th, spread, k_ad = _thresholds(db[placed], labels, n_places, user_theta=user_theta, seed=0)
-    place_methods = tuple(m for m in METHODS_BY_KEY.values()
-                          if m.level == "place" and m.key != "global-oracle" and (m.threshold is None or m.threshold in th))
-    parts: dict[str, list[Outcome]] = {}
-    tops, bests, base_right, place_known = [], [], [], []
-    keep_raw = pr and len(q) * n_places <= PR_RAW_CELLS
-    raws, corrects, image_tops = [], [], []
+    tally = RetrievalTally(th, n_places, placed, labels, n_queries=len(q), pr=pr)
     for lo in range(0, len(q), block):
         rows = np.arange(lo, min(lo + block, len(q)))
         sims = similarity(q[rows], db)
-        correct = ground_truth.places(database_place, n_places, rows)
-        sims_placed = sims[:, placed]
-        raw, best = place_scores(sims_placed, labels, n_places)
-        out = score_queries(sims_placed, labels, n_places, th, correct, place_methods, raw_best=(raw, best))
-        for key, o in out.items():  # answers as database positions
-            img = np.where(o.answer_image >= 0, placed[np.maximum(o.answer_image, 0)], -1)
-            parts.setdefault(key, []).append(Outcome(o.method, o.rank, o.answer_place, img, o.n_kept))
-        image_correct = ground_truth.dense(rows)
         img_scores = np.asarray(sims, dtype=np.float64)
-        img = top_answer(img_scores)
         # the image level answers with a database image, in a place or not: its "place" here is that image
-        parts.setdefault("image-baseline", []).append(Outcome(
-            METHODS_BY_KEY["image-baseline"], pessimistic_rank(img_scores, image_correct), img, img,
-            np.full(len(rows), len(db))))
-        tops.append(raw.max(axis=1))
-        bests.append(np.where(correct, raw, -np.inf).max(axis=1))
-        if pr:
-            image_tops.append(img_scores.max(axis=1))
-        if keep_raw:  # raw_p is a float32 score: exact in float32
-            raws.append(raw.astype(np.float32))
-            corrects.append(correct)
-        base_right.append(out["place-baseline"].rank == 1)
-        place_known.append(correct.any(axis=1))
+        tally.add(sims, ground_truth.places(database_place, n_places, rows),
+                  (top_answer(img_scores), pessimistic_rank(img_scores, ground_truth.dense(rows)),
+                   img_scores.max(axis=1)))
         if progress:
             progress(int(rows[-1]) + 1, len(q), f"queries {int(rows[-1]) + 1}/{len(q)}")
-    outcomes = {key: Outcome(ps[0].method, *(np.concatenate([getattr(p, f) for p in ps])
-                                             for f in ("rank", "answer_place", "answer_image", "n_kept")))
-                for key, ps in parts.items()}
-    known = np.concatenate(place_known)
-    top = np.concatenate(tops)
-    # place level: queries whose positives all lie outside places are left out (as the traversal
-    # protocol leaves out frames between places); queries with no positive at all stay, as unknown
-    scored = known | ~ground_truth.known
-    th["oracle"] = oracle_global_threshold(top[scored], np.concatenate(base_right)[scored], known[scored])
-    base = outcomes["place-baseline"]
-    # the raw rule with one θ: the right place stays iff its raw ≥ θ, and then so does every place
-    # above it, so the rank is the baseline's; the top answer stays iff it is ≥ θ
-    acc = top >= th["oracle"]
-    outcomes["global-oracle"] = Outcome(METHODS_BY_KEY["global-oracle"],
-                                        np.where(np.concatenate(bests) >= th["oracle"], base.rank, np.inf),
-                                        np.where(acc, base.answer_place, -1), np.where(acc, base.answer_image, -1),
-                                        base.n_kept)
-    order = ["image-baseline", *[m.key for m in place_methods], "global-oracle"]
-    outcomes = {k: outcomes[k] for k in order}
-    empty = np.empty((0, n_places))
-
-    def summary(outs: dict[str, Outcome], known_rows: np.ndarray) -> tuple[MethodRow, ...]:
-        split = SplitScores(outs, empty, empty.astype(np.int64), empty.astype(bool), known_rows,
-                            np.zeros(len(known_rows), dtype=np.int64), np.ones(len(db), dtype=np.int64), th, spread,
-                            k_ad)
-        return _summarise([split], ks, own_traversal=False)
-
-    place_outs = {k: Outcome(o.method, o.rank[scored], o.answer_place[scored], o.answer_image[scored],
-                             o.n_kept[scored]) for k, o in outcomes.items()}
-    rows_ = list(summary(place_outs, known[scored]))
-    rows_[0] = summary(outcomes, ground_truth.known)[0]  # the image level counts every query
-    pr_rows_, pr_curves, notes = (), {}, []
-    if pr:
-        image_rows, image_curves = pr_rows([PRSplit({"image-baseline": outcomes["image-baseline"]}, ground_truth.known,
-                                                    np.concatenate(image_tops))])
-        place_rows, place_curves = pr_rows([PRSplit(
-            {k: o for k, o in place_outs.items() if k != "image-baseline"}, known[scored], top[scored],
-            np.concatenate(raws)[scored] if keep_raw else None, np.concatenate(corrects)[scored] if keep_raw else None,
-            th, spread)])
-        pr_rows_, pr_curves = (*image_rows, *place_rows), {**image_curves, **place_curves}
-        if not keep_raw:
-            notes.append(f"precision–recall of the per-place methods left out: {len(q):,} queries × {n_places:,} "
-                         f"places exceed {PR_RAW_CELLS:,} raw_p cells")
+    rows_, pr_rows_, pr_curves, notes, scored = tally.table(ground_truth.known, spread, k_ad, ks)
     return Evaluation(
         protocol=Protocol.DATABASE,
         settings={**(settings or {}), "ground_truth": ground_truth.description, "queries": int(len(q)),
                   "database_images": int(len(db)), "database_images_in_places": int(len(placed)),
                   "queries_without_positive": int(ground_truth.n_unknown),
                   "queries_between_places": int((~scored).sum())},
-        ks=ks, rows=tuple(rows_), seconds=time.perf_counter() - t0, pr=pr_rows_, pr_curves=pr_curves,
+        ks=ks, rows=rows_, seconds=time.perf_counter() - t0, pr=pr_rows_, pr_curves=pr_curves,
         notes=("image level: a query counts at K when one of its top K database images is a positive; place "
                "level: when the top K places hold one", *notes),
     )

@@ -29,21 +29,11 @@ import numpy as np
 
 from vpr_explorer.database import DatabaseModel, database_rows
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.evaluation import (
-    KS,
-    PR_RAW_CELLS,
-    Evaluation,
-    Protocol,
-    SplitScores,
-    _summarise,
-    oracle_global_threshold,
-)
+from vpr_explorer.evaluation import KS, Evaluation, Protocol, RetrievalTally
 from vpr_explorer.layouts import Layout, RetrievalDataset
 from vpr_explorer.pipeline import retrieval_places
 from vpr_explorer.places import GEOMETRY_LABELS, MetricPlaceSpec, PlaceGeometry, PlaceSpec
-from vpr_explorer.precision_recall import PRSplit, pr_rows
 from vpr_explorer.retrieval import (
-    METHODS_BY_KEY,
     TIE_TOLERANCE,
     Outcome,
     QueryDecision,
@@ -421,80 +411,19 @@ def evaluate_fitted(fitted: RetrievalFitted, descriptors: np.ndarray, *, user_th
         th["user"] = float(user_theta)
     spread = model.spread
     k_ad = adaptive_k(model.positive_mean, model.negative_mean, spread)
-    place_methods = tuple(m for m in METHODS_BY_KEY.values() if m.level == "place" and m.key != "global-oracle"
-                          and (m.threshold is None or m.threshold in th))
-    parts: dict[str, list[Outcome]] = {}
-    tops, bests, base_right, place_known = [], [], [], []
-    keep_raw = pr and n_q * n_places <= PR_RAW_CELLS
-    raws, corrects, image_tops = [], [], []
+    tally = RetrievalTally(th, n_places, placed, labels, n_queries=n_q, pr=pr)
     block = max(EVAL_ROWS, score_elems // max(1, n_db))
     for b0 in range(0, n_q, block):
         sims_block = score_rows(descriptors, n_db + np.arange(b0, min(b0 + block, n_q)), n_db)
         for lo in range(b0, min(b0 + block, n_q), EVAL_ROWS):
             rows = np.arange(lo, min(lo + EVAL_ROWS, b0 + len(sims_block), n_q))
             sims = sims_block[rows - b0]
-            correct = gt.places(database_place, n_places, rows)
-            sims_placed = sims[:, placed]
-            raw, best = place_scores(sims_placed, labels, n_places)
-            out = score_queries(sims_placed, labels, n_places, th, correct, place_methods, raw_best=(raw, best))
-            for key, o in out.items():  # answers as database positions
-                img = np.where(o.answer_image >= 0, placed[np.maximum(o.answer_image, 0)], -1)
-                parts.setdefault(key, []).append(Outcome(o.method, o.rank, o.answer_place, img, o.n_kept))
-            img, img_rank, img_top = image_level(sims, gt, rows)
-            parts.setdefault("image-baseline", []).append(Outcome(
-                METHODS_BY_KEY["image-baseline"], img_rank, img, img, np.full(len(rows), n_db)))
-            tops.append(raw.max(axis=1))
-            bests.append(np.where(correct, raw, -np.inf).max(axis=1))
-            if pr:
-                image_tops.append(img_top)
-            if keep_raw:
-                raws.append(raw.astype(np.float32))
-                corrects.append(correct)
-            base_right.append(out["place-baseline"].rank == 1)
-            place_known.append(correct.any(axis=1))
+            tally.add(sims, gt.places(database_place, n_places, rows), image_level(sims, gt, rows))
         del sims_block
         if progress:
             done = min(b0 + block, n_q)
             progress(done, n_q, f"queries {done}/{n_q}")
-    outcomes = {key: Outcome(ps[0].method, *(np.concatenate([getattr(p, f) for p in ps])
-                                             for f in ("rank", "answer_place", "answer_image", "n_kept")))
-                for key, ps in parts.items()}
-    known = np.concatenate(place_known)
-    top = np.concatenate(tops)
-    scored = known | ~gt.known
-    th["oracle"] = oracle_global_threshold(top[scored], np.concatenate(base_right)[scored], known[scored])
-    base = outcomes["place-baseline"]
-    acc = top >= th["oracle"]
-    outcomes["global-oracle"] = Outcome(METHODS_BY_KEY["global-oracle"],
-                                        np.where(np.concatenate(bests) >= th["oracle"], base.rank, np.inf),
-                                        np.where(acc, base.answer_place, -1), np.where(acc, base.answer_image, -1),
-                                        base.n_kept)
-    order = ["image-baseline", *[m.key for m in place_methods], "global-oracle"]
-    outcomes = {k: outcomes[k] for k in order}
-    empty = np.empty((0, n_places))
-
-    def summary(outs: dict[str, Outcome], known_rows: np.ndarray):
-        split = SplitScores(outs, empty, empty.astype(np.int64), empty.astype(bool), known_rows,
-                            np.zeros(len(known_rows), dtype=np.int64), np.ones(n_db, dtype=np.int64), th, spread,
-                            k_ad)
-        return _summarise([split], KS, own_traversal=False)
-
-    place_outs = {k: Outcome(o.method, o.rank[scored], o.answer_place[scored], o.answer_image[scored],
-                             o.n_kept[scored]) for k, o in outcomes.items()}
-    rows_ = list(summary(place_outs, known[scored]))
-    rows_[0] = summary(outcomes, gt.known)[0]  # the image level counts every query
-    pr_rows_, pr_curves, notes = (), {}, []
-    if pr:
-        image_rows, image_curves = pr_rows([PRSplit({"image-baseline": outcomes["image-baseline"]}, gt.known,
-                                                    np.concatenate(image_tops))])
-        place_rows, place_curves = pr_rows([PRSplit(
-            {k: o for k, o in place_outs.items() if k != "image-baseline"}, known[scored], top[scored],
-            np.concatenate(raws)[scored] if keep_raw else None, np.concatenate(corrects)[scored] if keep_raw else None,
-            th, spread)])
-        pr_rows_, pr_curves = (*image_rows, *place_rows), {**image_curves, **place_curves}
-        if not keep_raw:
-            notes.append(f"precision–recall of the per-place methods left out: {n_q:,} queries × {n_places:,} "
-                         f"places exceed {PR_RAW_CELLS:,} raw_p cells")
+    rows_, pr_rows_, pr_curves, notes, scored = tally.table(gt.known, spread, k_ad, KS)
     notes.append("thresholds from the explorer's fit of these places (float32 closed-form products; the command "
                  "line's protocol uses float64 ones, within the bound of stats.sigma_sq_error_bound); descriptors "
                  f"read as {np.dtype(descriptors.dtype).name} a block at a time")
@@ -504,7 +433,7 @@ def evaluate_fitted(fitted: RetrievalFitted, descriptors: np.ndarray, *, user_th
                   "database_images": int(n_db), "database_images_in_places": int(len(placed)),
                   "queries_without_positive": int(gt.n_unknown),
                   "queries_between_places": int((~scored).sum())},
-        ks=KS, rows=tuple(rows_), seconds=time.perf_counter() - t0, pr=pr_rows_, pr_curves=pr_curves,
+        ks=KS, rows=rows_, seconds=time.perf_counter() - t0, pr=pr_rows_, pr_curves=pr_curves,
         notes=("image level: a query counts at K when one of its top K database images is a positive; place "
                "level: when the top K places hold one", *notes),
     )
