@@ -691,6 +691,18 @@ def mixture_pdf(x: np.ndarray, mu: np.ndarray, sigma: np.ndarray, weights: np.nd
     return dens @ np.asarray(weights, dtype=np.float64)
 
 
+def _mean_positive(sums: np.ndarray, sq: np.ndarray, labels: np.ndarray, counts: np.ndarray,
+                   n_places: int) -> np.ndarray:
+    """``(n_places,)`` mean same-place score from each place's descriptor sum and each image's squared norm:
+    (‖Σ d‖² − Σ ‖d‖²) / (n(n − 1)); NaN for a place with fewer than two images."""
+    norms = np.bincount(labels, weights=sq, minlength=n_places)
+    pairs = counts * (counts - 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = (np.einsum("ij,ij->i", sums, sums) - norms) / pairs
+    out[pairs == 0] = np.nan
+    return out
+
+
 def positive_means(
     descriptors: np.ndarray, labels: np.ndarray, n_places: int, *, threads: int | None = None
 ) -> np.ndarray:
@@ -727,12 +739,7 @@ def positive_means(
                 sums[band] += part[band] @ x  # each place's row of the product is computed alone
 
             list(pool.map(band_sums, bands))
-    norms = np.bincount(labels, weights=sq, minlength=n_places)
-    pairs = counts * (counts - 1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        out = (np.einsum("ij,ij->i", sums, sums) - norms) / pairs
-    out[pairs == 0] = np.nan
-    return out
+    return _mean_positive(sums, sq, labels, counts, n_places)
 
 
 # --------------------------------------------------------------------------- rows of a large (memory-mapped) matrix
@@ -828,9 +835,4 @@ def positive_means_rows(descriptors: np.ndarray, rows: np.ndarray | None, labels
                                  shape=(n_places, len(x)))
         sums += part @ x
         sq[lo : lo + len(x)] = np.einsum("ij,ij->i", x, x)
-    norms = np.bincount(labels, weights=sq, minlength=n_places)
-    pairs = counts * (counts - 1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        out = (np.einsum("ij,ij->i", sums, sums) - norms) / pairs
-    out[pairs == 0] = np.nan
-    return out
+    return _mean_positive(sums, sq, labels, counts, n_places)
