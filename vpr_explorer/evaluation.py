@@ -746,16 +746,17 @@ class RetrievalTally:
     Args:
         th: the thresholds (``_thresholds``' dict); the oracle θ is added by ``table``.
         placed, labels: database positions of the images in a place, and their places.
-        n_queries: queries in all; with ``pr``, every query's raw_p is kept up to ``PR_RAW_CELLS``.
+        n_queries, n_database: queries and database images in all; with ``pr``, every query's raw_p is
+            kept up to ``PR_RAW_CELLS``.
     """
 
     def __init__(self, th: dict, n_places: int, placed: np.ndarray, labels: np.ndarray, *, n_queries: int,
-                 pr: bool) -> None:
+                 n_database: int, pr: bool) -> None:
         self.th, self.n_places, self.placed, self.labels, self.pr = th, n_places, placed, labels, pr
         self.place_methods = tuple(m for m in METHODS_BY_KEY.values() if m.level == "place" and m.key != "global-oracle"
                                    and (m.threshold is None or m.threshold in th))
         self.keep_raw = pr and n_queries * n_places <= PR_RAW_CELLS
-        self.n_queries = n_queries
+        self.n_queries, self.n_database = n_queries, n_database
         self.parts: dict[str, list[Outcome]] = {}
         self.tops: list[np.ndarray] = []
         self.bests: list[np.ndarray] = []
@@ -777,8 +778,7 @@ class RetrievalTally:
             self.parts.setdefault(key, []).append(Outcome(o.method, o.rank, o.answer_place, img, o.n_kept))
         answer, rank, top = image
         self.parts.setdefault("image-baseline", []).append(Outcome(
-            METHODS_BY_KEY["image-baseline"], rank, answer, answer, np.full(len(sims), sims.shape[1])))
-        self.n_database = sims.shape[1]
+            METHODS_BY_KEY["image-baseline"], rank, answer, answer, np.full(len(sims), self.n_database)))
         self.tops.append(raw.max(axis=1))
         self.bests.append(np.where(correct, raw, -np.inf).max(axis=1))
         if self.pr:
@@ -789,7 +789,23 @@ class RetrievalTally:
         self.base_right.append(out["place-baseline"].rank == 1)
         self.place_known.append(correct.any(axis=1))
 
-    def table(self, known_any: np.ndarray, spread: np.ndarray, k_ad: np.ndarray, ks: tuple[int, ...]):
+    def evaluation(self, ground_truth: GroundTruth, spread: np.ndarray, k_ad: np.ndarray, ks: tuple[int, ...], *,
+                   settings: dict | None, started: float, notes: Sequence[str] = ()) -> Evaluation:
+        """The protocol's ``Evaluation`` once every query is added (``started``: its ``time.perf_counter()``;
+        ``notes``: the caller's, after the table's own)."""
+        rows_, pr_rows_, pr_curves, own, scored = self._table(ground_truth.known, spread, k_ad, ks)
+        return Evaluation(
+            protocol=Protocol.DATABASE,
+            settings={**(settings or {}), "ground_truth": ground_truth.description, "queries": int(self.n_queries),
+                      "database_images": int(self.n_database), "database_images_in_places": int(len(self.placed)),
+                      "queries_without_positive": int(ground_truth.n_unknown),
+                      "queries_between_places": int((~scored).sum())},
+            ks=ks, rows=rows_, seconds=time.perf_counter() - started, pr=pr_rows_, pr_curves=pr_curves,
+            notes=("image level: a query counts at K when one of its top K database images is a positive; place "
+                   "level: when the top K places hold one", *own, *notes),
+        )
+
+    def _table(self, known_any: np.ndarray, spread: np.ndarray, k_ad: np.ndarray, ks: tuple[int, ...]):
         """``(rows, pr_rows, pr_curves, notes, scored)`` once every query is added; ``known_any``: each query
         has a positive at all (``GroundTruth.known``); ``scored``: the queries the place level counts."""
         th, n_places = self.th, self.n_places
@@ -892,7 +908,7 @@ def retrieval_protocol(
                             "lower group or step")
     labels = database_place[placed]
     th, spread, k_ad = _thresholds(db[placed], labels, n_places, user_theta=user_theta, seed=0)
-    tally = RetrievalTally(th, n_places, placed, labels, n_queries=len(q), pr=pr)
+    tally = RetrievalTally(th, n_places, placed, labels, n_queries=len(q), n_database=len(db), pr=pr)
     for lo in range(0, len(q), block):
         rows = np.arange(lo, min(lo + block, len(q)))
         sims = similarity(q[rows], db)
@@ -903,14 +919,4 @@ def retrieval_protocol(
                    img_scores.max(axis=1)))
         if progress:
             progress(int(rows[-1]) + 1, len(q), f"queries {int(rows[-1]) + 1}/{len(q)}")
-    rows_, pr_rows_, pr_curves, notes, scored = tally.table(ground_truth.known, spread, k_ad, ks)
-    return Evaluation(
-        protocol=Protocol.DATABASE,
-        settings={**(settings or {}), "ground_truth": ground_truth.description, "queries": int(len(q)),
-                  "database_images": int(len(db)), "database_images_in_places": int(len(placed)),
-                  "queries_without_positive": int(ground_truth.n_unknown),
-                  "queries_between_places": int((~scored).sum())},
-        ks=ks, rows=rows_, seconds=time.perf_counter() - t0, pr=pr_rows_, pr_curves=pr_curves,
-        notes=("image level: a query counts at K when one of its top K database images is a positive; place "
-               "level: when the top K places hold one", *notes),
-    )
+    return tally.evaluation(ground_truth, spread, k_ad, ks, settings=settings, started=t0)

@@ -29,7 +29,7 @@ import numpy as np
 
 from vpr_explorer.database import DatabaseModel, database_rows
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.evaluation import KS, Evaluation, Protocol, RetrievalTally
+from vpr_explorer.evaluation import KS, Evaluation, RetrievalTally
 from vpr_explorer.layouts import Layout, RetrievalDataset
 from vpr_explorer.pipeline import retrieval_places
 from vpr_explorer.places import GEOMETRY_LABELS, MetricPlaceSpec, PlaceGeometry, PlaceSpec
@@ -45,7 +45,6 @@ from vpr_explorer.retrieval import (
 from vpr_explorer.stats import CHECK_ELEMS, RowsOf, mixture_moments, negative_stats_rows, positive_means_rows
 from vpr_explorer.thresholds import (
     ThresholdMethod,
-    adaptive_k,
     auto_global_threshold,
     place_thresholds,
     training_pair_scores,
@@ -409,9 +408,7 @@ def evaluate_fitted(fitted: RetrievalFitted, descriptors: np.ndarray, *, user_th
                 ThresholdMethod.WEIGHTED.value: model.theta[ThresholdMethod.WEIGHTED.value], "auto": model.auto}
     if user_theta is not None:
         th["user"] = float(user_theta)
-    spread = model.spread
-    k_ad = adaptive_k(model.positive_mean, model.negative_mean, spread)
-    tally = RetrievalTally(th, n_places, placed, labels, n_queries=n_q, pr=pr)
+    tally = RetrievalTally(th, n_places, placed, labels, n_queries=n_q, n_database=n_db, pr=pr)
     block = max(EVAL_ROWS, score_elems // max(1, n_db))
     for b0 in range(0, n_q, block):
         sims_block = score_rows(descriptors, n_db + np.arange(b0, min(b0 + block, n_q)), n_db)
@@ -423,20 +420,10 @@ def evaluate_fitted(fitted: RetrievalFitted, descriptors: np.ndarray, *, user_th
         if progress:
             done = min(b0 + block, n_q)
             progress(done, n_q, f"queries {done}/{n_q}")
-    rows_, pr_rows_, pr_curves, notes, scored = tally.table(gt.known, spread, k_ad, KS)
-    notes.append("thresholds from the explorer's fit of these places (float32 closed-form products; the command "
-                 "line's protocol uses float64 ones, within the bound of stats.sigma_sq_error_bound); descriptors "
-                 f"read as {np.dtype(descriptors.dtype).name} a block at a time")
-    return Evaluation(
-        protocol=Protocol.DATABASE,
-        settings={**(settings or {}), "ground_truth": gt.description, "queries": int(n_q),
-                  "database_images": int(n_db), "database_images_in_places": int(len(placed)),
-                  "queries_without_positive": int(gt.n_unknown),
-                  "queries_between_places": int((~scored).sum())},
-        ks=KS, rows=rows_, seconds=time.perf_counter() - t0, pr=pr_rows_, pr_curves=pr_curves,
-        notes=("image level: a query counts at K when one of its top K database images is a positive; place "
-               "level: when the top K places hold one", *notes),
-    )
+    return tally.evaluation(gt, model.spread, model.k_adaptive, KS, settings=settings, started=t0, notes=(
+        "thresholds from the explorer's fit of these places (float32 closed-form products; the command line's "
+        "protocol uses float64 ones, within the bound of stats.sigma_sq_error_bound); descriptors read as "
+        f"{np.dtype(descriptors.dtype).name} a block at a time",))
 
 
 @dataclass(frozen=True, eq=False)

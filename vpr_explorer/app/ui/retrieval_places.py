@@ -44,7 +44,9 @@ def map_window(ds, fitted, query: int, places: np.ndarray) -> np.ndarray | None:
     return np.union1d(near, np.flatnonzero(np.isin(fitted.database_place, places)))
 
 
-@st.cache_data(show_spinner="Scoring the place's images…", max_entries=8)
+# a resource (returned as is, never mutated): its negative scores are n_p × the database images in
+# places (millions of floats on a large database), which st.cache_data would copy on every rerun
+@st.cache_resource(show_spinner="Scoring the place's images…", max_entries=8)
 def _place_detail(key: str, places: tuple, place: int, _data, _fitted):
     return retrieval_views.place_detail(_fitted, _data.descriptors, place)
 
