@@ -22,7 +22,11 @@ Against the machine's limit (issue 13): the BLAS kernel in use and numpy's float
 rate on the pass's block shape (4,096 × D @ D × 4,096) are measured in the same process
 (``gemm_peak``), and each of the two steps prints its achieved rate counting only the flops
 it needs, N²·D (half of the 2·N²·D of all ordered pairs: the product is symmetric), as a
-share of that peak. Compare kernels with
+share of that peak. Counted for the protocol too: the similarities, nothing else. Its other
+work is overhead against that count: the diagonal blocks' second triangle (1/n_blocks more
+GEMM flops), the second-moment downdate's products against the query indicators (2·N²·R
+flops, R = splits: 7.8% of N²·D at R = 50, D = 1,280), the float64 full-set sums (O(N·D²))
+and the per-split steps. Compare kernels with
 ``env -u OPENBLAS_CORETYPE -u OPENBLAS_L2_SIZE python benchmarks/bench_nordland_scale.py``.
 ``--device cpu`` (or ``cuda``) runs the pass's block products through torch.
 ``--check`` also runs ``evaluation.paper_protocol`` and asserts identical tables (small N).

@@ -1,33 +1,44 @@
-"""Where the blocked pass's time goes: one off-diagonal block pair, step by step, against the GEMM peak (issue 13 §4).
+"""Where the blocked pass's time goes: one off-diagonal block pair, against the GEMM peak (issue 13 §4).
 
-    python benchmarks/bench_pass_block.py [--dim 1280] [--block 4096] [--runs 50]
+    python benchmarks/bench_pass_block.py [--dim 1280] [--block 4096] [--runs 50] [--threads 2]
 
-``scale._blocked_pass`` does, for every block pair I < J of the place-major layout (Nordland-like
-data from ``bench_nordland_scale``, places of 12 images):
+For every block pair I < J of the place-major layout (Nordland-like data from
+``bench_nordland_scale``, places of 12 images) the pass needs
 
 1. S = X_I X_Jᵀ, the float32 GEMM (the only work the floor pass does);
 2. Q = (S − c)², elementwise;
-3. the second-moment downdate V += Q M_J and V += Qᵀ M_I, float32 GEMMs against the
-   (rows × runs) query indicators in chunks of 2,048 rows (``_W_CHUNK``);
-4. the top-2 table for the block's rows and, by symmetry, its columns (``_table_side``).
+3. the second-moment downdate V += Q M_J and V += Qᵀ M_I, float32 products against the
+   (rows × runs) query indicators;
+4. the top-2 table for the block's rows and, by symmetry, its columns: each (row, place)'s
+   best score over the place's images, and the entries at or above the row's floor.
 
-Each step is timed alone on the same block (best of ``--repeats``, CPU seconds of this
-process: steadier than wall time on a shared machine), and printed with its share of the
-block's time; the GEMM's rate is given as a share of numpy's float32 GEMM rate on the same
-shape, measured in the same run, per CPU second. The pass's share of the peak, for its
-necessary flops, is at most the GEMM's share times the GEMM's part of the block's time.
+Timed side by side on the same block pair, in CPU seconds of this process (all threads;
+steadier than wall time on a shared machine), best of ``--repeats``:
+
+* **GEMM alone**: step 1 for the whole block, BLAS in its own threads (what the floor does);
+* **whole block, step by step** (the pass before issue 13 §4's panels): the block's GEMM,
+  then each step over the whole 64 MiB block of scores, steps 1–4 each timed;
+* **panels** (``scale._panel_task``, the pass now): block I cut into panels of whole places
+  (``scale.PANEL_ROWS`` rows), each one GEMM in one thread and its bookkeeping read slab by
+  slab (``scale._SLAB_ROWS`` rows, in cache), ``--threads`` panels side by side, merged in order.
+
+Each is printed as GFLOP per CPU second for the flops the pair needs (2·rows·cols·D: S once)
+and as a share of numpy's float32 GEMM rate on that shape per CPU second, measured in the
+same run before and after.
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from bench_nordland_scale import nordland_like
 from gemm_peak import blas_kernel, gemm_rate, load_average
-from vpr_explorer.scale import _W_CHUNK, _as_layout32, _table_side, make_layout
+from vpr_explorer import scale
+from vpr_explorer.stats import one_blas_thread
 
 
 def cpu_best(fn, repeats: int) -> float:
@@ -39,57 +50,90 @@ def cpu_best(fn, repeats: int) -> float:
     return best
 
 
+def side_before(s3: np.ndarray, floor: np.ndarray, axis: int) -> dict:
+    """The top-2 table side as the pass did it on the whole block: maxima, then the entries."""
+    return scale._side(s3, np.max(s3, axis=axis), floor, axis=axis)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--dim", type=int, default=1280)
     ap.add_argument("--block", type=int, default=4096, help="rows per block (scale.BLOCK_ROWS)")
     ap.add_argument("--runs", type=int, default=50, help="splits: columns of the query indicators")
+    ap.add_argument("--threads", type=int, default=2, help="panels side by side (the pass's threads)")
+    ap.add_argument("--panel-rows", type=int, default=scale.PANEL_ROWS, help="rows per panel (scale.PANEL_ROWS)")
     ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args()
+    scale.PANEL_ROWS = args.panel_rows
     places = 2 * (args.block // 12)  # two blocks of about --block rows
     d, labels, _ = nordland_like(places, args.dim, 0)
-    lay = make_layout(labels, places, args.block)
-    x = _as_layout32(d, lay)
+    lay = scale.make_layout(labels, places, args.block)
+    x = scale._as_layout32(d, lay)
     ri, rj = lay.rows(0), lay.rows(1)
     ni, nj, m = ri.stop - ri.start, rj.stop - rj.start, lay.slots
+    rng = np.random.default_rng(0)
+    held = rng.integers(0, m, (args.runs, len(lay.places)))  # one query per place and split
+    query_rows = lay.row_of(np.tile(np.arange(len(lay.places)), (args.runs, 1)), held)
+    indicator = np.zeros((lay.n_rows, args.runs), dtype=np.float32)
+    indicator[query_rows.T, np.arange(args.runs)[None, :]] = 1.0
+    mi, mj = indicator[ri], indicator[rj]
     s = np.empty((ni, nj), dtype=np.float32)
     q = np.empty_like(s)
-    rng = np.random.default_rng(0)
-    mi = (rng.random((ni, args.runs)) < 1 / m).astype(np.float32)  # one query per place and split
-    mj = (rng.random((nj, args.runs)) < 1 / m).astype(np.float32)
-    v = np.zeros((ni + nj, args.runs))
     np.matmul(x[ri], x[rj].T, out=s)
     centre = np.float32(s.mean())
-    floor_i = np.full(ni, np.quantile(s[:256], 0.999), dtype=np.float32)  # about one entry per row, as in the pass
-    floor_j = np.full(nj, floor_i[0], dtype=np.float32)
+    floor = np.full(lay.n_rows, np.quantile(s[:256], 0.999), dtype=np.float32)  # about one entry per row, as in the pass
+    v = np.zeros((lay.n_rows, args.runs))
 
     def downdate() -> None:
-        for c0 in range(0, nj, _W_CHUNK):
-            v[:ni] += q[:, c0 : c0 + _W_CHUNK] @ mj[c0 : c0 + _W_CHUNK]
-        for c0 in range(0, ni, _W_CHUNK):
-            v[ni:] += q[c0 : c0 + _W_CHUNK].T @ mi[c0 : c0 + _W_CHUNK]
+        for c0 in range(0, nj, scale._W_CHUNK):
+            v[ri] += q[:, c0 : c0 + scale._W_CHUNK] @ mj[c0 : c0 + scale._W_CHUNK]
+        for c0 in range(0, ni, scale._W_CHUNK):
+            v[rj] += q[c0 : c0 + scale._W_CHUNK].T @ mi[c0 : c0 + scale._W_CHUNK]
 
-    steps = {
+    before = {
         "1. S = X_I X_Jᵀ (GEMM)": lambda: np.matmul(x[ri], x[rj].T, out=s),
         "2. Q = (S − c)²": lambda: np.square(np.subtract(s, centre, out=q), out=q),
         "3. V += Q M_J, Qᵀ M_I": downdate,
-        "4. top-2 table, rows": lambda: _table_side(None, s.reshape(ni, m, nj // m), floor_i, axis=1, parts=1),
-        "4. top-2 table, columns": lambda: _table_side(None, s.reshape(m, ni // m, nj), floor_j, axis=0, parts=1),
+        "4. top-2 table, rows": lambda: side_before(s.reshape(ni, m, nj // m), floor[ri], 1),
+        "4. top-2 table, columns": lambda: side_before(s.reshape(m, ni // m, nj), floor[rj], 0),
     }
-    peak_cpu = gemm_rate(np.float32, ni, args.dim, nj, args.repeats, clock=time.process_time)
-    times = {name: cpu_best(fn, args.repeats) for name, fn in steps.items()}
-    peak_cpu = max(peak_cpu, gemm_rate(np.float32, ni, args.dim, nj, args.repeats, clock=time.process_time))
+    state = scale._PassState(lay, scale._BlockProducts(x, None), indicator, lay.image_of_row < 0, None, centre,
+                             floor, scale.PANEL_ROWS)
+    tasks = scale._panels(lay, 0, 1, scale.PANEL_ROWS)
+    is_query = indicator.any(axis=1)
+
+    def panels() -> None:
+        with ThreadPoolExecutor(args.threads) as pool, one_blas_thread():
+            for res in pool.map(lambda t: scale._panel_task(state, t, (0.0, 0.2), is_query), tasks):
+                v[res.rows] += res.v_rows  # the merge, in task order
+                v[rj] += res.v_cols
+
+    def gemm_rate_cpu() -> float:
+        return gemm_rate(np.float32, ni, args.dim, nj, args.repeats, clock=time.process_time)
+
+    peak_cpu = gemm_rate_cpu()
+    times = {name: cpu_best(fn, args.repeats) for name, fn in before.items()}
+    t_panels = cpu_best(panels, args.repeats)
+    peak_cpu = max(peak_cpu, gemm_rate_cpu())
+    needed = 2.0 * ni * nj * args.dim
+
+    def rate(t: float) -> str:
+        return f"{needed / t / 1e9:5.0f} GFLOP per CPU s = {100 * needed / t / 1e9 / peak_cpu:3.0f}% of peak"
+
     total = sum(times.values())
+    gemm = times["1. S = X_I X_Jᵀ (GEMM)"]
     print(f"BLAS: {blas_kernel()}; load average {load_average()}")
     print(f"one block pair {ni:,} × {nj:,} rows, D = {args.dim}, {args.runs} splits; numpy float32 GEMM on that "
           f"shape: {peak_cpu:.0f} GFLOP per CPU second (best of before and after)")
+    print(f"GEMM alone (BLAS threads):                 {gemm:7.3f} CPU s  {rate(gemm)}")
+    print("whole block, step by step (before):")
     for name, t in times.items():
         print(f"  {name:<26} {t:7.3f} CPU s  {100 * t / total:5.1f}% of the block")
-    gemm = times["1. S = X_I X_Jᵀ (GEMM)"]
-    needed = 2.0 * ni * nj * args.dim
-    print(f"summary: the GEMM is {100 * gemm / total:.0f}% of the block's CPU time and runs at "
-          f"{100 * needed / gemm / 1e9 / peak_cpu:.0f}% of peak; the block at "
-          f"{100 * needed / total / 1e9 / peak_cpu:.0f}% of peak for its necessary flops (2·rows·cols·D)")
+    print(f"  {'all':<26} {total:7.3f} CPU s  {rate(total)}")
+    print(f"panels of {scale.PANEL_ROWS} rows, slabs of {scale._SLAB_ROWS}, {args.threads} threads (now): "
+          f"{t_panels:7.3f} CPU s  {rate(t_panels)}")
+    print(f"summary: panels / whole block = {t_panels / total:.2f}× the CPU seconds; the bookkeeping beside the GEMM "
+          f"{total - gemm:.3f} → {t_panels - gemm:.3f} CPU s (against the GEMM alone)")
 
 
 if __name__ == "__main__":

@@ -216,3 +216,43 @@ def test_nordland_tunnels_fused_equals_straightforward(data_root):
     assert_same_decisions(got, expected)
     image = expected.outcomes["image-baseline"]
     assert (np.isfinite(image.rank) & (image.rank > 1)).any()
+
+
+def test_first_image_within_the_tolerance_in_places_of_more_than_255_images():
+    # ``layout_place_scores`` finds a place's first image within 1e-5 of its maximum as a maximum
+    # of hit·(k − j) over its rows j: uint8 weights up to 255 images, wider above
+    rng = np.random.default_rng(5)
+    sizes = np.array([300, 256, 255, 3, 1])
+    db_places = rng.permutation(np.repeat(np.arange(len(sizes)), sizes))
+    sims = rng.uniform(0.1, 0.85, (9, len(db_places))).astype(np.float32)
+    for p in range(len(sizes)):  # the maximum last in each place, an image within 1e-5 of it just before
+        cols = np.flatnonzero(db_places == p)
+        sims[:, cols[-1]] = 0.9
+        sims[:, cols[max(0, len(cols) - 2)]] = np.float32(0.9) - np.float32(4e-6)
+    correct = np.zeros((9, len(sizes)), dtype=bool)
+    correct[:, 0] = True
+    th = {"simple": np.full(len(sizes), 0.5), "weighted": np.full(len(sizes), 0.95), "auto": 0.7}
+    raw, best = place_scores(sims, db_places, len(sizes))
+    expected = score_queries(sims, db_places, len(sizes), th, correct, raw_best=(raw, best))
+    for piece_rows in (1, 256, 4096):
+        raw2, best2, got = layout_decisions(sims, db_places, len(sizes), th, correct, piece_rows)
+        np.testing.assert_array_equal(raw2, raw)
+        np.testing.assert_array_equal(best2, best)
+        assert_same_outcomes(got, expected)
+    big = np.flatnonzero(db_places == 0)
+    np.testing.assert_array_equal(best[:, 0], big[-2])  # the image within 1e-5 before the maximum
+
+
+def test_decide_traversal_leaves_blas_threads_as_found(gardens_point, gp_pixels, gp_model):
+    # the fused path holds BLAS at one thread while its pieces run (``stats.one_blas_thread``),
+    # whether it copies the grouped rows (several blocks) or the pieces gather their own (one)
+    from threadpoolctl import threadpool_info
+
+    def blas_threads():
+        return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+
+    places, model = gp_model
+    before = blas_threads()
+    for block in (4096, 50):
+        decide_traversal(model, gp_pixels, gardens_point, places, "night_right", block=block, fused=True)
+        assert blas_threads() == before

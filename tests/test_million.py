@@ -33,8 +33,10 @@ from vpr_explorer.layouts import Layout, RetrievalDataset
 from vpr_explorer.pipeline import dataset_descriptors, evaluate_retrieval, imported_descriptors, open_dataset, \
     resolve_dataset, retrieval_places
 from vpr_explorer.places import MetricPlaceSpec, PlaceGeometry
-from vpr_explorer.retrieval import pessimistic_rank, top_answer
-from vpr_explorer.stats import negative_stats, negative_stats_rows, validate_descriptors
+from vpr_explorer import stats as stats_module
+from vpr_explorer.retrieval import pessimistic_rank, place_scores, score_queries, similarity, top_answer
+from vpr_explorer.stats import negative_stats, negative_stats_rows, positive_means, stats_rows, validate_descriptors, \
+    validate_rows, RowsOf
 from vpr_explorer.views import evaluation_rows
 
 ROUTE = rv.RetrievalPlaces(PlaceGeometry.ROUTE, metric=MetricPlaceSpec(25.0, 100.0))
@@ -87,6 +89,86 @@ def test_the_memmap_path_equals_the_dense_float32_path(small):
         np.testing.assert_array_equal(da.raw, db.raw)
     pa, pb = rv.place_detail(a, dense, 5), rv.place_detail(b, mm, 5)
     np.testing.assert_array_equal(pa.negatives, pb.negatives)
+
+
+def _float16_rows(n: int, dim: int, seed: int = 0) -> np.ndarray:
+    """Unit rows stored as float16 (what a descriptor file holds), route-like: neighbours alike."""
+    rng = np.random.default_rng(seed)
+    x = np.cumsum(rng.standard_normal((n, dim), dtype=np.float32), axis=0) * 0.05 + rng.standard_normal(dim)
+    return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float16)
+
+
+@pytest.mark.parametrize("block, threads", [(4096, None), (1000, 2), (4096, 1)])
+def test_one_reading_for_the_fit_gives_the_closed_form_and_positive_means_bit_for_bit(block, threads):
+    # 13,522 rows in places, with gaps between runs (a last block of 1,234; chunks of the positive
+    # means straddling blocks of 1,000), places of 20 images (the last of 2)
+    d16 = _float16_rows(20_000, 40)
+    rows = np.flatnonzero(np.arange(20_000) % 37 < 25)[:13_522]
+    labels = np.arange(len(rows)) // 20
+    n_places = int(labels.max()) + 1
+    gathered = d16[rows].astype(np.float32)
+    want = negative_stats(gathered, labels, n_places, block=block)
+    got, pm = stats_rows(d16, rows, labels, n_places, block=block, threads=threads)
+    np.testing.assert_array_equal(got.mu, want.mu)
+    np.testing.assert_array_equal(got.sigma, want.sigma)
+    np.testing.assert_array_equal(got.n_neg, want.n_neg)
+    np.testing.assert_array_equal(pm, positive_means(gathered, labels, n_places, threads=1))
+    np.testing.assert_array_equal(negative_stats_rows(d16, rows, labels, n_places, block=block).sigma, want.sigma)
+
+
+def test_a_fit_read_out_of_order_falls_back_to_its_own_passes(monkeypatch):
+    # a stray read before the Gram's (as a changed closed form might make) breaks the one-reading
+    # order: the checks and the positive means then run on their own, and the numbers are the same
+    d16 = _float16_rows(9_000, 24, seed=1)
+    rows = np.arange(0, 9_000, 2)
+    labels = np.arange(len(rows)) // 15
+    closed_form = stats_module._closed_form_float32
+
+    def stray_first(d, *args):
+        d[0:10]
+        return closed_form(d, *args)
+
+    monkeypatch.setattr(stats_module, "_closed_form_float32", stray_first)
+    got, pm = stats_rows(d16, rows, labels, threads=2)
+    gathered = d16[rows].astype(np.float32)
+    np.testing.assert_array_equal(got.sigma, negative_stats(gathered, labels).sigma)
+    np.testing.assert_array_equal(pm, positive_means(gathered, labels, int(labels.max()) + 1))
+
+
+def test_a_bad_row_stops_the_one_reading_fit_with_the_checks_message():
+    d16 = _float16_rows(12_000, 16, seed=2)
+    d16[5_000] = np.nan
+    d16[9_001] = 0
+    rows = np.arange(12_000)
+    labels = np.arange(12_000) // 10
+    with pytest.raises(VPRInputError, match=r"rows 5000 contain NaN or inf.*\(counting from row 0\)"):
+        validate_rows(RowsOf(d16, rows), "training descriptors")  # the checks alone, in blocks of CHECK_ELEMS
+    with pytest.raises(VPRInputError) as fitted:  # on the Gram's blocks: row 4,096 + 904, before any product
+        stats_rows(d16, rows, labels)
+    assert "rows 904 contain NaN or inf" in str(fitted.value) and "(counting from row 4,096)" in str(fitted.value)
+    d16[5_000] = d16[4_999]
+    with pytest.raises(VPRInputError, match=r"rows 713 are all zero.*\(counting from row 8,288\)"):
+        stats_rows(d16, rows, labels, block=4144)
+
+
+def test_decisions_by_place_pieces_equal_the_straightforward_scoring(small):
+    # decide_queries scores database x queries a piece of places at a time (retrieval.PlaceLayout); the
+    # straightforward path (query x database scores, place_scores, score_queries) defines the answers
+    ds, _, mm = small
+    dense = np.asarray(mm, dtype=np.float32)
+    for places in (ROUTE, rv.RetrievalPlaces(PlaceGeometry.LATTICE, metric=MetricPlaceSpec(30.0, 30.0))):
+        f = rv.fit_retrieval(mm, ds, places)
+        queries = np.arange(0, ds.n_queries, 3)
+        th = f.model.thresholds(0.5, 0.7)
+        sims = similarity(dense[ds.n_database + queries], dense[f.model.images])
+        want = score_queries(sims, f.model.places, f.n_places, th, f.right_places(queries),
+                             raw_best=place_scores(sims, f.model.places, f.n_places))
+        for d, block in ((mm, 2048), (dense, 2048), (mm, 7)):
+            _, got = rv.decide_queries(f, d, queries, k=0.5, user_theta=0.7, block=block)
+            assert got.keys() == want.keys()
+            for key, o in want.items():
+                for field in ("rank", "answer_place", "answer_image", "n_kept"):
+                    np.testing.assert_array_equal(getattr(got[key], field), getattr(o, field), err_msg=f"{key} {field}")
 
 
 def test_the_protocol_on_a_memmap_gives_the_protocols_table(small):

@@ -125,6 +125,7 @@ def test_ray_fills_the_cache_with_the_local_extractors_vectors(cluster, paths, r
     job = extract_on_ray(paths, name, cache_root=tmp_path, batch_size=8, shard_images=16,
                          progress=lambda done, total: seen.append((done, total)))
     assert (job.total, job.cached, job.computed) == (N_IMAGES, 0, N_DISTINCT)
+    assert (job.actors, job.cpus, job.gpus) == (1, 2.0, False)  # one actor holding both CPUs of the node
     assert seen[0] == (0, N_IMAGES) and seen[-1] == (N_IMAGES, N_IMAGES)
     assert sum(len(h) for h in shards_of(tmp_path, name).values()) == N_DISTINCT  # each content once
     cached, out = read_back(paths, name, tmp_path)
@@ -195,9 +196,40 @@ def test_two_jobs_on_one_cache_at_once_leave_it_whole(cluster, subset, paths, re
     cached, out = read_back(paths, name, cache)  # every shard's checksum verified, none damaged
     assert cached == N_IMAGES
     assert float(np.abs(out - reference[name]).max()) < BOUND[name]
-    leftovers = [p.name for p in (DescriptorCache(cache).folder / get_extractor(name).cache_key).iterdir()
+    folder = DescriptorCache(cache).folder
+    leftovers = [p.name for p in [*folder.iterdir(), *(folder / get_extractor(name).cache_key).iterdir()]
                  if p.name.startswith(".")]
     assert leftovers == []  # no temporaries, no probe file
+
+
+# ------------------------------------------------------------------ the actor pool for a cluster
+
+
+def test_the_actor_pool_is_sized_to_the_clusters_nodes():
+    from vpr_explorer.descriptors.distributed import _pool_shape
+    from vpr_explorer.errors import VPRInputError
+
+    def shape(nodes, actors=None, threads=None):
+        pool = _pool_shape(nodes, actors, threads)
+        return pool.actors, pool.cpus, pool.gpus, pool.threads
+
+    assert shape([{"CPU": 2.0}]) == (1, 2.0, False, 2)  # this machine: one actor on both CPUs
+    assert shape([{"CPU": 16.0}] * 3) == (3, 16.0, False, 16)  # one per node, each on its cores
+    assert shape([{"CPU": 2.0}, {"CPU": 8.0}]) == (5, 2.0, False, 2)  # the smallest node's size: 1 + 4
+    assert shape([{"CPU": 0.0}, {"CPU": 4.0}]) == (1, 4.0, False, 4)  # a head without CPUs holds none
+    assert shape([{"CPU": 2.0}], actors=2) == (2, 1.0, False, 1)
+    assert shape([{"CPU": 3.0}, {"CPU": 3.0}], actors=3) == (3, 1.0, False, 1)  # 2 CPUs each would fit only 2
+    assert shape([{"CPU": 2.0}], actors=3) == (3, 0.66, False, 1)
+    assert shape([{"CPU": 2.0}], threads=4) == (1, 2.0, False, 4)
+    # one actor per GPU, with its share of the leanest GPU node's CPUs for decoding
+    assert shape([{"CPU": 16.0, "GPU": 2.0}, {"CPU": 6.0, "GPU": 1.0}, {"CPU": 8.0}]) == (3, 6.0, True, 6)
+    assert shape([{"CPU": 16.0, "GPU": 4.0}], actors=2) == (2, 4.0, True, 4)
+    assert shape([{"CPU": 16.0, "GPU": 1.0}], actors=3) == (1, 16.0, True, 16)  # no more than the GPUs
+    for bad in ({"actors": 0}, {"actors": True}, {"threads": 1.5}):
+        with pytest.raises(VPRInputError, match="must be a whole number"):
+            _pool_shape([{"CPU": 2.0}], **bad)
+    with pytest.raises(VPRInputError, match="no node with CPUs or GPUs"):
+        _pool_shape([{"CPU": 0.0}])
 
 
 # ------------------------------------------------------------------ errors and the optional import

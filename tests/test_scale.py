@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 import vpr_explorer.evaluation as evaluation
+import vpr_explorer.scale as scale
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.evaluation import draw_splits, paper_protocol
 from vpr_explorer.scale import fast_paper_protocol, make_layout, scale_splits
@@ -407,6 +408,42 @@ def test_nordland_tables_do_not_depend_on_blas_kernel_block_size_or_threads(data
     assert first[0]["key"] == "image-baseline" and 0.2 < first[0]["recall"]["5"]["mean"] < 0.6
     for name, table in tables[1:]:
         assert table == first, f"{name} differs from {first_name}"
+
+
+def _pass_of(d, labels, n_places, splits, threads, block):
+    """``scale._blocked_pass`` on these splits: its sums, b, records and table, block by block."""
+    lay = scale.make_layout(labels, n_places, block)
+    query_rows = np.stack([lay.row_of_image[sp.queries] for sp in splits])
+    sums = scale._full_sums(d, lay, query_rows)
+    entries = scale._Entries(lay, scale.TABLE_MEMORY, None)
+    pas = scale._blocked_pass(scale._as_layout32(d, lay), lay, query_rows, None, entries, 7, (0.0, 0.2),
+                              sums.centre, threads, None)
+    table = [entries.get(b) for b in range(lay.n_blocks)]
+    return pas, table
+
+
+def test_panels_slabs_and_threads_give_the_same_numbers(monkeypatch):
+    # the pass cuts each block pair into panels of whole places (one GEMM each), reads them
+    # slab by slab, runs panels side by side in threads and merges them in task order: small
+    # panels and slabs (several per block pair and per slot) give the reference's outcomes,
+    # and the pass's sums, b and table do not depend on the number of threads, bit for bit
+    monkeypatch.setattr(scale, "PANEL_ROWS", 45)
+    monkeypatch.setattr(scale, "_SLAB_ROWS", 2)
+    d, labels, trav = awkward(seed=2)
+    check(monkeypatch, d, labels, trav, 260, seed=1, cross_condition=True, runs=2,
+          fast_kw={"block": 500, "threads": 3})
+    splits = draw_splits(labels, 260, runs=3, seed=1)
+    (p1, t1), *others = (_pass_of(d, labels, 260, splits, threads, 500) for threads in (1, 2, 3))
+    assert len(t1) > 1 and len(scale._panels(scale.make_layout(labels, 260, 500), 0, 1, 45)) > 2
+    for p, t in others:  # 1 thread (no pool, BLAS in its own threads), 2 and 3 threads
+        np.testing.assert_array_equal(p.v, p1.v)
+        np.testing.assert_array_equal(p.best_own, p1.best_own)
+        np.testing.assert_array_equal(p.records.n, p1.records.n)
+        np.testing.assert_array_equal(np.sort(p.records.place, axis=1), np.sort(p1.records.place, axis=1))
+        for a, b in zip(t1, t):
+            assert a.keys() == b.keys()
+            for k in a:
+                np.testing.assert_array_equal(b[k], a[k], err_msg=k)
 
 
 def test_torch_device_products_give_the_same_numbers(monkeypatch):

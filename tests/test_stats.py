@@ -142,10 +142,11 @@ def test_float32_does_not_depend_on_threads(tmp_path):
     assert (np.abs(sigma1**2 - sigma2**2) <= 2 * bound + FLOAT64_SLACK).all()
 
 
-@pytest.mark.parametrize("dim", [96, 256])
-def test_centred_gram_in_halves_is_one_syrk_bit_for_bit(dim):
-    # a full block's Gram comes as two syrks and a GEMM run side by side (BLAS in one thread
-    # each), the last partial block's as one syrk: together, the numbers of one syrk per block
+@pytest.mark.parametrize("dim", [96, 130, 256])
+def test_centred_gram_in_tiles_is_one_syrk_bit_for_bit(dim):
+    # a full block's Gram comes as 4 syrks and 6 GEMMs (tiles on and above the diagonal of 4
+    # column blocks, uneven at dim 130) run side by side (BLAS in one thread each), the last
+    # partial block's as one syrk: together, the numbers of one syrk per block
     from concurrent.futures import ThreadPoolExecutor
 
     from vpr_explorer.stats import BLOCK, _centre, _centred_gram
@@ -163,6 +164,47 @@ def test_centred_gram_in_halves_is_one_syrk_bit_for_bit(dim):
         np.testing.assert_array_equal(gram, expected)
         np.testing.assert_array_equal(gram, gram.T)
         np.testing.assert_allclose(total, d.sum(axis=0, dtype=np.float64), rtol=0, atol=1e-9)
+
+
+def _quadratic_forms_by_block(d, gram, block):
+    """``_quadratic_forms`` as it was before its row tasks: per block of rows, every column block
+    of W, then the row sums."""
+    from vpr_explorer.stats import _TRI_BLOCKS
+
+    edges = np.linspace(0, d.shape[1], _TRI_BLOCKS + 1).round().astype(int)
+    w = [np.asarray(gram[:hi, lo:hi], dtype=np.float32) for lo, hi in zip(edges[:-1], edges[1:])]
+    for wj, lo in zip(w, edges[:-1]):
+        wj[:lo] *= 2
+    quad = np.empty(len(d))
+    for lo in range(0, len(d), block):
+        x = np.asarray(d[lo : lo + block], dtype=np.float32)
+        y = np.empty_like(x)
+        for (c0, c1), wj in zip(zip(edges[:-1], edges[1:]), w):
+            y[:, c0:c1] = x[:, :c1] @ wj
+        quad[lo : lo + len(x)] = np.einsum("ij,ij->i", y, x, dtype=np.float64)
+    return quad
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, np.float16])
+def test_quadratic_forms_in_row_tasks_are_the_block_products_bit_for_bit(monkeypatch, dtype):
+    # dᵢᵀWdᵢ from tasks of ``_QUAD_ROWS`` rows, any thread count, equals the products of whole
+    # blocks of 4,096 rows: a GEMM's rows are cut between calls as between threads, never a sum
+    from concurrent.futures import ThreadPoolExecutor
+
+    from vpr_explorer import stats
+    from vpr_explorer.stats import BLOCK, _centre, _centred_gram, _quadratic_forms
+
+    rng = np.random.default_rng(11)
+    d = unit_rows(rng, BLOCK + 1500, 130).astype(dtype)
+    with ThreadPoolExecutor(2) as pool:
+        gram, _ = _centred_gram(d, _centre(d), BLOCK, pool, True)
+    expected = _quadratic_forms_by_block(d, gram, BLOCK)
+    # (tasks of a few hundred rows of so narrow a W go to OpenBLAS's small-matrix kernel, which
+    # rounds otherwise: 333 rows here; within the bound, which holds for any order of the sums)
+    for rows, threads in ((1024, 1), (1024, 2), (1024, 3), (2048, 3), (4096, 2)):
+        monkeypatch.setattr(stats, "_QUAD_ROWS", rows)
+        with ThreadPoolExecutor(threads) as pool:
+            np.testing.assert_array_equal(_quadratic_forms(d, gram, BLOCK, pool, threads > 1), expected)
 
 
 def test_float32_and_float64_side_by_side():

@@ -43,10 +43,14 @@ from vpr_explorer.thresholds import (
 
 #: Query × database similarities held at once by ``decide_traversal`` (64 MB of float32).
 PAIRS_PER_BLOCK = 1 << 24
-#: Query frames from which ``decide_traversal`` takes the fused path by default: it copies the
-#: database rows grouped by place once per call (about 0.1 s at 33,108 × 2,048, quiet), and
-#: saves about 1.3 ms per query frame there (906 frames: ``bench_app_scale.py --move-only``).
+#: Query frames from which ``decide_traversal`` takes the fused path by default: it groups the
+#: database rows by place (about 0.1 s at 33,108 × 2,048, quiet), and saves about 1.3 ms per
+#: query frame there (906 frames: ``bench_app_scale.py --move-only``).
 FUSED_MIN_FRAMES = 64
+#: Database × query similarities the fused path holds at once (128 MB of float32, in the
+#: database's place order: no float64 copy): the app's 906 sampled frames against 33,108
+#: database images are one block, so each database row is read once.
+FUSED_PAIRS_PER_BLOCK = 1 << 25
 
 
 @dataclass(frozen=True, eq=False)
@@ -261,12 +265,15 @@ def decide_traversal(
         frames: query frame numbers to decide, in the order wanted (default: all, in order).
             Deciding a sample is how an overview of a 100k-image dataset stays interactive
             (``views.regroup``): the cost is ``len(frames) × n_database`` similarities.
-        block: query frames per block (at most ``PAIRS_PER_BLOCK`` similarities held at once).
+        block: query frames per block (at most ``PAIRS_PER_BLOCK`` similarities held at once,
+            ``FUSED_PAIRS_PER_BLOCK`` on the fused path).
         threads: threads sharing a block's products and place maxima (default: CPU count, at
             most 8); the results do not depend on it.
-        fused: ``True``: the database rows grouped by place (``retrieval.PlaceLayout``), copied
-            once per call, and each block's similarities computed a piece of places at a time
-            with their maxima while the piece is in cache (``_decide_block``). ``False``: the
+        fused: ``True``: the database rows grouped by place (``retrieval.PlaceLayout``), and each
+            block's similarities computed a piece of places at a time with their maxima while the
+            piece is in cache (``_decide_block``); blocks of up to ``FUSED_PAIRS_PER_BLOCK``
+            similarities, so that the app's sample is one block whose pieces gather their own rows
+            (with several blocks the grouped rows are copied once per call). ``False``: the
             straightforward path (``retrieval.place_scores`` and ``score_queries`` on each
             block), which the fused path equals in every rank, answer and image
             (``tests/test_decide_fused.py``). ``None`` (default): fused from ``FUSED_MIN_FRAMES``
@@ -287,19 +294,24 @@ def decide_traversal(
     truth = query_places(dataset, places, qi, tolerance)
     th = model.thresholds(k, user_theta)
     d = np.asarray(descriptors)
-    block = max(1, min(block, PAIRS_PER_BLOCK // max(1, len(model.images))))
     parts_raw, parts_best, parts_out = [], [], []
     if fused or (fused is None and len(qi) >= FUSED_MIN_FRAMES):
+        block = max(1, min(block, FUSED_PAIRS_PER_BLOCK // max(1, len(model.images))))
         layout = PlaceLayout.of(model.places, model.n_places)
         threads = min(os.cpu_count() or 1, 8) if threads is None else max(1, int(threads))
+        rows = model.images[layout.order]  # database rows grouped by place
         with one_blas_thread(), ThreadPoolExecutor(threads, thread_name_prefix="vpr-decide") as pool:
-            db = _gather_rows(d, model.images[layout.order], pool)  # rows grouped by place
+            # several blocks read every row several times: copy them grouped once; one block reads
+            # each piece's rows once, so the pieces gather their own (no copy of the database)
+            db = _gather_rows(d, rows, pool) if len(qi) > block else None
             for lo in range(0, len(qi), block):
-                raw, best, out = _decide_block(model, d, db, layout, qi[lo:lo + block], th, truth[lo:lo + block], pool)
+                raw, best, out = _decide_block(model, d, db, rows, layout, qi[lo:lo + block], th, truth[lo:lo + block],
+                                               pool)
                 parts_raw.append(raw.astype(np.float32))
                 parts_best.append(best.astype(np.int32))
                 parts_out.append(out)
     else:
+        block = max(1, min(block, PAIRS_PER_BLOCK // max(1, len(model.images))))
         db = database_rows(d, model.images)
         for lo in range(0, len(qi), block):
             sims = similarity(d[qi[lo:lo + block]], db)
@@ -330,15 +342,16 @@ def _gather_rows(d: np.ndarray, rows: np.ndarray, pool: ThreadPoolExecutor, part
 
 
 #: Database rows per piece of ``_decide_block`` (whole places): a piece's similarities with a
-#: block's queries (1,024 × 506 float32 at 33,108 images, 2 MB) are still in the core's L2
-#: cache when their maxima are taken.
+#: block's queries (1,024 × 906 float32 for the app's sample at 110k images, 3.7 MB) are still
+#: in the core's cache when their maxima are taken (512 rows measured no quicker).
 PIECE_ROWS = 1024
 
 
 def _decide_block(
     model: DatabaseModel,
     d: np.ndarray,
-    db: np.ndarray,
+    db: np.ndarray | None,
+    rows: np.ndarray,
     layout: PlaceLayout,
     qi: np.ndarray,
     th: dict[str, np.ndarray | float],
@@ -348,21 +361,24 @@ def _decide_block(
     """One block of query images: raw_p, the image behind it and every method's ``Outcome``.
 
     The pool's threads each take pieces of whole places: one float32 GEMM of the piece's
-    database rows against the block's queries (each similarity the same float32 number as
-    ``similarity`` gives: a GEMM splits rows and columns, never the sum, and the values do not
-    depend on the rows' order or the BLAS threads), then the piece's place maxima. The
+    database rows (a slice of ``db``, the rows grouped by place, or, when ``db`` is None,
+    gathered by the piece itself from ``d`` at ``rows``: the same contiguous float32 rows)
+    against the block's queries (each similarity the same float32 number as ``similarity``
+    gives: a GEMM splits rows and columns, never the sum, and the values do not depend on the
+    rows' order or the BLAS threads), then the piece's place maxima. The
     image-level baseline reads back only the places within the tolerance of its thresholds
     (``retrieval.score_layout_block``). A block with a non-finite similarity (a NaN or inf
     in a descriptor) takes the straightforward path, which defines what that means.
     """
     queries = np.asarray(d[qi], dtype=np.float32)
-    scores_t = np.empty((len(db), len(qi)), dtype=np.float32)
+    scores_t = np.empty((len(rows), len(qi)), dtype=np.float32)
     raw_t = np.empty((len(layout.places), len(qi)), dtype=np.float32)
     best_t = np.empty((len(layout.places), len(qi)), dtype=np.int64)
 
     def piece(p: tuple[int, int, int, int]) -> None:
-        rows = slice(p[0], p[0] + p[2] * p[3])
-        similarity_t(db[rows], queries, out=scores_t[rows])
+        at = slice(p[0], p[0] + p[2] * p[3])
+        x = db[at] if db is not None else np.asarray(d[rows[at]], dtype=np.float32)  # the same rows either way
+        similarity_t(x, queries, out=scores_t[at])
         layout_place_scores(scores_t, layout, p, raw_t, best_t)
 
     list(pool.map(piece, layout.pieces(PIECE_ROWS)))

@@ -21,7 +21,10 @@ Pure functions over arrays; never imports streamlit.
 
 from __future__ import annotations
 
+import functools
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,13 +39,17 @@ from vpr_explorer.places import GEOMETRY_LABELS, MetricPlaceSpec, PlaceGeometry,
 from vpr_explorer.retrieval import (
     TIE_TOLERANCE,
     Outcome,
+    PlaceLayout,
     QueryDecision,
     decide,
+    layout_place_scores,
     place_scores,
+    score_layout_block,
     score_queries,
     similarity,
+    similarity_t,
 )
-from vpr_explorer.stats import CHECK_ELEMS, RowsOf, mixture_moments, negative_stats_rows, positive_means_rows
+from vpr_explorer.stats import RowsOf, mixture_moments, one_blas_thread, stats_rows
 from vpr_explorer.thresholds import (
     ThresholdMethod,
     auto_global_threshold,
@@ -67,6 +74,12 @@ SCORE_ELEMS = 1 << 25
 #: blocks convert it fewer times; the per-query work then goes ``EVAL_ROWS`` rows at a time.
 EVAL_SCORE_ELEMS = 1 << 28
 EVAL_ROWS = 32
+#: float32 entries of a memory-mapped block converted at a time (``score_rows``): 2²², 16 MB,
+#: 8,192 rows at D = 512. Blocks of 64 MB (``CHECK_ELEMS``) were fresh mappings each time
+#: (above glibc's largest reuse threshold): page faults cost 4× the conversion itself.
+SCORE_BLOCK_ELEMS = 1 << 22
+#: threads converting and scoring blocks side by side (BLAS in one thread each)
+SCORE_THREADS = min(os.cpu_count() or 1, 4)
 
 
 # --------------------------------------------------------------------------- scores over a large database
@@ -78,26 +91,71 @@ def dense(descriptors: np.ndarray) -> bool:
             and descriptors.dtype == np.float32)
 
 
+def _block_rows(dim: int) -> int:
+    return max(1, SCORE_BLOCK_ELEMS // max(1, dim))
+
+
+def _in_blocks(n: int, dim: int, work, pieces: list[tuple[int, int]] | None = None) -> None:
+    """``work(lo, hi)`` over ``pieces`` (default: blocks of ``SCORE_BLOCK_ELEMS`` entries covering
+    ``range(n)``), ``SCORE_THREADS`` at a time with BLAS in one thread each: every piece writes
+    its own rows or columns, and a GEMM's entry is one dot product whatever thread computes it."""
+    if pieces is None:
+        step = _block_rows(dim)
+        pieces = [(lo, min(lo + step, n)) for lo in range(0, n, step)]
+    if SCORE_THREADS <= 1 or len(pieces) <= 1:
+        for lo, hi in pieces:
+            work(lo, hi)
+        return
+    with one_blas_thread(), ThreadPoolExecutor(SCORE_THREADS, thread_name_prefix="vpr-score") as pool:
+        list(pool.map(lambda p: work(*p), pieces))
+
+
 def score_rows(descriptors: np.ndarray, images: np.ndarray, rows: np.ndarray | int) -> np.ndarray:
     """``(len(images), n_rows)`` float32 similarities of images ``images`` against the rows ``rows``.
 
     Args:
         descriptors: ``(n_images, D)`` unit rows: float32 in memory (one product, as
-            ``retrieval.similarity``), or a float16/memory-mapped matrix, read ``CHECK_ELEMS``
-            entries at a time, each block converted to float32, scored and dropped (never a
-            float32 copy of the database).
+            ``retrieval.similarity``), or a float16/memory-mapped matrix, read
+            ``SCORE_BLOCK_ELEMS`` entries at a time (``SCORE_THREADS`` blocks side by side),
+            each block converted to float32, scored and dropped (never a float32 copy of the database).
         rows: indices of the rows to score against, or ``n`` for the first ``n`` rows (the database).
     """
     d = descriptors
     q = np.asarray(d[np.asarray(images, dtype=np.int64)], dtype=np.float32)
     if dense(d):
         return similarity(q, d[:rows] if isinstance(rows, (int, np.integer)) else database_rows(d, rows))
-    view = RowsOf(d, np.arange(int(rows)) if isinstance(rows, (int, np.integer)) else rows)
+    view = RowsOf(d, None if isinstance(rows, (int, np.integer)) and rows == len(d) else
+                  np.arange(int(rows)) if isinstance(rows, (int, np.integer)) else rows)
     out = np.empty((len(q), len(view)), dtype=np.float32)
-    step = max(1, CHECK_ELEMS // d.shape[1])
-    for lo in range(0, len(view), step):
-        x = np.asarray(view[lo : lo + step], dtype=np.float32)  # float16 to float32: exact
-        np.matmul(q, x.T, out=out[:, lo : lo + len(x)])
+
+    def work(lo: int, hi: int) -> None:
+        np.matmul(q, np.asarray(view[lo:hi], dtype=np.float32).T, out=out[:, lo:hi])  # float16 to float32: exact
+
+    _in_blocks(len(view), d.shape[1], work)
+    return out
+
+
+def score_rows_t(descriptors: np.ndarray, rows: np.ndarray, queries: np.ndarray,
+                 pieces: list[tuple[int, int]] | None = None, then=None) -> np.ndarray:
+    """``(len(rows), len(queries))`` float32 similarities, database rows ``rows`` × query images ``queries``
+    (``retrieval.similarity_t``: the same numbers as ``score_rows``' GEMMs), a piece of rows at a time.
+
+    ``then(lo, hi, out)`` runs on each piece right after its scores, while they are in cache
+    (``decide_queries``: the piece's place maxima).
+    """
+    d = descriptors
+    q = np.asarray(d[np.asarray(queries, dtype=np.int64)], dtype=np.float32)
+    view = RowsOf(d, rows)
+    out = np.empty((len(view), len(q)), dtype=np.float32)
+    pieces = pieces if pieces is not None else [
+        (lo, min(lo + _block_rows(d.shape[1]), len(view))) for lo in range(0, len(view), _block_rows(d.shape[1]))]
+
+    def work(lo: int, hi: int) -> None:
+        similarity_t(view[lo:hi], q, out=out[lo:hi])
+        if then is not None:
+            then(lo, hi, out)
+
+    _in_blocks(len(view), d.shape[1], work, pieces)
     return out
 
 
@@ -204,6 +262,15 @@ class RetrievalFitted:
         """``(len(queries), n_places)`` bool: places holding a positive of each query."""
         return self.dataset.ground_truth.places(self.database_place, self.n_places, np.asarray(queries, dtype=np.int64))
 
+    @functools.cached_property
+    def layout(self) -> tuple[PlaceLayout, np.ndarray]:
+        """The database images in places grouped by place (``retrieval.PlaceLayout``), and their rows in the
+        descriptors in that order (``decide_queries``)."""
+        layout = PlaceLayout.of(self.model.places, self.n_places)
+        rows = self.model.images[layout.order]
+        rows.setflags(write=False)
+        return layout, rows
+
     def query_status(self, query: int) -> str:
         """``KNOWN`` (a right place), ``BETWEEN`` (positives, none in a place) or ``UNKNOWN`` (no positive)."""
         if self.dataset.ground_truth.counts[query] == 0:
@@ -246,12 +313,12 @@ def _fit(descriptors: np.ndarray, dataset: RetrievalDataset, places: RetrievalPl
     labels = place[images]
     # the rows in places, read a block at a time (a memory-mapped float16 database is never
     # gathered nor converted whole); the same sums as on descriptors[images]
-    stats = negative_stats_rows(descriptors, images, labels, n_places)
+    stats, positive_mean = stats_rows(descriptors, images, labels, n_places)
     neg_mean, spread = mixture_moments(stats)
     model = DatabaseModel(
         images=images, places=labels, traversals=tuple(int(t) for t in np.unique(dataset.database_traversal)),
         n_places=n_places, stats=stats, theta={m.value: place_thresholds(stats, m) for m in ThresholdMethod},
-        spread=spread, negative_mean=neg_mean, positive_mean=positive_means_rows(descriptors, images, labels, n_places),
+        spread=spread, negative_mean=neg_mean, positive_mean=positive_mean,
         auto=auto_global_threshold(training_pair_scores(descriptors, rows=images)),
     )
     return RetrievalFitted(dataset, places, np.asarray(place, dtype=np.int64), n_places, model)
@@ -337,22 +404,45 @@ def decide_queries(fitted: RetrievalFitted, descriptors: np.ndarray, queries: np
                    user_theta: float | None = None, block: int = 2048) -> tuple[np.ndarray, dict[str, Outcome]]:
     """Right places ``(n, n_places)`` and every method's ``Outcome`` for query images ``queries`` (blocks of rows).
 
-    A block holds at most ``SCORE_ELEMS`` scores (fewer queries than ``block`` on a big database).
+    A block holds at most ``SCORE_ELEMS`` scores (fewer queries than ``block`` on a big
+    database). The scores are database × queries with the database images in places grouped
+    by place (``retrieval.PlaceLayout``, as ``database.decide_traversal``'s fused path): each
+    piece of places is read (a block of the memory map, converted), scored and its place
+    maxima taken while in cache, and the image-level baseline reads back only the places
+    that can matter (``retrieval.score_layout_block``): the same ranks, answers and images as
+    ``score_queries`` on the query × database scores (``tests/test_million.py``), without
+    the column gather, the float64 copy and the dense image-level mask of every block. A
+    block with a non-finite score takes ``score_queries``, which defines what that means.
     """
     queries = np.asarray(queries, dtype=np.int64)
     if not len(queries):
         raise VPRInputError("queries: no query image to decide; choose at least one")
-    images = fitted.model.images
+    model = fitted.model
+    images = model.images
     block = max(1, min(block, SCORE_ELEMS // max(1, len(images))))
     th = fitted.model.thresholds(k, user_theta)
     truth = fitted.right_places(queries)
+    layout, db_rows = fitted.layout
+    pieces = layout.pieces(_block_rows(descriptors.shape[1]))
+    groups = {p[0]: p for p in pieces}
     parts = []
     for lo in range(0, len(queries), block):
-        rows = queries[lo:lo + block]
-        sims = score_rows(descriptors, fitted.dataset.n_database + rows, images)
-        raw, best = place_scores(sims, fitted.model.places, fitted.n_places)
-        parts.append(score_queries(sims, fitted.model.places, fitted.n_places, th, truth[lo:lo + block],
-                                   raw_best=(raw, best)))
+        rows = fitted.dataset.n_database + queries[lo:lo + block]
+        raw_t = np.empty((len(layout.places), len(rows)), dtype=np.float32)
+        best_t = np.empty((len(layout.places), len(rows)), dtype=np.int64)
+
+        def maxima(r0: int, r1: int, scores_t: np.ndarray) -> None:
+            layout_place_scores(scores_t, layout, groups[r0], raw_t, best_t)
+
+        scores_t = score_rows_t(descriptors, db_rows, rows, [(p[0], p[0] + p[2] * p[3]) for p in pieces], maxima)
+        if np.isfinite(raw_t).all():
+            parts.append(score_layout_block(scores_t, layout, raw_t, best_t, th, truth[lo:lo + block], model.places)[2])
+        else:
+            sims = score_rows(descriptors, rows, images)
+            raw, best = place_scores(sims, model.places, fitted.n_places)
+            parts.append(score_queries(sims, model.places, fitted.n_places, th, truth[lo:lo + block],
+                                       raw_best=(raw, best)))
+        del scores_t
     outcomes = {key: Outcome(parts[0][key].method, *(np.concatenate([getattr(p[key], f) for p in parts])
                                                      for f in ("rank", "answer_place", "answer_image", "n_kept")))
                 for key in parts[0]}
@@ -392,7 +482,7 @@ def evaluate_fitted(fitted: RetrievalFitted, descriptors: np.ndarray, *, user_th
     thresholds are ``fitted``'s (float32 closed-form products, as the app fits, within
     ``stats.sigma_sq_error_bound`` of the protocol's float64 ones, so a group/step already
     fitted is not fitted again), and the queries are scored in blocks of at most
-    ``score_elems`` float32 scores, the database read once per block a ``CHECK_ELEMS`` slice
+    ``score_elems`` float32 scores, the database read once per block a ``SCORE_BLOCK_ELEMS`` slice
     at a time (``score_rows``); every per-query step after the scores is
     ``retrieval_protocol``'s, on ``EVAL_ROWS`` queries at a time. ``tests/test_million.py``
     checks the table equals ``retrieval_protocol``'s on the same data.
@@ -489,7 +579,9 @@ def find_query(fitted: RetrievalFitted, descriptors: np.ndarray, *, after: int, 
 
     "answered wrong": a query with a right place not answered right at rank 1, or an
     unknown-place query accepted (a false positive). Queries are decided in growing chunks
-    and the search stops at ``pair_budget`` similarities, as ``views.find_frame`` does.
+    and the search stops at ``pair_budget`` similarities, as ``views.find_frame`` does; on a
+    memory-mapped database the first chunk is a whole block of ``decide_queries`` (each chunk
+    reads the database once, whatever its size).
 
     Returns:
         ``(query, last)``: the query found (``None`` if none) and the last query searched.
@@ -501,6 +593,8 @@ def find_query(fitted: RetrievalFitted, descriptors: np.ndarray, *, after: int, 
     limit = max(1, (PAIR_BUDGET if pair_budget is None else pair_budget) // max(1, len(fitted.model.images)))
     unknown_all = fitted.dataset.ground_truth.counts == 0
     lo, chunk = 0, first_chunk
+    if not dense(descriptors):  # a pass over a memory map costs the same for 64 queries as for a block of them
+        chunk = max(first_chunk, min(limit, SCORE_ELEMS // max(1, len(fitted.model.images))))
     while lo < n and lo < limit:
         queries = order[lo:lo + min(chunk, limit - lo)]
         truth, outcomes = decide_queries(fitted, descriptors, queries, k=k, user_theta=user_theta)

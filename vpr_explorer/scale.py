@@ -22,8 +22,10 @@ named at its end.
        n⁻ᵢ E[(s − c)²]ᵢ   = aᵢ − V_{i,r},    V_{i,r} = Σ_{q∈Q_r, p(q)≠p} (dᵢ·d_q − c)²
        σᵢ²                = E[(s − c)²]ᵢ − (μᵢ − c)²
 
-   so no split forms a D×D gram: dᵢ·Σ_q d_q for all splits is one (N×D)·(D×R) product and
-   V comes out of the pass (2). μ, hence the simple θ, is exact to float64 rounding; σ
+   so no split forms a D×D gram: dᵢ·Σ_q d_q for all splits is one (N×D)·(D×R) product,
+   dᵢᵀCdᵢ is |Lᵀdᵢ|² with C = LLᵀ (Cholesky, float64: a triangular product, half the flops
+   of dᵢᵀ(Cdᵢ); the general product where C is not positive definite), and V comes out of
+   the pass (2). μ, hence the simple θ, is exact to float64 rounding; σ
    carries the float32 rounding of the scores in V (taken about c, so descriptors whose
    scores all sit near 0.8 lose no more than centred ones), which moves a weighted θ_p by
    ~1e-11 (synthetic) to ~2e-9 (Nordland pixels). Step 6 keeps that from changing any
@@ -34,12 +36,18 @@ named at its end.
    S = X_I X_Jᵀ in float32. Its scores may differ from the reference's in the last bits
    (the BLAS kernel, block shape and threads change the summation order): every tie and
    answer is therefore decided with ``retrieval.TIE_TOLERANCE``, which such differences
-   never cross, so the outcomes are the reference's. Each block gives, for its rows and,
-   by symmetry, its columns:
+   never cross, so the outcomes are the reference's. Each block pair is cut into panels of
+   whole places of block I (``PANEL_ROWS`` rows, every slot of each place): a panel is one
+   GEMM in one thread, read after it slab by slab (``_SLAB_ROWS`` rows of one slot, which
+   stay in cache) for everything below; panels run side by side in ``threads`` threads
+   (BLAS in one thread each) and are merged in task order, so the sums and the table are
+   the same for any number of threads. Each panel gives, for its rows and, by symmetry,
+   block J's rows:
 
    * V (above): ((S − c)∘(S − c)) @ M, same-place pairs zeroed, with M the (N × R) query
-     indicator: float32 products over chunks of ``_W_CHUNK`` rows of M (one nonzero term
-     per place in the chunk), summed in float64;
+     indicator: float32 products over chunks of ``_W_CHUNK`` columns for the panel's rows
+     (one nonzero term per place in the chunk) and over the panel's rows for block J's
+     (one per place of the panel), summed in float64;
    * the **top-2 table**: per (image, place) the best and second-best score and the slots
      reaching them. In split r, raw_p of a query is p's best score unless p's held-out
      image is that best, then the second (on a tie the second equals the best). A query is
@@ -57,7 +65,7 @@ named at its end.
    b − (max μ − min μ) (or min μ when the own place can be dropped, −∞ when b is) reaches
    any rank or answer. Entries are (row, place, t1, a1, t2, a2), 18 bytes each, in RAM up
    to ``table_memory`` bytes, then in a temporary file.
-   ``_blocked_pass``, ``_floor``, ``_Entries``, ``_Records``.
+   ``_blocked_pass``, ``_panel_task``, ``_floor``, ``_Entries``, ``_Records``.
 3. **Per split thresholds** from the downdated moments through the library's own
    ``NegativeStats`` and ``place_thresholds``. ``_split_thresholds``.
 4. **The automatic global θ** is the reference's own: one tile sample for the whole run
@@ -95,7 +103,9 @@ from __future__ import annotations
 import dataclasses
 import os
 import tempfile
+import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -121,7 +131,7 @@ from vpr_explorer.evaluation import (
 )
 from vpr_explorer.retrieval import METHODS_BY_KEY, TIE_TOLERANCE, Outcome
 from vpr_explorer.shared_scores import SharedScores
-from vpr_explorer.stats import SIGMA_FLOOR, NegativeStats, mixture_moments
+from vpr_explorer.stats import SIGMA_FLOOR, NegativeStats, mixture_moments, one_blas_thread
 from vpr_explorer.thresholds import (
     ThresholdMethod,
     adaptive_k,
@@ -131,6 +141,14 @@ from vpr_explorer.thresholds import (
 
 #: Default rows per block of the pass: a 4,096 × 4,096 float32 block is 64 MiB.
 BLOCK_ROWS = 4096
+#: Rows per panel of the pass (whole places): one panel of a block pair, 1,536 × 4,096
+#: float32 scores (24 MiB), is one GEMM in one thread (at about the rate of the whole block's
+#: GEMM in two; 768 rows lose 4%, 192 rows 15%) and its bookkeeping.
+PANEL_ROWS = 1536
+#: Rows of a panel read at a time after its GEMM (of one slot, so 64 places): 64 × 4,096
+#: float32 scores (1 MiB) and their squares stay in a core's cache while they give both
+#: downdate products and both maxima.
+_SLAB_ROWS = 64
 #: ``pr=True`` hands runs × places² up to this to ``paper_protocol`` (the per-place PR curves
 #: score every query against every place at each of ~200 k: about 60 s at this size).
 PR_FAMILY_CELLS = 10_000_000
@@ -411,6 +429,21 @@ def _layout_rows64(d: np.ndarray, lay: Layout, rows: slice) -> np.ndarray:
     return out
 
 
+def _quadratic_forms(x: np.ndarray, gram: np.ndarray, chol: np.ndarray | None) -> np.ndarray:
+    """``(n,)`` xᵢᵀCxᵢ of float64 rows ``x`` (overwritten), from C's Cholesky factor L when given.
+
+    With L: |Lᵀxᵢ|², one BLAS triangular product (dtrmm). Cholesky is backward stable: LLᵀ =
+    C + E with |Eⱼₖ| ≤ γ_D·√(CⱼⱼCₖₖ), so for unit rows the error is at most γ_D·trace C ≈
+    D·1.1e-16·N, about what the float64 product dᵢᵀ(Cdᵢ) carries.
+    """
+    if chol is None:
+        return np.einsum("ij,ij->i", x @ gram, x)
+    from scipy.linalg.blas import dtrmm
+
+    y = dtrmm(1.0, chol, x.T, side=0, lower=1, trans_a=1, overwrite_b=1)  # Lᵀxᵀ, (D, n), in x's memory
+    return np.einsum("ij,ij->j", y, y)
+
+
 def _full_sums(d: np.ndarray, lay: Layout, query_rows: np.ndarray) -> _FullSums:
     """T, T_p, C and the quadratic forms, once (O(N·D²) float64), from the original values (step 1)."""
     n_rows, dim = lay.n_rows, d.shape[1]
@@ -431,6 +464,10 @@ def _full_sums(d: np.ndarray, lay: Layout, query_rows: np.ndarray) -> _FullSums:
             queries[r] += np.asarray(d[q_img[r, lo : lo + _CHUNK]], dtype=np.float64).sum(axis=0)
     dot_total, dot_place, sq = np.zeros(n_rows), np.zeros(n_rows), np.zeros(n_rows)
     dot_q = np.zeros((n_rows, len(query_rows)))
+    try:  # dᵢᵀCdᵢ = |Lᵀdᵢ|² with C = LLᵀ: a triangular product, half the flops of dᵢᵀ(Cdᵢ)
+        chol = np.linalg.cholesky(gram_all)
+    except np.linalg.LinAlgError:  # C not (numerically) positive definite: D > N, or degenerate descriptors
+        chol = None
     for b in range(lay.n_blocks):
         rows = lay.rows(b)
         x = _layout_rows64(d, lay, rows)
@@ -438,7 +475,7 @@ def _full_sums(d: np.ndarray, lay: Layout, query_rows: np.ndarray) -> _FullSums:
         dot_total[rows] = x @ total
         dot_q[rows] = x @ queries.T
         dot_place[rows] = gb.sum(axis=2).T.reshape(-1)
-        sq[rows] = np.einsum("ij,ij->i", x @ gram_all, x) - (gb**2).sum(axis=2).T.reshape(-1)  # Σ_{j∉p} s²
+        sq[rows] = _quadratic_forms(x, gram_all, chol) - (gb**2).sum(axis=2).T.reshape(-1)  # Σ_{j∉p} s²
     # scores are taken relative to c in the pass: (s − c)² sums carry float32 rounding in
     # proportion to |s − c|, not |s| (descriptors with a shared component score 0.7 everywhere)
     n_lab = int(lay.sizes.sum())
@@ -473,15 +510,6 @@ def _as_layout32(d: np.ndarray, lay: Layout) -> np.ndarray:
     return x
 
 
-def _in_slices(pool: ThreadPoolExecutor | None, fn: Callable[[slice], object], n: int, parts: int) -> list:
-    """``fn`` on ``parts`` contiguous slices of ``range(n)``, in the pool's threads (numpy frees the GIL)."""
-    edges = np.linspace(0, n, parts + 1).astype(int)
-    slices = [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
-    if pool is None or len(slices) < 2:
-        return [fn(sl) for sl in slices]
-    return [f.result() for f in [pool.submit(fn, sl) for sl in slices]]
-
-
 def _round_down32(x: np.ndarray) -> np.ndarray:
     """The largest float32 values ≤ x (the scores are float32: compared with them, nothing is lost)."""
     x32 = x.astype(np.float32)
@@ -504,29 +532,27 @@ def _floor(best: np.ndarray, mu_range: tuple[float, float], is_query: np.ndarray
     return np.where(is_query, _round_down32(f), np.float32(np.inf))
 
 
-def _table_side(pool, s3: np.ndarray, floor: np.ndarray, *, axis: int, parts: int) -> dict[str, np.ndarray]:
-    """One side of a block's top-2 table: the entries whose best score reaches the row's floor.
+def _side(s3: np.ndarray, t1: np.ndarray, floor: np.ndarray, *, axis: int) -> dict[str, np.ndarray]:
+    """One side of a panel's top-2 table: the entries whose best score ``t1`` reaches the row's floor.
 
-    ``s3`` is ``(rows, m, places)`` (axis=1: the block's rows are the table's rows) or
-    ``(m, places, cols)`` (axis=0: its columns are). Returns the entries' local row and
-    place, t1/a1/t2/a2 and their ``(n, m)`` slot scores.
+    ``s3`` is ``(rows, m, places)`` (axis=1: the panel's rows are the table's rows) or
+    ``(m, places, cols)`` (axis=0: its columns are); ``t1`` its maximum over that axis.
+    Returns the entries' local row and place, t1/a1/t2/a2 and their ``(n, m)`` slot scores.
     """
     if axis == 1:
-        t1 = np.concatenate(_in_slices(pool, lambda sl: np.max(s3[sl], axis=1), s3.shape[0], parts), axis=0)
         r, c = np.nonzero(t1 >= floor[:, None])
         vals = s3[r, :, c]
     else:
-        t1 = np.concatenate(_in_slices(pool, lambda sl: np.max(s3[:, :, sl], axis=0), s3.shape[2], parts), axis=1)
         c, r = np.nonzero(t1 >= floor[None, :])
         vals = s3[:, c, r].T
     return {"row": r, "place": c, **_top2_rows(vals), "vals": vals}
 
 
 class _BlockProducts:
-    """S = X_I X_Jᵀ of the pass, written into a float32 buffer: numpy (BLAS), or torch on ``device``.
+    """A panel of S = X_I X_Jᵀ, written into a float32 buffer: numpy (BLAS), or torch on ``device``.
 
     With a device the layout descriptors are copied there once (CPU tensors share numpy's
-    memory) and each block's product comes back to the CPU buffer. Its float32 scores may
+    memory) and each panel's product comes back to the CPU buffer. Its float32 scores may
     differ from numpy's in the last bits, like another BLAS kernel's: the tie tolerance
     (module doc, step 2) keeps every outcome the same.
     """
@@ -541,20 +567,140 @@ class _BlockProducts:
             self.device = torch_device(device)
             self.xt = torch.from_numpy(x).to(self.device)
 
-    def __call__(self, ri: slice, rj: slice, out: np.ndarray) -> None:
-        x = self.x
+    def __call__(self, rows: np.ndarray, rj: slice, out: np.ndarray) -> None:
         if self.device is None:
-            np.matmul(x[ri], x[ri].T if ri == rj else x[rj].T, out=out)  # A @ A.T: the syrk of the reference's d @ d.T
+            np.matmul(self.x[rows], self.x[rj].T, out=out)
             return
         import torch
 
         from vpr_explorer.stats import ieee_float32
 
+        idx = torch.from_numpy(rows).to(self.device)
         with ieee_float32():
             if self.device.type == "cpu":
-                torch.matmul(self.xt[ri], self.xt[rj].T, out=torch.from_numpy(out))
+                torch.matmul(self.xt[idx], self.xt[rj].T, out=torch.from_numpy(out))
             else:
-                torch.from_numpy(out).copy_(self.xt[ri] @ self.xt[rj].T)
+                torch.from_numpy(out).copy_(self.xt[idx] @ self.xt[rj].T)
+
+
+@dataclass(frozen=True)
+class _Panel:
+    """One task of the pass: the places ``g0:g1`` (within block ``bi``) against block ``bj``."""
+
+    bi: int
+    bj: int
+    g0: int
+    g1: int
+
+
+@dataclass(eq=False)
+class _PanelResult:
+    """A panel's share of the pass, merged by the main thread in task order (``_blocked_pass``)."""
+
+    panel: _Panel
+    rows: np.ndarray  # (n,) layout rows of the panel: slot-major over its places
+    v_rows: np.ndarray  # (n, R) float64: the panel rows' share of V
+    v_cols: np.ndarray | None  # (cols, R) float64: block J's rows' share of V (off-diagonal panels)
+    best: np.ndarray | None  # (n,) b of the panel rows (diagonal panels)
+    sides: list  # (table row block, side dict with layout rows/places, own place per entry or None)
+
+
+class _PassState:
+    """What the panels read (descriptors, indicator, floors) and each worker thread's buffers."""
+
+    def __init__(self, lay: Layout, products: _BlockProducts, indicator: np.ndarray, pad: np.ndarray,
+                 row_traversal: np.ndarray | None, centre: np.float32, floor: np.ndarray, panel_rows: int):
+        self.lay, self.products, self.indicator, self.pad = lay, products, indicator, pad
+        self.row_traversal, self.centre, self.floor = row_traversal, centre, floor
+        widest = lay.slots * int(np.diff(lay.block_start).max())
+        self.size = min(max(panel_rows, 1) + lay.slots, widest) * widest  # a panel: at most panel_rows + m rows
+        self.slab = _SLAB_ROWS * widest
+        self.local = threading.local()
+
+    def buffers(self) -> tuple[np.ndarray, np.ndarray]:
+        buf = getattr(self.local, "buf", None)
+        if buf is None:
+            buf = self.local.buf = (np.empty(self.size, np.float32), np.empty(self.slab, np.float32))
+        return buf
+
+
+def _panel_task(st: _PassState, p: _Panel, mu_range: tuple[float, float], is_query: np.ndarray) -> _PanelResult:
+    """Everything the splits need from one panel of S, in one thread (step 2).
+
+    The panel holds every slot of the places ``g0:g1`` of block I, slot-major, so that both
+    sides of the top-2 table reduce over a place's images inside it: its rows against block
+    J's places, and (off the diagonal) block J's rows against its places. After its GEMM the
+    panel is read slot by slot, a slab of up to ``_SLAB_ROWS`` rows of one slot (1 MiB at
+    4,096 columns) at a time, which stays in cache while it gives its squares, both
+    downdate products and both maxima.
+    """
+    lay, m = st.lay, st.lay.slots
+    ri, rj = lay.rows(p.bi), lay.rows(p.bj)
+    gi, gj = (ri.stop - ri.start) // m, (rj.stop - rj.start) // m
+    gp, nj = p.g1 - p.g0, rj.stop - rj.start
+    rows = ri.start + (np.arange(m)[:, None] * gi + np.arange(p.g0, p.g1)[None, :]).ravel()
+    n, runs = len(rows), st.indicator.shape[1]
+    s_buf, q_buf = st.buffers()
+    s = s_buf[: n * nj].reshape(n, nj)
+    st.products(rows, rj, s)
+    diagonal = p.bi == p.bj
+    own = np.arange(p.g0, p.g1) + int(lay.block_start[p.bi] - lay.block_start[p.bj])  # the slab rows' place in J
+    mj, mp = st.indicator[rj], st.indicator[rows]
+    pad_j = st.pad[rj]
+    trav_j = st.row_traversal[rj] if st.row_traversal is not None else None
+    v_rows = np.zeros((n, runs))
+    v_cols = None if diagonal else np.zeros((nj, runs), dtype=np.float32)
+    row_max = np.empty((n, gj), dtype=np.float32)
+    col_max = None if diagonal else np.full((gp, nj), -np.inf, dtype=np.float32)
+    best = np.empty(n, dtype=np.float32) if diagonal else None
+    for k, h0 in ((k, h0) for k in range(m) for h0 in range(0, gp, _SLAB_ROWS)):
+        h1 = min(h0 + _SLAB_ROWS, gp)
+        sl, hl, hs = slice(k * gp + h0, k * gp + h1), slice(h0, h1), h1 - h0
+        sk = s[sl]
+        q = q_buf[: hs * nj].reshape(hs, nj)
+        # second moments: squared scores against each split's queries of other places
+        np.square(np.subtract(sk, st.centre, out=q), out=q)
+        if diagonal:
+            q.reshape(hs, m, gj)[np.arange(hs), :, own[hl]] = 0.0
+        for c0 in range(0, nj, _W_CHUNK):
+            v_rows[sl] += q[:, c0 : c0 + _W_CHUNK] @ mj[c0 : c0 + _W_CHUNK]
+        if not diagonal:
+            v_cols += q.T @ mp[sl]
+        # what a query may match: never padding; in cross-condition, not its own traversal
+        pad_k = st.pad[rows[sl]]
+        if pad_k.any():
+            sk[pad_k] = -np.inf
+        if pad_j.any():
+            sk[:, pad_j] = -np.inf
+        if trav_j is not None:
+            np.putmask(sk, st.row_traversal[rows[sl]][:, None] == trav_j[None, :], -np.inf)
+        sk3 = sk.reshape(hs, m, gj)
+        if diagonal:  # b: the best of the own place's other images
+            mine = sk3[np.arange(hs), :, own[hl]]
+            mine[:, k] = -np.inf
+            best[sl] = mine.max(axis=1)
+        np.max(sk3, axis=1, out=row_max[sl])
+        if not diagonal:
+            np.maximum(col_max[hl], sk, out=col_max[hl])
+    floor = _floor(best, mu_range, is_query[rows]) if diagonal else st.floor[rows]
+    side = _side(s.reshape(n, m, gj), row_max, floor, axis=1)
+    r = side["row"]
+    side["own"] = side["place"] == np.tile(own, m)[r] if diagonal else None
+    side["row"], side["place"] = rows[r] - ri.start, lay.block_start[p.bj] + side["place"]
+    sides = [(p.bi, side)]
+    if not diagonal:
+        side = _side(s.reshape(m, gp, nj), col_max, st.floor[rj], axis=0)
+        side["own"], side["place"] = None, lay.block_start[p.bi] + p.g0 + side["place"]
+        sides.append((p.bj, side))
+    return _PanelResult(p, rows, v_rows, None if diagonal else v_cols.astype(np.float64), best, sides)
+
+
+def _panels(lay: Layout, bi: int, bj: int, panel_rows: int) -> list[_Panel]:
+    """Block I's places cut into panels of about ``panel_rows`` rows (all slots of each place)."""
+    gi = int(lay.block_start[bi + 1] - lay.block_start[bi])
+    parts = max(1, -(-gi * lay.slots // panel_rows))
+    edges = np.linspace(0, gi, parts + 1).astype(int)
+    return [_Panel(bi, bj, int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
 
 def _blocked_pass(
@@ -569,17 +715,22 @@ def _blocked_pass(
     threads: int,
     progress: Callable[[int, str], None] | None,
     device: object | None = None,
+    panel_rows: int | None = None,
 ) -> _PassResult:
     """Everything the splits need from the similarities, in one pass over block pairs I ≤ J (step 2).
 
-    Diagonal blocks come first: they hold each image's own place, hence b and the row's
-    floor, which the off-diagonal blocks need. ``progress(pairs done, message)`` after each pair.
-    ``device``: a torch device for the block products (``_BlockProducts``); the bookkeeping
-    stays in numpy on the CPU.
+    Each block pair is cut into panels of whole places of block I (``_panel_task``: the GEMM
+    of the panel's rows and its bookkeeping, slab by slab in cache, in one thread);
+    ``threads`` threads run panels side by side, BLAS in one thread each, and the main thread
+    merges their results in task order, so the sums and the table do not depend on the number
+    of threads. Diagonal blocks come first: they hold each image's own place, hence b and
+    the row's floor, which the off-diagonal blocks need. ``progress(pairs done, message)``
+    after each pair. ``device``: a torch device for the panel products (``_BlockProducts``);
+    the bookkeeping stays in numpy on the CPU.
     """
     n_rows, m, nb = lay.n_rows, lay.slots, lay.n_blocks
+    panel_rows = PANEL_ROWS if panel_rows is None else panel_rows
     runs = query_rows.shape[0]
-    centre = np.float32(centre)
     indicator = np.zeros((n_rows, runs), dtype=np.float32)  # M: row i is a query of split r
     indicator[query_rows.T, np.arange(runs)[None, :]] = 1.0
     is_query = indicator.any(axis=1)
@@ -588,79 +739,76 @@ def _blocked_pass(
     floor = np.full(n_rows, np.inf, dtype=np.float32)
     records = _Records(n_rows, m, cap)
     near = _NearSlots(len(lay.places))
-    pad = lay.image_of_row < 0
-    widest = m * int(np.diff(lay.block_start).max())
-    s_buf = np.empty(widest * widest, dtype=np.float32)
-    q_buf = np.empty(widest * widest, dtype=np.float32)
+    st = _PassState(lay, _BlockProducts(x, device), indicator, lay.image_of_row < 0, row_traversal,
+                    np.float32(centre), floor, panel_rows)
     pairs = [(i, i) for i in range(nb)] + [(i, j) for i in range(nb) for j in range(i + 1, nb)]
-    products = _BlockProducts(x, device)
-    pool = ThreadPoolExecutor(threads) if threads > 1 else None
-    try:
-        for step, (bi, bj) in enumerate(pairs):
-            ri, rj = lay.rows(bi), lay.rows(bj)
-            ni, nj = ri.stop - ri.start, rj.stop - rj.start
-            gi, gj = ni // m, nj // m  # places in each block
-            s = s_buf[: ni * nj].reshape(ni, nj)
-            products(ri, rj, s)
-            # second moments: squared scores against each split's queries of other places
-            q = q_buf[: ni * nj].reshape(ni, nj)
-            _in_slices(pool, lambda sl: np.square(np.subtract(s[sl], centre, out=q[sl]), out=q[sl]), ni, threads)
-            if bi == bj:
-                np.putmask(q, lay.place_of_row[ri][:, None] == lay.place_of_row[rj][None, :], 0.0)
-            mi, mj = indicator[ri], indicator[rj]
-            for c0 in range(0, nj, _W_CHUNK):
-                v[ri] += q[:, c0 : c0 + _W_CHUNK] @ mj[c0 : c0 + _W_CHUNK]
-            if bi != bj:
-                for c0 in range(0, ni, _W_CHUNK):
-                    v[rj] += q[c0 : c0 + _W_CHUNK].T @ mi[c0 : c0 + _W_CHUNK]
-            # what a query may match: never padding; in cross-condition, not its own traversal
-            if pad[ri].any():
-                s[pad[ri]] = -np.inf
-            if pad[rj].any():
-                s[:, pad[rj]] = -np.inf
-            if row_traversal is not None:
-                ti, tj = row_traversal[ri], row_traversal[rj]
-                _in_slices(pool, lambda sl: np.putmask(s[sl], ti[sl, None] == tj[None, :], -np.inf), ni, threads)
-            s3 = s.reshape(ni, m, gj)
-            own = None
-            if bi == bj:  # b: the best of the own place's other images
-                own = lay.place_of_row[ri] - lay.block_start[bi]  # each row's place, within the block
-                mine = s3[np.arange(ni), :, own]
-                mine[np.arange(ni), lay.slot_of_row[ri]] = -np.inf
-                best_own[ri] = mine.max(axis=1)
-                floor[ri] = _floor(best_own[ri], mu_range, is_query[ri])
-            side = _table_side(pool, s3, floor[ri], axis=1, parts=threads)
-            _store_side(entries, records, near, side, bi, ri.start, lay.block_start[bj], best_own[ri], own)
-            if bi != bj:
-                side = _table_side(pool, s.reshape(m, gi, nj), floor[rj], axis=0, parts=threads)
-                _store_side(entries, records, near, side, bj, rj.start, lay.block_start[bi], best_own[rj], None)
+    left = {}  # block pair -> panels not merged yet
+    done = [0]
+
+    def merge(res: _PanelResult) -> None:
+        p = res.panel
+        v[res.rows] += res.v_rows
+        if res.v_cols is not None:
+            v[lay.rows(p.bj)] += res.v_cols
+        if res.best is not None:
+            best_own[res.rows] = res.best
+            floor[res.rows] = _floor(res.best, mu_range, is_query[res.rows])
+        for row_block, side in res.sides:
+            _store_side(entries, records, near, side, row_block, lay.rows(row_block).start, best_own)
+        left[(p.bi, p.bj)] -= 1
+        if left[(p.bi, p.bj)] == 0:
+            done[0] += 1
             if progress:
-                progress(step + 1, f"similarity block {step + 1}/{len(pairs)}")
-    finally:
-        if pool is not None:
-            pool.shutdown()
+                progress(done[0], f"similarity block {done[0]}/{len(pairs)}")
+
+    def run(phase: list[tuple[int, int]], pool: ThreadPoolExecutor | None) -> None:
+        tasks = []
+        for bi, bj in phase:
+            ps = _panels(lay, bi, bj, panel_rows)
+            left[(bi, bj)] = len(ps)
+            tasks += ps
+        if pool is None:
+            for t in tasks:
+                merge(_panel_task(st, t, mu_range, is_query))
+            return
+        window: deque = deque()
+        for t in tasks:  # a few tasks in flight ahead of the merge, merged in order
+            window.append(pool.submit(_panel_task, st, t, mu_range, is_query))
+            if len(window) > 2 * threads:
+                merge(window.popleft().result())
+        while window:
+            merge(window.popleft().result())
+
+    if threads > 1:
+        with ThreadPoolExecutor(threads) as pool, one_blas_thread():
+            run(pairs[:nb], pool)  # the diagonal: b and the floors, which every other panel reads
+            run(pairs[nb:], pool)
+    else:
+        run(pairs[:nb], None)
+        run(pairs[nb:], None)
     return _PassResult(v, best_own, records, near)
 
 
 def _store_side(entries: _Entries, records: _Records, near: _NearSlots, side: dict, row_block: int, row0: int,
-                place0: int, best: np.ndarray, own: np.ndarray | None) -> None:
+                best: np.ndarray) -> None:
     """File one side's entries; record the wrong places whose second best already ties b.
 
-    ``row0`` and ``place0`` turn the side's local rows and places into layout rows and place
-    indices; ``best`` is b of the side's rows; ``own`` their own place (local), on a diagonal block.
+    The side's ``row`` is local to ``row_block`` (which starts at layout row ``row0``), its
+    ``place`` a place index; ``best`` is b of every layout row; ``own`` (on a diagonal
+    panel) marks the entries of the row's own place.
     """
     r = side["row"]
-    entries.put(row_block, {**side, "place": place0 + side["place"]})
-    b = best[r]
+    entries.put(row_block, side)
+    b = best[row0 + r]
     tied = b.astype(np.float64) - _TIE
     sel = (side["t2"] >= tied) & np.isfinite(b)
-    if own is not None:
-        sel &= side["place"] != own[r]
+    if side["own"] is not None:
+        sel &= ~side["own"]
     if sel.any():
-        records.add(row0 + r[sel], place0 + side["place"][sel], side["vals"][sel] >= tied[sel][:, None])
+        records.add(row0 + r[sel], side["place"][sel], side["vals"][sel] >= tied[sel][:, None])
     amb = side["near"].astype(bool)
     if amb.any():
-        near.add(row0 + r[amb], place0 + side["place"][amb], side["vals"][amb])
+        near.add(row0 + r[amb], side["place"][amb], side["vals"][amb])
 
 
 # --------------------------------------------------------------------------- per split
@@ -704,10 +852,12 @@ def _content_classes(d: np.ndarray, lay: Layout) -> np.ndarray:
     # equal keys: confirm byte equality with the run's first row
     first = order[np.flatnonzero(new)][run]
     clash = np.zeros(len(order), dtype=bool)
-    for lo in range(0, len(order), _CHUNK):
-        a = np.ascontiguousarray(d[img[order[lo : lo + _CHUNK]]])
-        b = np.ascontiguousarray(d[img[first[lo : lo + _CHUNK]]])
-        clash[lo : lo + _CHUNK] = np.any(a.view(np.uint8) != b.view(np.uint8), axis=1)
+    shared = np.flatnonzero(np.bincount(run)[run] > 1)  # a key of one image needs no check
+    for lo in range(0, len(shared), _CHUNK):
+        at = shared[lo : lo + _CHUNK]
+        a = np.ascontiguousarray(d[img[order[at]]])
+        b = np.ascontiguousarray(d[img[first[at]]])
+        clash[at] = np.any(a.view(np.uint8) != b.view(np.uint8), axis=1)
     sorted_cls = run.copy()
     fresh = int(run.max()) + 1
     for k in np.unique(run[clash]):  # a key shared by different descriptors (vanishingly rare)
@@ -1176,6 +1326,14 @@ def _assemble(sd: _SplitData, out: dict[str, dict[str, np.ndarray]], top: np.nda
 # --------------------------------------------------------------------------- public
 
 
+def _cpus() -> int:
+    """CPUs this process may run on (its affinity, where the OS tells it)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - macOS, Windows
+        return os.cpu_count() or 1
+
+
 def scale_splits(
     descriptors: np.ndarray,
     image_place: np.ndarray,
@@ -1213,7 +1371,7 @@ def scale_splits(
     """
     d = descriptors
     image_place, image_traversal = np.asarray(image_place), np.asarray(image_traversal)
-    threads = min(os.cpu_count() or 1, 8) if threads is None else max(1, int(threads))
+    threads = min(_cpus(), 32) if threads is None else max(1, int(threads))
     if any(sp.unknown.any() for sp in splits):
         raise VPRInputError("scale_splits: splits with unknown places (the open set) are not supported; "
                             "use evaluation.open_set_protocol")
@@ -1298,10 +1456,12 @@ def fast_paper_protocol(
     ``user_theta``, ``ks``), plus:
 
     Args:
-        block: rows per block of the pass; memory for block buffers is about 8·block² bytes.
+        block: rows per block of the pass; its buffers take about 4·block·(``PANEL_ROWS`` + 76)
+            bytes per thread (25 MiB at 4,096).
         table_memory: bytes of top-2 table entries kept in RAM before spilling to a file.
         spill_dir: folder for that temporary file (default: the system's temporary folder).
-        threads: threads for the elementwise work of the pass (default: CPU count, at most 8).
+        threads: panels of the pass run side by side, each GEMM in one BLAS thread (default: the
+            CPUs this process may use, at most 32); the numbers do not depend on it.
         tolerance, image_frame, frame_place: as for ``paper_protocol``. When the tolerance
             makes a neighbouring place right for some query (places closer than the
             tolerance), this path, built on one right place per query, hands the run to

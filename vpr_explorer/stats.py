@@ -86,6 +86,8 @@ _BIG_PLACE = 1024  # places with more images get their same-place scores a band 
 _PART = 512  # rows per part of the elementwise work shared out to threads (fixed: see ``_parts``)
 _MEAN_ROWS = 8192  # rows converted to float64 at a time by ``positive_means``
 _TRI_BLOCKS = 4  # column blocks of W: the quadratic forms take (1 + 1/4)·N·D² flops instead of 2·N·D²
+_GRAM_SPLIT = 4  # column blocks of E: a block's Gram as 4 syrks and 6 GEMMs (``_centred_gram``)
+_QUAD_ROWS = 1024  # rows per pool task of ``_quadratic_forms``
 
 
 @dataclass(frozen=True, eq=False)
@@ -334,22 +336,26 @@ def _centred_gram(
     is relative to |dⱼ − m|, not |dⱼ|), then the float32 Gram, added to a float64 E. The
     buffers are reused: a fresh 20 MB array per block costs more in page faults than the sums.
 
-    The Gram of a block of ``BLOCK`` rows is cut at h = D/2 into two syrks (the diagonal
-    halves) and one GEMM (the off-diagonal half, mirrored): equal work, run as two pool tasks
-    with BLAS in one thread each when ``side_by_side`` (numpy's one syrk ran its two threads at
-    about 70% of their rate, then mirrored the triangle in one thread). Each entry is still one
-    inner product of depth L, so the error bound is unchanged; at depth ``BLOCK`` (4,096) they
-    are also the same float32 numbers as one syrk, since OpenBLAS cuts that depth alike for
+    The Gram of a block of ``BLOCK`` rows is cut into the tiles on and above the diagonal of
+    ``_GRAM_SPLIT`` column blocks (4 syrks, 6 GEMMs): pool tasks of near-equal work, the
+    GEMMs first, each with BLAS in one thread when ``side_by_side`` (numpy's one syrk ran its
+    two threads at about 70% of their rate, then mirrored the triangle in one thread). Each
+    task adds its tile to a float64 sum of that tile while the tile is in cache, and E is
+    assembled once, the tiles below the diagonal mirrored. Each entry is still one inner
+    product of depth L, so the error bound is unchanged; at depth ``BLOCK`` (4,096) they are
+    also the same float32 numbers as one syrk, since OpenBLAS cuts that depth alike for
     both, while at some other depths (a last block of 1,234 or 3,000 rows) the GEMM's cut
     differs in the last bits. So other blocks keep the one syrk: the statistics are those of
     the code before, bit for bit (``tests/test_stats.py``).
     """
     n, dim = d.shape
     m = centre if d.dtype == np.float32 else centre.astype(np.float64)  # float32 − float32: one rounding
-    h = dim // 2
-    gram = np.zeros((dim, dim))
-    halves = (np.empty((h, h), dtype=np.float32), np.empty((dim - h, dim - h), dtype=np.float32),
-              np.empty((h, dim - h), dtype=np.float32))
+    edges = np.linspace(0, dim, min(_GRAM_SPLIT, dim) + 1).round().astype(int)
+    cols = [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
+    # GEMMs (twice the flops of a syrk of the same width) first, so the pool ends on the small tasks
+    tiles = sorted(((i, j) for i in range(len(cols)) for j in range(i, len(cols))), key=lambda t: t[0] == t[1])
+    sums64 = {t: np.zeros((cols[t[0]].stop - cols[t[0]].start, cols[t[1]].stop - cols[t[1]].start)) for t in tiles}
+    out32 = {t: np.empty(a.shape, dtype=np.float32) for t, a in sums64.items()}
     e = np.empty((min(block, n), dim), dtype=np.float32)
     sums = []
     for lo in range(0, n, block):
@@ -359,36 +365,31 @@ def _centred_gram(
             np.subtract(x[sl], m, out=eb[sl], casting="same_kind")
             return x[sl].sum(axis=0, dtype=np.float64)
 
-        def diagonal(eb: np.ndarray = eb) -> None:  # numpy hands Xᵀ X to syrk: half the products of a GEMM
-            np.matmul(eb[:, :h].T, eb[:, :h], out=halves[0])
-            np.matmul(eb[:, h:].T, eb[:, h:], out=halves[1])
-
-        def off_diagonal(eb: np.ndarray = eb) -> None:
-            np.matmul(eb[:, :h].T, eb[:, h:], out=halves[2])
+        def tile(t: tuple[int, int], eb: np.ndarray = eb) -> None:
+            # eᵢᵀeᵢ: numpy hands Xᵀ X to syrk, half the products of a GEMM
+            np.matmul(eb[:, cols[t[0]]].T, eb[:, cols[t[1]]], out=out32[t])
+            np.add(sums64[t], out32[t], out=sums64[t])
 
         sums += _parts(pool, centre_part, len(x))
         if len(x) == BLOCK:
-            _side_by_side(pool, (diagonal, off_diagonal), side_by_side)
-        else:  # one syrk, mirrored: its halves taken apart (see the docstring)
+            _side_by_side(pool, tuple(functools.partial(tile, t) for t in tiles), side_by_side)
+        else:  # one syrk, mirrored: its tiles taken apart (see the docstring)
             whole = np.matmul(eb.T, eb)
-            np.copyto(halves[0], whole[:h, :h]), np.copyto(halves[1], whole[h:, h:]), np.copyto(halves[2], whole[:h, h:])
-        _parts(pool, lambda sl: _add_gram_rows(gram, halves, h, sl), dim)
+
+            def add_tile(t: tuple[int, int], whole: np.ndarray = whole) -> None:
+                np.add(sums64[t], whole[cols[t[0]], cols[t[1]]], out=sums64[t])
+
+            list(pool.map(add_tile, tiles))
+    gram = np.empty((dim, dim))
+    for (i, j), tile_sum in sums64.items():
+        gram[cols[i], cols[j]] = tile_sum
+        gram[cols[j], cols[i]] = tile_sum.T  # a diagonal tile is symmetric: the same numbers
     return gram, np.sum(sums, axis=0)  # in part order: the same sum whatever the thread count
 
 
-def _add_gram_rows(gram: np.ndarray, halves: tuple[np.ndarray, np.ndarray, np.ndarray], h: int, rows: slice) -> None:
-    """``gram[rows] += G[rows]`` for the block Gram G held as its halves ``(G₁₁, G₂₂, G₁₂)`` (G₂₁ = G₁₂ᵀ)."""
-    top = slice(rows.start, min(rows.stop, h))
-    bottom = slice(max(rows.start, h) - h, max(rows.stop, h) - h)
-    for row, left, right in ((top, halves[0][top], halves[2][top]), (slice(bottom.start + h, bottom.stop + h),
-                                                                        halves[2][:, bottom].T, halves[1][bottom])):
-        if row.stop > row.start:
-            np.add(gram[row, :h], left, out=gram[row, :h])
-            np.add(gram[row, h:], right, out=gram[row, h:])
-
-
 def _side_by_side(pool: ThreadPoolExecutor, tasks: tuple[Callable[[], None], ...], parallel: bool) -> None:
-    """Run BLAS-bound ``tasks`` as pool tasks with BLAS in one thread each, or in turn with BLAS's own threads.
+    """Run BLAS-bound ``tasks`` as pool tasks with BLAS in one thread each (in the order given, as
+    threads free up), or in turn with BLAS's own threads.
 
     Either way each product gives the same numbers: a GEMM or syrk splits rows and columns
     between threads, never an inner product.
@@ -449,8 +450,17 @@ def _quadratic_forms(
 
     E is symmetric, so dᵀEd = dᵀWd with W block upper triangular (``_TRI_BLOCKS`` column
     blocks: 2·E_IJ above the diagonal blocks, E_JJ on them, exact in float32): column block
-    J of dW is d[:, :J_end] @ W[:J_end, J], (1 + 1/4)·N·D² flops instead of 2·N·D². The
-    column blocks go to two pool tasks of equal work when ``side_by_side`` (``_side_by_side``).
+    J of dW is d[:, :J_end] @ W[:J_end, J], (1 + 1/4)·N·D² flops instead of 2·N·D².
+
+    Each pool task takes ``_QUAD_ROWS`` rows through every column block and their row sums,
+    with BLAS in one thread when ``side_by_side``: the tasks are equal, so the threads stay
+    busy to the end, with no wait between blocks of rows. A GEMM splits rows between calls
+    as it splits them between threads, never an inner product, so each dᵢᵀWdᵢ is the same
+    float32 products and float64 sum whatever rows share its call, as in whole blocks of
+    ``block`` rows before (``tests/test_stats.py``; products so small that OpenBLAS takes its
+    small-matrix kernel, a few hundred rows of a W a few dozen columns wide, round
+    otherwise, within the error bound). ``block`` is unused: the memory is a task's rows
+    per thread.
     """
     n, dim = d.shape
     edges = np.linspace(0, dim, min(_TRI_BLOCKS, dim) + 1).round().astype(int)
@@ -458,31 +468,23 @@ def _quadratic_forms(
     w = [np.asarray(gram[:hi, lo:hi], dtype=np.float32) for lo, hi in cols]
     for wj, (lo, _) in zip(w, cols):
         wj[:lo] *= 2
-    shares: list[list[int]] = [[], []]  # column block J costs ∝ J_end: the largest first, to the lighter task
-    for j in sorted(range(len(cols)), key=lambda j: -cols[j][1]):
-        min(shares, key=lambda share: sum(cols[i][1] for i in share)).append(j)
-    x32 = None if d.dtype == np.float32 else np.empty((min(block, n), dim), dtype=np.float32)
-    y = np.empty((min(block, n), dim), dtype=np.float32)
     quad = np.empty(n)
-    for lo in range(0, n, block):
-        x = d[lo : lo + block]
-        if x32 is not None:  # float64 input rounded once (float16 converts exactly)
-            xb = x32[: len(x)]
-            _parts(pool, lambda sl, x=x, xb=xb: np.copyto(xb[sl], x[sl], casting="same_kind"), len(x))
-            x = xb
-        yb = y[: len(x)]
+    buffers = threading.local()  # each thread's products (and float32 rows), reused across its tasks
 
-        def products(share: list[int], x: np.ndarray = x, yb: np.ndarray = yb) -> None:
-            for j in share:
-                (c0, c1), wj = cols[j], w[j]
-                np.matmul(x[:, :c1], wj, out=yb[:, c0:c1])
+    def rows(lo: int) -> None:
+        x = d[lo : lo + _QUAD_ROWS]
+        if not hasattr(buffers, "y"):
+            buffers.y = np.empty((min(_QUAD_ROWS, n), dim), dtype=np.float32)
+            buffers.x = None if x.dtype == np.float32 else np.empty_like(buffers.y)
+        if buffers.x is not None:  # float64 input rounded once (float16 converts exactly)
+            np.copyto(buffers.x[: len(x)], x, casting="same_kind")
+            x = buffers.x[: len(x)]
+        y = buffers.y[: len(x)]
+        for (c0, c1), wj in zip(cols, w):
+            np.matmul(x[:, :c1], wj, out=y[:, c0:c1])
+        quad[lo : lo + len(x)] = np.einsum("ij,ij->i", y, x, dtype=np.float64)
 
-        _side_by_side(pool, tuple(functools.partial(products, share) for share in shares), side_by_side)
-
-        def rows(sl: slice, lo: int = lo, x: np.ndarray = x, yb: np.ndarray = yb) -> None:
-            quad[lo + sl.start : lo + sl.stop] = np.einsum("ij,ij->i", yb[sl], x[sl], dtype=np.float64)
-
-        _parts(pool, rows, len(x))
+    _side_by_side(pool, tuple(functools.partial(rows, lo) for lo in range(0, n, _QUAD_ROWS)), side_by_side)
     return quad
 
 
@@ -819,20 +821,168 @@ def negative_stats_rows(
     return NegativeStats(mu=mu, sigma=sigma, n_neg=n_neg.astype(np.int64), labels=labels, n_places=n_places)
 
 
+class _PlaceSums:
+    """``positive_means``' sums fed consecutive blocks of rows: each place's descriptor sum and each row's squared
+    norm, float64, over chunks of ``_MEAN_ROWS`` rows (the same chunks, products and order as ``positive_means``,
+    so the same numbers bit for bit). A chunk adds only to the places it holds: the dense ``(n_places, D)``
+    product of the sparse indicator was added whole per chunk (at 20,000 places × 512, 80 MB a chunk: 2 s
+    of a 500,000-image fit)."""
+
+    def __init__(self, labels: np.ndarray, n_places: int, dim: int) -> None:
+        self.labels, self.n_places = labels, n_places
+        n = len(labels)
+        self.sums = np.zeros((n_places, dim))
+        self.sq = np.empty(n)
+        self.buf = np.empty((min(_MEAN_ROWS, n), dim))
+        self.filled = 0  # rows of the current chunk in ``buf``
+        self.done = 0  # rows summed
+
+    def add(self, block: np.ndarray) -> None:
+        """The next rows, in order (any dtype; converted to float64 exactly)."""
+        at = 0
+        while at < len(block):
+            take = min(len(block) - at, len(self.buf) - self.filled, len(self.labels) - self.done - self.filled)
+            np.copyto(self.buf[self.filled : self.filled + take], block[at : at + take], casting="same_kind")
+            self.filled += take
+            at += take
+            if self.filled == min(len(self.buf), len(self.labels) - self.done):
+                self._chunk()
+
+    def _chunk(self) -> None:
+        lo, x = self.done, self.buf[: self.filled]
+        lab = self.labels[lo : lo + len(x)]
+        present, local = np.unique(lab, return_inverse=True)
+        part = sparse.csr_matrix((np.ones(len(x)), (local, np.arange(len(x)))), shape=(len(present), len(x)))
+        self.sums[present] += part @ x  # each place's row: its rows of the chunk in order, as the full product
+        self.sq[lo : lo + len(x)] = np.einsum("ij,ij->i", x, x)
+        self.done += len(x)
+        self.filled = 0
+
+    def means(self) -> np.ndarray:
+        counts = np.bincount(self.labels, minlength=self.n_places).astype(np.float64)
+        return _mean_positive(self.sums, self.sq, self.labels, counts, self.n_places)
+
+
 def positive_means_rows(descriptors: np.ndarray, rows: np.ndarray | None, labels: np.ndarray,
                         n_places: int) -> np.ndarray:
     """``positive_means(descriptors[rows], labels, n_places)``, reading ``_MEAN_ROWS`` rows at a time (same sums)."""
     view = RowsOf(descriptors, rows)
-    n = len(labels)
-    counts = np.bincount(labels, minlength=n_places).astype(np.float64)
-    sums = np.zeros((n_places, view.shape[1]))
-    sq = np.empty(n)
-    buf = np.empty((min(_MEAN_ROWS, n), view.shape[1]))
-    for lo in range(0, n, _MEAN_ROWS):
-        x = buf[: min(_MEAN_ROWS, n - lo)]
-        np.copyto(x, view[lo : lo + len(x)], casting="same_kind")
-        part = sparse.csr_matrix((np.ones(len(x)), (labels[lo : lo + len(x)], np.arange(len(x)))),
-                                 shape=(n_places, len(x)))
-        sums += part @ x
-        sq[lo : lo + len(x)] = np.einsum("ij,ij->i", x, x)
-    return _mean_positive(sums, sq, labels, counts, n_places)
+    sums = _PlaceSums(np.asarray(labels), n_places, view.shape[1])
+    for lo in range(0, len(view), _MEAN_ROWS):
+        sums.add(view[lo : lo + _MEAN_ROWS])
+    return sums.means()
+
+
+class _FirstPass(RowsOf):
+    """A ``RowsOf`` that hands every block the closed form's first pass reads (consecutive slices from row 0,
+    ``_centred_gram``) to ``consumers`` as well: the checks and the positive means ride on the Gram's reading
+    and conversion of each block instead of two passes of their own. Other reads (the centre's sample, the
+    place terms' gathers) are served as by ``RowsOf``; ``complete`` tells whether every row went by, in order.
+
+    With ``ahead`` (a one-thread executor), a slice read starts reading (and consuming) the next slice of the
+    same length in that thread: the reading, conversion and sums of block k + 1 overlap block k's GEMMs.
+    A read-ahead that is not asked for next (the pass read otherwise) leaves the view incomplete.
+    Once every row went by (or the order broke), reads are ``RowsOf``'s, from any thread.
+    """
+
+    def __init__(self, base: np.ndarray, rows: np.ndarray | None, consumers: list[Callable[[int, np.ndarray], None]],
+                 ahead: ThreadPoolExecutor | None = None):
+        super().__init__(base, rows)
+        self.consumers = consumers
+        self.next = 0  # rows handed (or being handed) to the consumers, in order
+        self.broken = False
+        self.ahead = ahead
+        self.pending = None  # (start, stop, future, consumed) of the read-ahead
+        self.lock = threading.Lock()
+
+    @property
+    def complete(self) -> bool:
+        return self.next == len(self) and not self.broken
+
+    def _read(self, start: int, stop: int, consume: bool) -> np.ndarray:
+        block = RowsOf.__getitem__(self, slice(start, stop))
+        if consume:
+            for hand in self.consumers:
+                hand(start, block)
+        return block
+
+    def close(self) -> None:
+        """Wait for a read-ahead nobody asked for; one that was consumed leaves the view incomplete
+        (its errors, and the sums, are then the fallback's)."""
+        if self.pending is not None:
+            _, _, future, consumed = self.pending
+            self.pending = None
+            future.exception()  # waits
+            self.broken |= consumed
+
+    def __getitem__(self, key) -> np.ndarray:
+        if (not (isinstance(key, slice) and key.step in (None, 1) and key.start is not None)
+                or (self.pending is None and (self.broken or self.next == len(self)))):
+            return super().__getitem__(key)  # stateless: the later passes read in the pool's threads
+        with self.lock:
+            return self._in_order(key)
+
+    def _in_order(self, key: slice) -> np.ndarray:
+        start, stop, _ = key.indices(len(self))
+        if self.pending is not None and self.pending[:2] == (start, stop):
+            future = self.pending[2]
+            self.pending = None
+            block = future.result()
+        else:
+            self.close()
+            consume = not self.broken and start == self.next < len(self) and stop > start
+            if consume:
+                self.next = stop
+            block = self._read(start, stop, consume)
+        ahead = min(stop + (stop - start), len(self))
+        if self.ahead is not None and start < stop < len(self):
+            consume = not self.broken and self.next == stop
+            if consume:
+                self.next = ahead
+            self.pending = (stop, ahead, self.ahead.submit(self._read, stop, ahead, consume), consume)
+        return block
+
+
+def stats_rows(descriptors: np.ndarray, rows: np.ndarray | None, labels: np.ndarray, n_places: int | None = None, *,
+               block: int = BLOCK, threads: int | None = None) -> tuple[NegativeStats, np.ndarray]:
+    """``negative_stats_rows`` and ``positive_means_rows`` of the same rows, reading each block for both.
+
+    The closed form's first pass (the Gram) reads the rows in consecutive blocks; each block,
+    converted once, is also checked (``validate_descriptors``: a bad row stops the fit with
+    the message of ``validate_rows``) and added to the positive means' sums. Five conversions
+    of every row (checks, Gram, place terms, quadratic forms, positive means) become three.
+    The next block is read, converted, checked and summed in a thread of its own while the
+    current one's products run (``_FirstPass``; also in the quadratic forms' pass). The
+    numbers are those of the two functions bit for bit (the same operations on the same
+    float32 blocks); should the first pass read otherwise, the checks and sums run on their own.
+    """
+    base = RowsOf(descriptors, rows)
+    if base.shape[0] == 0 or base.shape[1] == 0:
+        raise VPRInputError(f"training descriptors: expected a non-empty (n_images, dim) array, got {base.shape}")
+    n = len(base)
+    labels, n_places = _check_labels(labels, n, n_places)
+    sums = _PlaceSums(labels, n_places, base.shape[1])
+
+    def check(lo: int, x: np.ndarray) -> None:
+        try:
+            validate_descriptors(x, "training descriptors")
+        except VPRInputError as exc:
+            raise VPRInputError(f"{exc} (counting from row {lo:,})") from None
+
+    threads = min(os.cpu_count() or 1, 8) if threads is None else max(1, int(threads))
+    counts = np.bincount(labels, minlength=n_places)
+    n_neg = n - counts[labels]
+    with ThreadPoolExecutor(1, thread_name_prefix="vpr-read-ahead") as ahead:
+        view = _FirstPass(descriptors, rows, [check, lambda lo, x: sums.add(x)], ahead if threads > 1 else None)
+        try:
+            mu, var = _closed_form_float32(view, labels, counts, n_neg, int(block), threads)
+        finally:
+            view.close()
+    if not view.complete:  # the first pass read otherwise: check and sum on their own
+        validate_rows(base, "training descriptors")
+        sums = _PlaceSums(labels, n_places, base.shape[1])
+        for lo in range(0, n, _MEAN_ROWS):
+            sums.add(base[lo : lo + _MEAN_ROWS])
+    sigma = np.sqrt(np.clip(var, 0.0, None))
+    stats = NegativeStats(mu=mu, sigma=sigma, n_neg=n_neg.astype(np.int64), labels=labels, n_places=n_places)
+    return stats, sums.means()

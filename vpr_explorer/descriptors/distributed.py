@@ -5,19 +5,25 @@ functions only, and nothing else in the package imports this module at import ti
 
 The job, for the images of a dataset:
 
-1. the driver hashes every file (:func:`~.extract.hash_paths`, the key of the cache) and
-   asks the cache which contents it already holds (:meth:`DescriptorCache.contains`,
-   manifests only); images with identical bytes are computed once;
-2. the paths of the rest become a Ray Dataset (``ray.data.from_items``); decoding runs in
-   Ray tasks (``map_batches`` with a function: the extractor's own ``load``, the recipe of
-   the local extractor);
-3. the model runs in a pool of actors, one model per actor (``map_batches`` with a class):
-   one actor per GPU, each with ``num_gpus=1``, when the cluster has GPUs, else one per
-   node. Each actor writes every batch it finishes as one shard of the cache
-   (:meth:`DescriptorCache.store`: temporary, fsync, rename; the manifest last), so a
-   killed job keeps every shard written before the kill, and running it again computes
-   only what is missing. Several jobs may write one cache at once: shards are immutable,
-   and equal contents in two shards are equal rows.
+1. the driver hashes every file (:func:`~.extract.hash_paths`, the key of the cache);
+   images with identical bytes are computed once. When the cache holds shards of the
+   descriptor (of any version or precision), a worker meanwhile builds the extractor and
+   answers with its cache key (:func:`_describe`), and the driver asks the cache which
+   contents it holds already under that key (:meth:`DescriptorCache.contains`, manifests
+   only). When it holds none, every content is to compute: the job goes on at once, and
+   the actors' answers carry the key;
+2. the paths (and content hashes) of the rest become a Ray Dataset (``ray.data.from_items``),
+   in blocks of ``shard_images``;
+3. a pool of actors (``map_batches`` with a class), one model each, decodes and forwards
+   each block as the local extractor does (:func:`~.extract.extract_descriptors`: decoding
+   threads one batch ahead of the forward pass), so only paths travel and decoded pixels
+   never cross the object store. One actor per GPU (``num_gpus=1``) when the cluster has
+   GPUs, else one per node holding the node's CPUs (:func:`_pool_shape`). Each actor
+   writes every block it finishes as one shard of the cache (:meth:`DescriptorCache.store`:
+   temporary, fsync, rename; the manifest last), so a killed job keeps every shard written
+   before the kill, and running it again computes only what is missing. Several jobs may
+   write one cache at once: shards are immutable, and equal contents in two shards are
+   equal rows.
 
 Every node must see the images and the cache folder at the same paths (a shared file
 system): the driver leaves a probe file in the cache folder, and an actor that cannot
@@ -29,8 +35,10 @@ from __future__ import annotations
 import functools
 import os
 import re
+import signal
 import socket
 import sys
+import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -40,34 +48,20 @@ from pathlib import Path
 import numpy as np
 
 from vpr_explorer import settings
-from vpr_explorer.descriptors.cache import DescriptorCache, check_dtype
-from vpr_explorer.descriptors.extract import (
-    ExtractionInterrupted,
-    default_workers,
-    forward_images,
-    hash_paths,
-    normalise_rows,
-)
+from vpr_explorer.descriptors.cache import DescriptorCache, _is_stale, check_dtype
+from vpr_explorer.descriptors.extract import ExtractionInterrupted, default_workers, extract_descriptors, hash_paths
 from vpr_explorer.errors import VPRInputError
 
 RAY_EXTRA = 'pip install ".[ray]"'
 #: ``--ray local``: a Ray instance of this machine, started for the job and stopped after it.
 LOCAL = "local"
-# Images per shard: what one actor call forwards (in batches of ``batch_size``) and then
-# writes as one shard. A kill loses at most one such call per actor; fewer images per
+# Images per shard: what one actor call decodes and forwards (in batches of ``batch_size``)
+# and then writes as one shard. A kill loses at most one such call per actor; fewer images per
 # shard mean more files (1.6 million images: 6,250 shards of 256).
 SHARD_IMAGES = 256
-# Logical CPUs a decoding task and a model actor reserve (Ray's scheduling tokens, not
-# limits). They differ so that Ray Data never fuses decoding into the actors (it fuses
-# stages of equal resources). The actor's half CPU leaves room for decoding beside it on
-# the smallest machine and for two jobs sharing a cluster (their actors never hold every
-# CPU while their decoding waits); a CPU actor's model runs on as many threads as its
-# node has cores. One CPU per decoding task keeps decoding just ahead of the model
-# instead of racing through every image first: on 2 busy CPUs, EfficientNet-Lite0 ran
-# 600 GardensPoint images at 0.96 of the local extractor's rate against 0.7 with
-# half-CPU decoding tasks (three at once, fighting the model's threads).
-DECODE_CPUS = 1.0
-ACTOR_CPUS = 0.5
+# The name of the empty file the driver leaves in the cache folder for the actors to find
+# (a temporary's name: the next job removes a killed driver's).
+PROBE = "ray-probe"
 # Seconds to wait for a cluster's address to accept a connection before saying it is
 # unreachable (ray.init itself retries for minutes).
 CONNECT_TIMEOUT_S = 5.0
@@ -77,8 +71,6 @@ _PASSED_ENV_PREFIX = "VPR_EXPLORER_"
 _NOT_PASSED_ENV = (settings.CACHE_ENV, settings.DATA_ENV)
 # How a worker's VPRInputError reads in the traceback text Ray brings back.
 _RAISED_IN_WORKER = re.compile(r"^vpr_explorer\.errors\.VPRInputError: (.+)$", re.MULTILINE)
-# Options that say where and how the model runs: decoding never needs them.
-_RUNTIME_OPTIONS = ("device", "precision")
 
 
 @dataclass(frozen=True)
@@ -93,6 +85,8 @@ class RayExtraction:
         seconds: wall time of the job after connecting to the cluster (hashing included).
         actors: model actors of the pool.
         gpus: whether each actor had a GPU (``num_gpus=1``).
+        cpus: logical CPUs each actor reserved (it decodes, and a CPU actor runs its
+            model, on as many threads).
         cache_key: the extractor's cache key (its folder under ``<cache>/descriptors``).
     """
 
@@ -102,6 +96,7 @@ class RayExtraction:
     seconds: float
     actors: int
     gpus: bool
+    cpus: float
     cache_key: str
 
     @property
@@ -230,55 +225,42 @@ def _worker_extractor(descriptor: str, options: tuple[tuple[str, object], ...]):
     return get_extractor(descriptor, **dict(options))
 
 
-def _decode(batch: dict[str, np.ndarray], descriptor: str, options: tuple) -> dict[str, np.ndarray]:
-    """A Ray task: the extractor's ``load`` on each path; ``image`` ``(B, C, H, W)`` (ragged when shapes differ)."""
-    extractor = _worker_extractor(descriptor, options)
-    images = [extractor.load(Path(p)) for p in batch["path"]]
-    if len({image.shape for image in images}) == 1:
-        column = np.stack(images)
-    else:  # extractors that keep the aspect ratio: one array per image
-        column = np.empty(len(images), dtype=object)
-        column[:] = images
-    return {"hash": batch["hash"], "path": batch["path"], "image": column}
-
-
 class _Embed:
-    """A Ray actor: one model; forwards each call's images and writes them as one shard."""
+    """A Ray actor: one model; decodes and forwards each call's images, and writes them as one shard.
+
+    A call is the local extractor on the call's paths (:func:`~.extract.extract_descriptors`
+    without a cache: ``threads`` decoding threads one batch ahead of the forward pass),
+    so only paths reach the actor and decoded pixels never cross the object store.
+    """
 
     def __init__(self, descriptor: str, options: tuple, cache_root: str, dtype: str, batch_size: int,
-                 probe: str, torch_threads: int | None) -> None:
+                 probe: str, threads: int) -> None:
         if not Path(probe).is_file():
             raise VPRInputError(
                 f"cache folder {cache_root}: node {socket.gethostname()} does not see the driver's cache folder; put "
                 "the cache on a file system every node mounts at the same path and give it with --cache-dir"
             )
+        self.threads = max(1, int(threads))
         self.extractor = _worker_extractor(descriptor, options)
         if "torch" in sys.modules:  # a torch model (pixels has none)
-            import ray
             import torch
 
-            if torch_threads is None and not ray.get_gpu_ids():
-                # Ray gives an actor of less than one CPU one thread; decoding runs in other processes.
-                torch_threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-            if torch_threads is not None:
-                torch.set_num_threads(max(1, int(torch_threads)))
+            # Ray sets OMP_NUM_THREADS to the actor's whole CPUs; threads says otherwise.
+            torch.set_num_threads(self.threads)
         self.cache = DescriptorCache(Path(cache_root), dtype=dtype)
         self.cache.remove_stale(self.extractor.cache_key)  # dead writers of this node
         self.batch_size = batch_size
 
     def __call__(self, batch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        images = list(batch["image"])
         paths = [Path(p) for p in batch["path"]]
-        parts = []
-        for lo in range(0, len(images), self.batch_size):
-            raw = forward_images(images[lo : lo + self.batch_size], self.extractor)
-            parts.append(normalise_rows(raw, paths[lo : lo + self.batch_size], self.extractor))
-        vectors = np.concatenate(parts)
-        self.cache.store(self.extractor.cache_key, [str(h) for h in batch["hash"]], vectors)
-        return {"hash": batch["hash"]}
+        vectors = extract_descriptors(paths, self.extractor, batch_size=self.batch_size, workers=self.threads)
+        key = self.extractor.cache_key
+        self.cache.store(key, [str(h) for h in batch["hash"]], vectors)
+        return {"hash": batch["hash"], "key": np.full(len(paths), key)}
 
 
 def _describe(descriptor: str, options: tuple) -> tuple[str, int]:
+    """A Ray task: ``(cache key, dim)`` of the extractor as a worker builds it, or why it cannot."""
     extractor = _worker_extractor(descriptor, options)
     return extractor.cache_key, extractor.dim
 
@@ -306,18 +288,137 @@ def _user_error(exc: BaseException) -> VPRInputError | None:
     return VPRInputError(found[-1].strip()) if found else None
 
 
-def _pool_shape(ray, actors: int | None) -> tuple[int, bool]:
-    """``(actors, gpus)``: one actor per GPU when the cluster has GPUs, else one per node (or ``actors``)."""
-    resources = ray.cluster_resources()
-    n_gpus = int(resources.get("GPU", 0))
-    if actors is not None:
-        if isinstance(actors, bool) or not isinstance(actors, int) or actors < 1:
-            raise VPRInputError(f"actors={actors!r}: must be a whole number >= 1")
-        return (min(actors, n_gpus) if n_gpus else actors), n_gpus > 0
-    if n_gpus:
-        return n_gpus, True
-    nodes = sum(1 for node in ray.nodes() if node.get("Alive") and node.get("Resources", {}).get("CPU", 0) > 0)
-    return max(1, nodes), False
+@dataclass(frozen=True)
+class _Pool:
+    """The model actors of a job: how many, and what each reserves and runs on.
+
+    Attributes:
+        actors: actors in the pool.
+        cpus: logical CPUs each reserves (Ray's scheduling token).
+        gpus: whether each reserves a GPU (``num_gpus=1``).
+        threads: its decoding threads and its torch model's threads.
+    """
+
+    actors: int
+    cpus: float
+    gpus: bool
+    threads: int
+
+    def remote_args(self) -> dict[str, float]:
+        return {"num_cpus": self.cpus, "num_gpus": 1 if self.gpus else 0}
+
+
+def _whole(cpus: float) -> float:
+    """Whole CPUs from one up, else hundredths (Ray's fractional resources)."""
+    return float(int(cpus)) if cpus >= 1 else int(cpus * 100) / 100
+
+
+def _pool_shape(nodes: Sequence[dict], actors: int | None = None, threads: int | None = None) -> _Pool:
+    """The model actors for a cluster whose live nodes have the resources ``nodes`` (``ray.nodes()``'s).
+
+    With GPUs: one actor per GPU (at most ``actors``), each reserving its GPU and its
+    share of its node's CPUs (those of the leanest GPU node), on which it decodes. Without:
+    one actor per node, each reserving as many CPUs as the smallest node has, so that it
+    decodes and runs its model on that many threads, as the local extractor does, and no
+    other work of the cluster is put on its cores meanwhile; nodes with several times as
+    many CPUs hold several actors. ``actors`` asks for another number: each then
+    reserves the most whole CPUs that lets that many fit on the nodes. ``threads``
+    overrides the threads of each (decoding and the model's).
+
+    Raises:
+        VPRInputError: a bad ``actors`` or ``threads``, or a cluster without CPUs or GPUs.
+    """
+    for name, value in (("actors", actors), ("torch_threads", threads)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+            raise VPRInputError(f"{name}={value!r}: must be a whole number >= 1")
+    gpu_nodes = [r for r in nodes if r.get("GPU", 0) >= 1]
+    cpus = [float(r["CPU"]) for r in nodes if r.get("CPU", 0) > 0]
+    if gpu_nodes:
+        n_gpus = sum(int(r["GPU"]) for r in gpu_nodes)
+        share = _whole(min(r.get("CPU", 0) / int(r["GPU"]) for r in gpu_nodes))
+        return _Pool(min(actors, n_gpus) if actors is not None else n_gpus, share, True, threads or max(1, int(share)))
+    if not cpus:
+        raise VPRInputError("the Ray cluster has no node with CPUs or GPUs: join one with "
+                            "`ray start --address HEAD:PORT`")
+    if actors is None:
+        share = _whole(min(cpus))
+        n = sum(int(c // share) for c in cpus)
+    else:
+        n = actors
+        share = _whole(min(min(cpus), sum(cpus) / n))
+        while share > 1 and sum(int(c // share) for c in cpus) < n:
+            share -= 1
+    return _Pool(n, share, False, threads or max(1, int(share)))
+
+
+def _key_of(ray, described) -> str:
+    """The cache key the :func:`_describe` task answered, or the error it raised."""
+    try:
+        return ray.get(described)[0]
+    except Exception as exc:
+        raise _user_error(exc) or exc from None
+
+
+def _holds_shards_of(cache: DescriptorCache, descriptor: str) -> bool:
+    """Whether the cache holds a shard of any version or precision of ``descriptor`` (its keys are ``<name>-...``)."""
+    shards = (p for p in cache.folder.glob(f"{descriptor}-*/*.json") if not p.name.startswith("."))
+    return next(shards, None) is not None
+
+
+class _InterruptSeen:
+    """Within ``with``: notes a Ctrl-C (SIGINT) in :attr:`seen`, then raises ``KeyboardInterrupt`` as usual.
+
+    Ray Data's iterator waits on a queue in the calling thread; a ``KeyboardInterrupt``
+    raised while it releases the queue's lock surfaces as ``RuntimeError: release unlocked
+    lock``, which the flag tells apart from a failed job. Off the main thread (where no
+    signal handler can be set) it does nothing.
+    """
+
+    def __init__(self) -> None:
+        self.seen = False
+        self._installed = False
+        self._previous = None
+
+    def _handle(self, signum, frame) -> None:
+        self.seen = True
+        raise KeyboardInterrupt
+
+    def __enter__(self) -> _InterruptSeen:
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+            self._installed = True
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._installed:
+            # None: a handler not set from Python; Python's own is the usual one
+            signal.signal(signal.SIGINT, self._previous if self._previous is not None else signal.default_int_handler)
+            self._installed = False
+
+
+def _held_now(cache: DescriptorCache, cache_key: str | None, descriptor: str, unique: list[str]) -> np.ndarray:
+    """Which of ``unique`` the cache holds for ``cache_key``.
+
+    Before an actor has told the key (``None``): for any key of ``descriptor``; the job
+    found no shard of it when it started, so those it holds now are this job's.
+    """
+    keys = [cache_key] if cache_key else sorted(f.name for f in cache.folder.glob(f"{descriptor}-*") if f.is_dir())
+    held = np.zeros(len(unique), dtype=bool)
+    for key in keys:
+        held |= cache.contains(key, unique)
+    return held
+
+
+def _write_probe(cache: DescriptorCache) -> Path:
+    """An empty file in the cache folder that every actor must see; probes of dead drivers removed first."""
+    cache.folder.mkdir(parents=True, exist_ok=True)
+    now = time.time()
+    for old in cache.folder.glob(f".{PROBE}.*.tmp"):
+        if _is_stale(old, settings.temporary_owner(old.name), now):
+            old.unlink(missing_ok=True)
+    probe = cache.folder / settings.temporary_name(PROBE)
+    probe.write_bytes(b"")
+    return probe
 
 
 def extract_on_ray(
@@ -354,9 +455,10 @@ def extract_on_ray(
             a local instance when there is none.
         batch_size: images per forward pass.
         shard_images: images per actor call, written as one shard.
-        actors: model actors (default: one per GPU, else one per node).
-        torch_threads: intra-op threads of each actor's model (default: a CPU actor
-            takes as many as its node has cores; a GPU actor keeps Ray's setting).
+        actors: model actors (default: one per GPU, else one per node; see
+            :func:`_pool_shape`).
+        torch_threads: decoding threads of each actor, and its torch model's threads
+            (default: as many as the CPUs it reserves).
         progress: ``progress(done, total)`` in images; the first call's ``done`` counts
             the images found in the cache.
 
@@ -387,11 +489,6 @@ def extract_on_ray(
         raise VPRInputError(f"descriptor {descriptor!r} has no option {', '.join(unknown)}: it accepts "
                             f"{', '.join(accepted) or 'none'}")
     model_options = tuple(sorted(options.items()))
-    # Decoding needs the recipe, not the model's device: build it on the CPU.
-    decode_options = {k: v for k, v in options.items() if k not in _RUNTIME_OPTIONS}
-    if "device" in accepted:
-        decode_options["device"] = "cpu"
-    decode_options = tuple(sorted(decode_options.items()))
     cache = DescriptorCache(cache_root, dtype=dtype)
     cache.check_writable()
     root = cache.root.absolute()
@@ -401,61 +498,69 @@ def extract_on_ray(
     probe: Path | None = None
     try:
         start = time.perf_counter()
-        n_actors, gpus = _pool_shape(ray, actors)
-        actor_resources = {"num_cpus": ACTOR_CPUS, "num_gpus": 1 if gpus else 0}
-        # The key as the actors will see it (precision, device, weights), and any reason the
-        # extractor cannot run there, asked of a worker while the driver hashes the files
-        # (that worker, its modules imported, then serves decoding tasks).
-        described = ray.remote(_describe).options(**actor_resources).remote(descriptor, model_options)
+        shape = _pool_shape([n.get("Resources", {}) for n in ray.nodes() if n.get("Alive")], actors, torch_threads)
+        described = None
+        if _holds_shards_of(cache, descriptor):
+            # What is missing depends on the key as the actors will see it (precision, device,
+            # weights): asked of a worker while the driver hashes the files (which also says
+            # why the extractor cannot run there, if it cannot).
+            described = ray.remote(_describe).options(num_cpus=0, num_gpus=1 if shape.gpus else 0).remote(
+                descriptor, model_options)
         with ThreadPoolExecutor(max_workers=default_workers(), thread_name_prefix="vpr-hash") as pool:
             hashes = hash_paths(paths, pool)
-        try:
-            cache_key, _dim = ray.get(described)
-        except Exception as exc:
-            raise _user_error(exc) or exc from None
-        cache.remove_stale(cache_key)
         groups: dict[str, list[int]] = {}
         for i, h in enumerate(hashes):
             groups.setdefault(h, []).append(i)
         unique = list(groups)
-        todo = [h for h, hit in zip(unique, cache.contains(cache_key, unique)) if not hit]
         total = len(paths)
+        cache_key: str | None = None
+        if described is not None:
+            cache_key = _key_of(ray, described)
+            cache.remove_stale(cache_key)
+            todo = [h for h, hit in zip(unique, cache.contains(cache_key, unique)) if not hit]
+        else:
+            # No shard of the descriptor, whatever its key: every content is to compute, the
+            # actors start at once, and their answers carry the key.
+            todo = unique
         cached = total - sum(len(groups[h]) for h in todo)
         done = cached
         if progress is not None:
             progress(done, total)
         if todo:
-            folder = cache.folder / cache_key
-            folder.mkdir(parents=True, exist_ok=True)
-            # A temporary's name: should the driver be killed, remove_stale deletes it.
-            probe = folder / settings.temporary_name("ray-probe")
-            probe.write_bytes(b"")
+            probe = _write_probe(cache)
             items = [{"path": str(paths[groups[h][0]]), "hash": h} for h in todo]
-            ds = ray.data.from_items(items, override_num_blocks=max(1, len(items) // batch_size))
-            ds = ds.map_batches(_decode, batch_size=batch_size, num_cpus=DECODE_CPUS,
-                                fn_kwargs={"descriptor": descriptor, "options": decode_options})
+            # Blocks of at most shard_images paths (and hashes), each one actor call as it is.
+            ds = ray.data.from_items(items, override_num_blocks=-(-len(items) // shard_images))
             ds = ds.map_batches(
                 _Embed,
-                batch_size=shard_images,
-                compute=ray.data.ActorPoolStrategy(size=n_actors),
+                batch_size=None,
+                compute=ray.data.ActorPoolStrategy(size=shape.actors),
                 fn_constructor_kwargs={"descriptor": descriptor, "options": model_options, "cache_root": str(root),
                                        "dtype": dtype, "batch_size": batch_size, "probe": str(probe),
-                                       "torch_threads": torch_threads},
-                **actor_resources,
+                                       "threads": shape.threads},
+                **shape.remote_args(),
             )
+            interrupted = _InterruptSeen()
             try:
-                for out in ds.iter_batches(batch_size=None, batch_format="numpy"):
-                    done += sum(len(groups[str(h)]) for h in out["hash"])
-                    if progress is not None:
-                        progress(done, total)
-            except KeyboardInterrupt:
-                # What the actors wrote before the interrupt is kept: count it from the cache.
-                now = cache.contains(cache_key, unique)
-                raise ExtractionInterrupted(sum(len(groups[h]) for h, hit in zip(unique, now) if hit), total) from None
+                with interrupted:
+                    for out in ds.iter_batches(batch_size=None, batch_format="numpy"):
+                        if len(out["key"]):
+                            cache_key = str(out["key"][0])
+                        done += sum(len(groups[str(h)]) for h in out["hash"])
+                        if progress is not None:
+                            progress(done, total)
             except Exception as exc:
-                raise _user_error(exc) or exc from None
+                # A Ctrl-C that lands inside a lock of Ray Data's comes out as another error.
+                if not interrupted.seen:
+                    raise _user_error(exc) or exc from None
+            except KeyboardInterrupt:
+                interrupted.seen = True
+            if interrupted.seen:
+                # What the actors wrote before the interrupt is kept: count it from the cache.
+                now = _held_now(cache, cache_key, descriptor, unique)
+                raise ExtractionInterrupted(sum(len(groups[h]) for h, hit in zip(unique, now) if hit), total)
         return RayExtraction(total=total, cached=cached, computed=len(todo), seconds=time.perf_counter() - start,
-                             actors=n_actors, gpus=gpus, cache_key=cache_key)
+                             actors=shape.actors, gpus=shape.gpus, cpus=shape.cpus, cache_key=cache_key)
     finally:
         if probe is not None:
             probe.unlink(missing_ok=True)

@@ -51,6 +51,12 @@ def _place_detail(key: str, places: tuple, place: int, _data, _fitted):
     return retrieval_views.place_detail(_fitted, _data.descriptors, place)
 
 
+# the figure bins the place's negative scores (n_p × the database images in places: millions): built once
+@st.cache_resource(show_spinner=False, max_entries=8)
+def _mixture_figure(key: str, places: tuple, place: int, k: float, user_theta, _detail):
+    return plots.mixture_figure(_detail, k=k, user_theta=user_theta)
+
+
 def _one_place(cur: Current, fitted) -> None:
     """One place: its negative mixture, its images' negative scores (their own rows only) and its thresholds."""
     v = state.view()
@@ -68,7 +74,8 @@ def _one_place(cur: Current, fitted) -> None:
                 f"(against the {len(model.images) - len(detail.images):,} database images of other places); "
                 f"θ_p simple {detail.theta['simple']:.4f}, weighted {detail.theta['weighted']:.4f}, spread "
                 f"s_p {detail.spread:.4f}; automatic global θ {detail.auto:.4f}.")
-    st.plotly_chart(plots.mixture_figure(detail, k=v.k, user_theta=v.theta), key="place_mixture", width="stretch")
+    st.plotly_chart(_mixture_figure(cur.data.key, cache._places_key(cur.places), int(place), v.k, v.theta, detail),
+                    key="place_mixture", width="stretch")
 
 
 def _controls(cur: Current) -> None:
@@ -128,6 +135,24 @@ def _check(ds, **changes) -> None:
     retrieval_places(ds, p.spec, p.metric)
 
 
+# a resource (never mutated: st.plotly_chart serialises a copy): the figure of 20,000 database images and
+# every query is built once per (places, query, candidates), not on every rerun of the page
+@st.cache_resource(show_spinner=False, max_entries=4)
+def _map_figure(key: str, places: tuple, q: int, candidates: tuple, answer: int, _ds, _fitted):
+    """The map's figure and the database positions it draws (``map_window``; ``None``: all)."""
+    ds, fitted = _ds, _fitted
+    positives = ds.ground_truth.positives(q)
+    shown = map_window(ds, fitted, q, np.r_[candidates, [answer] if answer >= 0 else []].astype(np.int64))
+    db_xy, db_place = ((ds.database_xy, fitted.database_place) if shown is None
+                       else (ds.database_xy[shown], fitted.database_place[shown]))
+    fig = maps.layout_map(db_xy, db_place, ds.query_xy, selected=q, radius=radius_of(ds),
+                          positives=positives if shown is None else np.searchsorted(shown, positives),
+                          candidates=list(candidates), answer=answer,
+                          title=f"{fitted.n_places} places; query {q} with its radius and its {len(candidates)} best "
+                                "candidate places (outlined)")
+    return fig, shown
+
+
 def _map(cur: Current, fitted) -> None:
     """The map of positions, with the selected query (``view.frame``) and its radius and candidates."""
     ds = cur.retrieval
@@ -154,14 +179,8 @@ def _map(cur: Current, fitted) -> None:
         if picked:
             state.update(frame=int(picked[0]))
 
-    shown = map_window(ds, fitted, q, np.r_[candidates, [answer] if answer >= 0 else []].astype(np.int64))
-    db_xy, db_place = ((ds.database_xy, fitted.database_place) if shown is None
-                       else (ds.database_xy[shown], fitted.database_place[shown]))
-    fig = maps.layout_map(db_xy, db_place, ds.query_xy, selected=q, radius=radius_of(ds),
-                          positives=positives if shown is None else np.searchsorted(shown, positives),
-                          candidates=candidates, answer=answer,
-                          title=f"{fitted.n_places} places; query {q} with its radius and its {len(candidates)} best "
-                                "candidate places (outlined)")
+    fig, shown = _map_figure(cur.data.key, cache._places_key(cur.places), q, tuple(int(c) for c in candidates),
+                             int(answer), ds, fitted)
     st.plotly_chart(fig, key="layout_map", on_select=pick, selection_mode="points", width="stretch")
     st.caption("Coloured dots: database images, one colour per place (colours repeat); grey: database images between "
                "places (skipped by group/step); ×: queries; ★: the selected query, the dashed circle its radius, green "

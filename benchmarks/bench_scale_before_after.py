@@ -1,0 +1,121 @@
+"""The 50-split protocol's pass and whole run, an earlier ``scale.py`` against today's, side by side (issue 13 §4).
+
+    git show 8ebd70a:vpr_explorer/scale.py > /tmp/scale_before.py
+    python benchmarks/bench_scale_before_after.py /tmp/scale_before.py [--places 2250] [--repeats 2]
+
+Loads the earlier module from the given file beside ``vpr_explorer.scale``, and on the same
+Nordland-like data (``bench_nordland_scale.nordland_like``, places of 12 images, 50 splits)
+times, alternating before/now ``--repeats`` times in this one process:
+
+* the blocked pass alone (``_blocked_pass``, same inputs), and
+* the whole ``scale_splits`` (full-set sums, automatic θ, pass, thresholds, scoring),
+
+in CPU seconds of this process (all threads: steadier than wall time on a shared machine),
+best of the repeats, with the pass's and the run's necessary flops (N²·D: each unordered
+pair's similarity once) per CPU second as a share of numpy's float32 GEMM rate per CPU
+second on the pass's block shape, measured in the same run. It checks that both give the
+same outcomes (ranks, answered places and images, global θs) and per-place θs within 1e-8.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import os
+import sys
+import time
+
+import numpy as np
+
+import vpr_explorer.scale as now
+from bench_nordland_scale import nordland_like
+from gemm_peak import blas_kernel, gemm_rate, load_average
+from vpr_explorer.evaluation import draw_splits
+
+
+def load_before(path: str):
+    spec = importlib.util.spec_from_file_location("scale_before", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["scale_before"] = module  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def run_pass(mod, x, labels, places, query_rows, centre, block):
+    lay = mod.make_layout(labels, places, block)
+    entries = mod._Entries(lay, mod.TABLE_MEMORY, None)
+    try:
+        threads = len(os.sched_getaffinity(0))  # the pass's threads: every CPU this process may use
+        mod._blocked_pass(x, lay, query_rows, None, entries, 10, (0.0, 0.3), centre, threads, None)
+    finally:
+        entries.close()
+
+
+def cpu(fn):
+    t0 = time.process_time()
+    out = fn()
+    return out, time.process_time() - t0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("before", help="path of the earlier scale.py (e.g. from git show COMMIT:vpr_explorer/scale.py)")
+    ap.add_argument("--places", type=int, default=2250, help="places of 12 images (default 2,250: 27,000 images)")
+    ap.add_argument("--dim", type=int, default=1280)
+    ap.add_argument("--runs", type=int, default=50)
+    ap.add_argument("--repeats", type=int, default=2)
+    args = ap.parse_args()
+    before = load_before(args.before)
+    d, labels, trav = nordland_like(args.places, args.dim, 0)
+    splits = draw_splits(labels, args.places, runs=args.runs, seed=0)
+    lay = now.make_layout(labels, args.places, now.BLOCK_ROWS)
+    query_rows = np.stack([lay.row_of_image[sp.queries] for sp in splits])
+    centre = now._full_sums(d, lay, query_rows).centre
+    x = now._as_layout32(d, lay)
+    peak = gemm_rate(np.float32, 4096, args.dim, 4096, 3, clock=time.process_time)
+    print(f"data: {len(d):,} images × {args.dim} in {args.places:,} places, {args.runs} splits; load average "
+          f"{load_average()}")
+    print(f"BLAS: {blas_kernel()}")
+    mods = {"before": before, "now": now}
+    best_pass = {k: np.inf for k in mods}
+    best_run = {k: np.inf for k in mods}
+    results = {}
+    for rep in range(args.repeats):
+        for name, mod in mods.items():
+            _, t = cpu(lambda: run_pass(mod, x, labels, args.places, query_rows, centre, now.BLOCK_ROWS))
+            best_pass[name] = min(best_pass[name], t)
+            results[name], t_run = cpu(lambda: mod.scale_splits(d, labels, trav, args.places, splits, seed=0))
+            best_run[name] = min(best_run[name], t_run)
+            print(f"  round {rep + 1}, {name:<6}: pass {t:7.2f} CPU s, whole run {t_run:7.2f} CPU s", flush=True)
+    peak = max(peak, gemm_rate(np.float32, 4096, args.dim, 4096, 3, clock=time.process_time))
+    needed = float(len(d)) ** 2 * args.dim
+
+    def share(t: float) -> str:
+        return f"{needed / t / 1e9:4.0f} GFLOP per CPU s = {100 * needed / t / 1e9 / peak:3.0f}% of peak"
+
+    print(f"float32 GEMM (4096×{args.dim}) @ ({args.dim}×4096): {peak:.0f} GFLOP per CPU second (best of before and "
+          "after)")
+    for name in mods:
+        print(f"{name:<6} pass {best_pass[name]:7.2f} CPU s ({share(best_pass[name])}); whole run "
+              f"{best_run[name]:7.2f} CPU s ({share(best_run[name])})")
+    print(f"now / before: pass {best_pass['now'] / best_pass['before']:.2f}×, whole run "
+          f"{best_run['now'] / best_run['before']:.2f}× the CPU seconds (best of {args.repeats})")
+    worst = 0.0
+    for a, b in zip(results["before"], results["now"]):
+        for key, oa in a.outcomes.items():
+            for f in ("rank", "answer_place", "answer_image"):
+                if not np.array_equal(getattr(oa, f), getattr(b.outcomes[key], f)):
+                    sys.exit(f"error: {key} {f} differs between before and now")
+        for key in ("auto", "oracle"):
+            if a.thresholds[key] != b.thresholds[key]:
+                sys.exit(f"error: the {key} θ differs between before and now")
+        for key in ("simple", "weighted"):
+            diff = np.abs(np.asarray(a.thresholds[key]) - np.asarray(b.thresholds[key]))
+            worst = max(worst, float(np.nanmax(diff)))
+    if worst > 1e-8:
+        sys.exit(f"error: per-place θ differ by {worst:.1e} (> 1e-8)")
+    print(f"same outcomes in every split; per-place θ within {worst:.1e}")
+
+
+if __name__ == "__main__":
+    main()
