@@ -3,6 +3,7 @@
     python benchmarks/bench_auto_sample.py                  # the app's 110k route: 24,831 database images × 2,048
     python benchmarks/bench_auto_sample.py --n 100000 --dim 1280 --seeds 3   # a protocol split at Nordland scale
     python benchmarks/bench_auto_sample.py --n 110364 --dim 1280 --seeds 20 --pooled 50   # one sample per run
+    python benchmarks/bench_auto_sample.py --n 500000 --dim 512 --mmap --seeds 20   # a million-image step change
 
 Above ``thresholds.AUTO_MAX_PAIRS`` (2·10⁶) training pairs, ``training_pair_scores`` samples.
 Side by side in one process, on seeded Nordland-like descriptors with place structure
@@ -18,6 +19,11 @@ Side by side in one process, on seeded Nordland-like descriptors with place stru
    inside one tile share rows and columns, so they are correlated; the θ must still agree
    with the independent-pairs θ within that error.
 
+Above ``thresholds.AUTO_TILE_IMAGES`` (131,072) training images the tiles are drawn over a
+seeded subset of that many images (issue 14 §2): the run then also times and compares the tiles
+over all ``--n`` images (``images=n``, before). ``--mmap`` reads the descriptors from a float16
+memory map (a temporary file), as the app reads a million-image database, instead of memory.
+
 ``--pooled RUNS`` instead compares the protocols' two ways of taking each split's θ (issue 13
 §4), on the ``--n`` images as places of 12 and ``RUNS`` seeded splits (one query per place):
 a tile sample of each split's own training images (``training_pair_scores(rows=train)``,
@@ -30,14 +36,22 @@ mean, standard deviation, and the difference of the means in standard errors.
 from __future__ import annotations
 
 import argparse
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
 from bench_nordland_scale import FRAMES, TRAVERSALS, nordland_like
 from gemm_peak import load_average, measure_peak, share
 from vpr_explorer.evaluation import draw_splits
-from vpr_explorer.thresholds import AUTO_MAX_PAIRS, auto_global_threshold, pooled_pair_sample, training_pair_scores
+from vpr_explorer.thresholds import (
+    AUTO_MAX_PAIRS,
+    AUTO_TILE_IMAGES,
+    auto_global_threshold,
+    pooled_pair_sample,
+    training_pair_scores,
+)
 
 
 def pooled_against_per_split(d: np.ndarray, labels: np.ndarray, runs: int, seeds: int) -> None:
@@ -83,6 +97,7 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=5, help="samples of each kind for the θ spread (default 5)")
     ap.add_argument("--pooled", type=int, default=0, metavar="RUNS",
                     help="compare per-split tile samples with one pooled sample over RUNS splits instead")
+    ap.add_argument("--mmap", action="store_true", help="read the descriptors from a float16 memory map")
     args = ap.parse_args()
     places = -(-args.n // (FRAMES * TRAVERSALS))
     if args.pooled:
@@ -93,18 +108,35 @@ def main() -> None:
         pooled_against_per_split(d, labels, args.pooled, args.seeds)
         return
     d = nordland_like(places, args.dim, 0)[0][: args.n]
-    print(f"data: {len(d):,} × {args.dim} Nordland-like descriptors; {len(d) * (len(d) - 1) // 2:.2e} pairs, "
-          f"sample of {AUTO_MAX_PAIRS:.0e}; load average {load_average()}")
+    with tempfile.TemporaryDirectory() as folder:
+        if args.mmap:
+            np.save(Path(folder) / "d.npy", d.astype(np.float16))
+            d = np.load(Path(folder) / "d.npy", mmap_mode="r")
+        tiles_against_pairs(d, args)
+
+
+def tiles_against_pairs(d: np.ndarray, args: argparse.Namespace) -> None:
+    """One sample of each kind, its time and the θ over ``args.seeds`` seeds."""
+    n = len(d)
+    print(f"data: {n:,} × {args.dim} Nordland-like descriptors{' (float16 memory map)' if args.mmap else ''}; "
+          f"{n * (n - 1) // 2:.2e} pairs, sample of {AUTO_MAX_PAIRS:.0e}; load average {load_average()}")
     peak = measure_peak(m=4096, k=args.dim, n=256)  # a tall GEMM of the tiles' depth
 
-    theta: dict[str, list[float]] = {"tiles": [], "pairs": []}
-    seconds: dict[str, list[float]] = {"tiles": [], "pairs": []}
+    kinds = {"tiles": {"sample": "tiles"}, "pairs": {"sample": "pairs"}}
+    if n > AUTO_TILE_IMAGES:  # the default tiles are a subset's: the tiles over every image too
+        kinds["all-image tiles"] = {"sample": "tiles", "images": n}
+        print(f"tiles over a seeded subset of {AUTO_TILE_IMAGES:,} of the {n:,} images (AUTO_TILE_IMAGES); "
+              f"all-image tiles: over all {n:,} (before)")
+    theta: dict[str, list[float]] = {k: [] for k in kinds}
+    seconds: dict[str, list[float]] = {k: [] for k in kinds}
+    cpu: dict[str, list[float]] = {k: [] for k in kinds}
     sizes = {}
     for seed in range(args.seeds):
-        for kind in theta:  # interleaved: both see the same load
-            t0 = time.perf_counter()
-            scores = training_pair_scores(d, seed=seed, sample=kind)
+        for kind, kw in kinds.items():  # interleaved: all see the same load
+            t0, c0 = time.perf_counter(), time.process_time()
+            scores = training_pair_scores(d, seed=seed, **kw)
             seconds[kind].append(time.perf_counter() - t0)
+            cpu[kind].append(time.process_time() - c0)
             theta[kind].append(auto_global_threshold(scores))
             sizes[kind] = scores.size
     peak = peak.best(measure_peak(m=4096, k=args.dim, n=256))  # before and after: the load changes
@@ -113,15 +145,21 @@ def main() -> None:
     t_tiles, t_pairs = min(seconds["tiles"]), min(seconds["pairs"])
     print(f"one sample, best of {args.seeds}:  tiles {t_tiles:6.2f} s ({sizes['tiles']:,} scores)   "
           f"pairs {t_pairs:6.2f} s ({sizes['pairs']:,} scores)   pairs / tiles = {t_pairs / t_tiles:.1f}×")
+    for kind in kinds:
+        print(f"  {kind:<15}: best {min(seconds[kind]):6.2f} s wall, {min(cpu[kind]):6.2f} s CPU")
     print(f"tiles: {share(2.0 * args.dim * sizes['tiles'], t_tiles, peak.float32)} (float32 GEMM, 2·D flops per score)")
     m = {k: float(np.mean(v)) for k, v in theta.items()}
     s = {k: float(np.std(v, ddof=1)) if len(v) > 1 else float("nan") for k, v in theta.items()}
     for kind in theta:
-        print(f"θ_auto, {kind:<5}: mean {m[kind]:.6f}  sd over {args.seeds} seeds {s[kind]:.2e}")
-    se = np.sqrt((s["tiles"] ** 2 + s["pairs"] ** 2) / args.seeds)
-    print(f"summary: tiles {t_pairs / t_tiles:.1f}× faster than pairs; θ means differ by "
-          f"{m['tiles'] - m['pairs']:+.2e} = {abs(m['tiles'] - m['pairs']) / se:.1f} standard errors "
-          f"(sd tiles / sd pairs = {s['tiles'] / s['pairs']:.2f})")
+        print(f"θ_auto, {kind:<15}: mean {m[kind]:.6f}  sd over {args.seeds} seeds {s[kind]:.2e}")
+    for kind in [k for k in kinds if k != "pairs"]:
+        se = np.sqrt((s[kind] ** 2 + s["pairs"] ** 2) / args.seeds)
+        print(f"summary: {kind} {t_pairs / min(seconds[kind]):.1f}× faster than pairs; θ means differ by "
+              f"{m[kind] - m['pairs']:+.2e} = {abs(m[kind] - m['pairs']) / se:.1f} standard errors "
+              f"(sd {kind} / sd pairs = {s[kind] / s['pairs']:.2f})")
+    if "all-image tiles" in kinds:
+        print(f"summary: subset tiles / all-image tiles, CPU: {min(cpu['tiles']):.2f} s / "
+              f"{min(cpu['all-image tiles']):.2f} s = {min(cpu['tiles']) / min(cpu['all-image tiles']):.2f}")
 
 
 if __name__ == "__main__":

@@ -114,6 +114,7 @@ def main(argv: list[str] | None = None) -> None:
     from vpr_explorer.example_million import write_route_database
     from vpr_explorer.pipeline import evaluate_retrieval, imported_descriptors, open_dataset
     from vpr_explorer.places import MetricPlaceSpec, PlaceGeometry
+    from vpr_explorer.stats import prepare_float16_reads
 
     folder = args.out / f"db{args.database}_q{args.queries}_d{args.dim}"
     manifest, npy = folder / "manifest.csv", folder / "descriptors.npy"
@@ -137,6 +138,7 @@ def main(argv: list[str] | None = None) -> None:
     dataset = open_dataset(manifest)
     opened = time.perf_counter() - start
     imp = imported_descriptors(dataset, npy, mmap=True)  # the app maps it by itself from 1 GiB (mmap='auto')
+    prepare_float16_reads()  # as the app does when it loads a float16 map: torch's cast imported meanwhile
     load = time.perf_counter() - start
     d = imp.descriptors
     assert isinstance(d, np.memmap) and d.dtype == np.float16, (type(d), d.dtype)

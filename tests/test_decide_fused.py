@@ -9,21 +9,20 @@ GardensPoint and Nordland (whose tunnels are runs of byte-identical frames, so e
 near ties are real), and on adversarial score matrices, across block sizes, piece sizes and
 thread counts.
 
-Why decisions are equal, not merely close: on the shapes the app uses (pieces of
-``PIECE_ROWS`` database rows, blocks of two or more queries) each similarity is the same
-float32 number as ``similarity`` gives, bit for bit: one dot product, which a GEMM never
-splits, whichever operand comes first and however rows and columns are cut
-(``similarity_t`` is checked below, and on the 110k-image route by
-``benchmarks/bench_app_scale.py --move-only``). Every comparison is then made in the
-precision of the straightforward path (a place's tie floor raw − 1e-5 in float32, the
-image-level rank and answer floors in float64), so equal numbers give equal decisions.
+Why decisions are equal, not merely close: every comparison is made in the precision of the
+straightforward path (a place's tie floor raw − 1e-5 in float32, the image-level rank and
+answer floors in float64), so equal similarities give equal decisions; the adversarial
+tests below feed both paths the very same float32 matrix and compare every decision exactly.
 
-The tolerance rule covers the rest: tiny products (a single query, a few rows) go to other
-BLAS kernels, in both paths (the straightforward path's one-query block is not bit-equal to
-its 500-query block either), and move a score by a few ulp (~1e-7). Ranks, answers and
-images are then still equal unless two scores differ by 1e-5 ± 1e-7 or a score lies within
-1e-7 of its threshold (``retrieval`` module doc): the tests below with tiny pieces compare
-raw_p within 1e-6 and every decision exactly.
+End to end, the two paths compute the similarities as different GEMMs (``similarity_t``:
+database rows first, in pieces), and a GEMM's rounding is the BLAS kernel's own: on
+OpenBLAS's SkylakeX kernel each similarity is the same float32 number whichever operand
+comes first and however rows are cut (bit for bit), while its Haswell kernel (which
+``OPENBLAS_CORETYPE=Haswell`` selects) rounds by operand order and position, a few ulp
+(~1e-7). The tolerance rule covers that: ranks, answers and images are equal unless a
+score lies within ``EPS`` of a decision boundary, another score ± 1e-5 or a threshold
+(``retrieval`` module doc). The end-to-end tests compare raw_p within ``EPS`` and every
+decision exactly, except on such borderline queries (``borderline``), which must be rare.
 """
 
 from __future__ import annotations
@@ -35,6 +34,7 @@ from vpr_explorer import database
 from vpr_explorer.database import decide_traversal, fit_database
 from vpr_explorer.places import PlaceSpec, make_places
 from vpr_explorer.retrieval import (
+    TIE_TOLERANCE,
     PlaceLayout,
     layout_place_scores,
     place_scores,
@@ -45,23 +45,58 @@ from vpr_explorer.retrieval import (
 )
 
 FIELDS = ("rank", "answer_place", "answer_image", "n_kept")
-DEFAULT_PIECE_ROWS = database.PIECE_ROWS  # the app's pieces: similarities bit for bit
+#: Two GEMMs of the same unit descriptors differ by a few float32 ulp on any BLAS kernel
+#: (at most 2.7e-7 on the Haswell kernel here); a score within this of a boundary may go
+#: either way.
+EPS = 5e-7
 
 
-def assert_same_decisions(a, b, exact_scores=True):
-    """Equal ranks, answers and images; raw_p bit for bit, or (``exact_scores=False``: tiny
-    products, where BLAS takes other kernels) within a few float32 ulp."""
-    if exact_scores:
-        np.testing.assert_array_equal(a.raw, b.raw)
-    else:
-        np.testing.assert_allclose(a.raw, b.raw, rtol=0, atol=1e-6)
-    np.testing.assert_array_equal(a.best, b.best)
+def borderline(decisions, model, descriptors) -> tuple[np.ndarray, np.ndarray]:
+    """Where a score lies within ``EPS`` of a decision boundary (``retrieval`` module doc).
+
+    Returns ``(frames, cells)``: ``cells`` ``(n_frames, n_places)`` marks a place with an image
+    scoring its raw_p − 1e-5 (which of its images is "best" may go either way); ``frames``
+    a frame whose decisions may: an image at its best right score or its top score − 1e-5
+    (ranks, the image-level answer), a place at the top raw_p − 1e-5 (the answer) or at a
+    threshold (kept or not), or a marked cell among the places that can be its answer.
+    Scores from ``similarity``, the straightforward path's own.
+    """
+    sims = similarity(descriptors[decisions.query_images], descriptors[model.images]).astype(np.float64)
+    raw = decisions.raw.astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        def at(values, edge):
+            return np.abs(values - (edge - TIE_TOLERANCE)) <= EPS
+
+        cell_hit = at(sims, raw[:, model.places])
+        cells = np.zeros(raw.shape, dtype=bool)
+        for p in np.unique(model.places):
+            cells[:, p] = cell_hit[:, model.places == p].any(axis=1)
+        right = np.where(decisions.truth, raw, -np.inf).max(axis=1, keepdims=True)
+        top = raw.max(axis=1, keepdims=True)
+        frames = at(sims, right).any(axis=1) | at(sims, sims.max(axis=1, keepdims=True)).any(axis=1)
+        frames |= at(raw, top).any(axis=1)
+        frames |= (cells & (raw >= top - TIE_TOLERANCE - EPS)).any(axis=1)
+        for th in decisions.thresholds.values():
+            frames |= (np.abs(raw - np.asarray(th, dtype=np.float64)) <= EPS).any(axis=1)
+    return frames, cells
+
+
+def assert_same_decisions(a, b, *, near=None):
+    """raw_p within ``EPS``; equal ranks, answers and images except on the frames and places
+    ``near`` (``borderline``) marks, which must be rare (at most 2% of each; Nordland's
+    tunnels, runs of near-identical frames, have 1.5% of their frames there)."""
+    np.testing.assert_allclose(a.raw, b.raw, rtol=0, atol=EPS)
     assert a.raw.dtype == b.raw.dtype and a.best.dtype == b.best.dtype
     assert a.outcomes.keys() == b.outcomes.keys()
+    frames, cells = (np.zeros(len(a.raw), bool), np.zeros(a.raw.shape, bool)) if near is None else near
+    assert frames.mean() <= 0.02 and cells.mean() <= 0.02, f"{frames.sum()} borderline frames, {cells.sum()} places"
+    same = (a.best == b.best) | cells
+    assert same.all(), f"best images differ at {np.argwhere(~same)[:5]}"
+    keep = ~frames
     for key in a.outcomes:
         for f in FIELDS:
             x, y = getattr(a.outcomes[key], f), getattr(b.outcomes[key], f)
-            np.testing.assert_array_equal(x, y, err_msg=f"{key}.{f}")
+            np.testing.assert_array_equal(x[keep], y[keep], err_msg=f"{key}.{f}")
             assert x.dtype == y.dtype, (key, f)
 
 
@@ -83,14 +118,18 @@ def layout_decisions(sims, db_places, n_places, th, correct, piece_rows):
     return score_layout_block(scores_t, layout, raw_t, best_t, th, correct, db_places)
 
 
-def test_similarity_t_is_the_same_float32_numbers(gp_pixels):
+def test_similarity_t_is_similarity_within_a_few_ulp(gp_pixels):
+    # bit for bit on OpenBLAS's SkylakeX kernel, a few ulp on its Haswell kernel (module doc)
     rng = np.random.default_rng(0)
     q, db = gp_pixels[rng.choice(600, 37, replace=False)], gp_pixels[rng.permutation(600)[:411]]
     reference = similarity(q, db)
-    np.testing.assert_array_equal(similarity_t(db, q), reference.T)
+    exact = q.astype(np.float64) @ db.T.astype(np.float64)
+    bound = 4 * np.finfo(np.float32).eps  # unit rows: |s| ≤ 1, a dot product of depth 2,048 in float32
+    np.testing.assert_allclose(similarity_t(db, q), reference.T, rtol=0, atol=EPS)
+    np.testing.assert_allclose(similarity_t(db, q), exact.T, rtol=0, atol=bound)
     out = np.empty((100, 37), dtype=np.float32)
     similarity_t(db[200:300], q, out=out)  # a piece: rows cut differently
-    np.testing.assert_array_equal(out, reference[:, 200:300].T)
+    np.testing.assert_allclose(out, reference[:, 200:300].T, rtol=0, atol=EPS)
 
 
 def test_layout_groups_each_place_in_index_order_and_runs_by_size():
@@ -179,7 +218,7 @@ def test_gardens_point_fused_equals_straightforward(monkeypatch, gardens_point, 
     monkeypatch.setattr(database, "PIECE_ROWS", piece_rows)
     got = decide_traversal(model, gp_pixels, gardens_point, places, "night_right", k=1.0, user_theta=0.6,
                            block=block, threads=threads, fused=True)
-    assert_same_decisions(got, expected, exact_scores=piece_rows == DEFAULT_PIECE_ROWS)
+    assert_same_decisions(got, expected, near=borderline(expected, model, gp_pixels))
 
 
 def test_float16_descriptors_fused_equals_straightforward(gardens_point, gp_pixels, gp_model):
@@ -188,7 +227,7 @@ def test_float16_descriptors_fused_equals_straightforward(gardens_point, gp_pixe
     d = gp_pixels.astype(np.float16)
     expected = decide_traversal(model, d, gardens_point, places, "night_right", fused=False)
     got = decide_traversal(model, d, gardens_point, places, "night_right", fused=True)
-    assert_same_decisions(got, expected)
+    assert_same_decisions(got, expected, near=borderline(expected, model, d))
 
 
 def test_a_nan_query_takes_the_straightforward_path(gardens_point, gp_pixels, gp_model):
@@ -198,7 +237,7 @@ def test_a_nan_query_takes_the_straightforward_path(gardens_point, gp_pixels, gp
     frames = np.arange(0, 200, 3)
     expected = decide_traversal(model, d, gardens_point, places, "night_right", frames=frames, fused=False)
     got = decide_traversal(model, d, gardens_point, places, "night_right", frames=frames, block=10, fused=True)
-    assert_same_decisions(got, expected)
+    assert_same_decisions(got, expected, near=borderline(expected, model, d))
 
 
 def test_nordland_tunnels_fused_equals_straightforward(data_root):
@@ -213,7 +252,7 @@ def test_nordland_tunnels_fused_equals_straightforward(data_root):
     frames = np.arange(0, dataset.n_frames, 2)
     expected = decide_traversal(model, d, dataset, places, "winter", frames=frames, fused=False)
     got = decide_traversal(model, d, dataset, places, "winter", frames=frames, block=512, fused=True)
-    assert_same_decisions(got, expected)
+    assert_same_decisions(got, expected, near=borderline(expected, model, d))
     image = expected.outcomes["image-baseline"]
     assert (np.isfinite(image.rank) & (image.rank > 1)).any()
 

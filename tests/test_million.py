@@ -101,19 +101,41 @@ def _float16_rows(n: int, dim: int, seed: int = 0) -> np.ndarray:
 @pytest.mark.parametrize("block, threads", [(4096, None), (1000, 2), (4096, 1)])
 def test_one_reading_for_the_fit_gives_the_closed_form_and_positive_means_bit_for_bit(block, threads):
     # 13,522 rows in places, with gaps between runs (a last block of 1,234; chunks of the positive
-    # means straddling blocks of 1,000), places of 20 images (the last of 2)
+    # means straddling blocks of 1,000), places of 20 images (the last of 2); the closed form with
+    # the same threads (one thread leaves BLAS its own, whose Haswell kernel splits some sums)
     d16 = _float16_rows(20_000, 40)
     rows = np.flatnonzero(np.arange(20_000) % 37 < 25)[:13_522]
     labels = np.arange(len(rows)) // 20
     n_places = int(labels.max()) + 1
     gathered = d16[rows].astype(np.float32)
-    want = negative_stats(gathered, labels, n_places, block=block)
+    want = negative_stats(gathered, labels, n_places, block=block, threads=threads)
     got, pm = stats_rows(d16, rows, labels, n_places, block=block, threads=threads)
     np.testing.assert_array_equal(got.mu, want.mu)
     np.testing.assert_array_equal(got.sigma, want.sigma)
     np.testing.assert_array_equal(got.n_neg, want.n_neg)
     np.testing.assert_array_equal(pm, positive_means(gathered, labels, n_places, threads=1))
-    np.testing.assert_array_equal(negative_stats_rows(d16, rows, labels, n_places, block=block).sigma, want.sigma)
+    np.testing.assert_array_equal(negative_stats_rows(d16, rows, labels, n_places, block=block, threads=threads).sigma,
+                                  want.sigma)
+
+
+def test_float16_blocks_convert_to_the_same_float32_numbers():
+    # torch's cast (as_float32, every read of a float16 map) is numpy's, bit for bit: every float16
+    # (subnormals, signed zeros, inf) but NaNs, which stay NaN (the hardware cast sets a signalling
+    # NaN's quiet bit; the checks refuse NaN rows either way); read-only (a map's rows) and strided
+    # blocks too, without a warning
+    bits = np.arange(2**16, dtype=np.uint16).view(np.float16).reshape(256, 256)
+    bits.flags.writeable = False
+    for block in (bits, bits[::3, 1::2], bits[:0]):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            got = stats_module.as_float32(block)
+        want = block.astype(np.float32)
+        assert got.dtype == np.float32 and got.shape == want.shape
+        nan = np.isnan(want)
+        np.testing.assert_array_equal(np.isnan(got), nan)
+        np.testing.assert_array_equal(got[~nan].view(np.uint32), want[~nan].view(np.uint32))
+    d32 = np.ones((3, 2), dtype=np.float32)
+    assert stats_module.as_float32(d32) is d32  # float32 as is
 
 
 def test_a_fit_read_out_of_order_falls_back_to_its_own_passes(monkeypatch):

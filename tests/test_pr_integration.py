@@ -18,6 +18,27 @@ def _synthetic(seed=0, n_places=12, per_place=6, dim=32, noise=0.9, n_trav=3):
     return d.astype(np.float32), labels, trav
 
 
+def assert_same_pr(a: dict, b: dict, where: str = "") -> None:
+    """Equal PR rows, thresholds within 1e-6. A threshold can be a score (the oracle θ: a
+    query's top score), and the blocked pass scores with other GEMMs than the reference: the
+    same float32 number on OpenBLAS's SkylakeX kernel, a few ulp apart on its Haswell kernel.
+    Counts, precision and recall must be equal (the tie tolerance absorbs those ulp)."""
+    if isinstance(a, dict):
+        assert isinstance(b, dict) and a.keys() == b.keys(), where
+        for k in a:
+            if k in ("threshold", "max_f1_threshold"):
+                np.testing.assert_allclose(np.asarray(a[k], dtype=float), np.asarray(b[k], dtype=float), rtol=0,
+                                           atol=1e-6, err_msg=f"{where}.{k}")
+            else:
+                assert_same_pr(a[k], b[k], f"{where}.{k}")
+    elif isinstance(a, list):
+        assert isinstance(b, list) and len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            assert_same_pr(x, y, f"{where}[{i}]")
+    else:
+        assert a == b or (a != a and b != b), f"{where}: {a!r} != {b!r}"
+
+
 def test_paper_and_fast_paper_agree(monkeypatch):
     d, lab, trav = _synthetic()
     ev = paper_protocol(d, lab, trav, 12, runs=4, pr=True, user_theta=0.3)
@@ -30,7 +51,7 @@ def test_paper_and_fast_paper_agree(monkeypatch):
     assert {r.key for r in blocked.pr} == globals_  # the blocked pass keeps no raw_p: no family curves
     by = {r.key: r for r in ev.pr}
     for r in blocked.pr:
-        assert r.to_dict() == by[r.key].to_dict(), r.key
+        assert_same_pr(r.to_dict(), by[r.key].to_dict(), r.key)
     assert any("left out" in n for n in blocked.notes)
     json.dumps(ev.to_dict(), allow_nan=False)
     text = render(ev)

@@ -163,6 +163,40 @@ def test_tile_sample_pairs_are_distinct_balanced_and_exact(monkeypatch):
         training_pair_scores(d, sample="grid")
 
 
+def test_tile_sample_above_its_image_limit_reads_a_seeded_subset():
+    import vpr_explorer.thresholds as thresholds
+
+    # today's largest training sets (the app's 110k route, the protocols) keep their sample
+    assert thresholds.AUTO_TILE_IMAGES > 110_364
+    rng = np.random.default_rng(6)
+    n, m, dim = 1_000, 400, 24
+    d = unit_rows(rng, n, dim).astype(np.float32)
+    plain = training_pair_scores(d, max_pairs=20_000, seed=7)
+    np.testing.assert_array_equal(training_pair_scores(d, max_pairs=20_000, seed=7, images=n), plain)
+    scores = training_pair_scores(d, max_pairs=20_000, seed=7, images=m, workers=3)
+    # the same pairs, by hand: the first m of the seeded permutation, in groups, group a against a + 1
+    sub = np.random.default_rng(7).permutation(n)[:m]
+    edges, tiles = thresholds.tile_groups(m, 20_000)
+    assert len(tiles) == 8 and set(np.diff(edges)) == {50}  # tiles of 50 × 50 instead of 20 × 20
+    pairs = np.concatenate([np.stack(np.meshgrid(sub[edges[a]:edges[a + 1]], sub[edges[b]:edges[b + 1]],
+                                                 indexing="ij"), -1).reshape(-1, 2) for a, b in tiles])
+    assert len(pairs) == len(scores) == 20_000
+    assert (pairs[:, 0] != pairs[:, 1]).all()
+    assert len({(min(i, j), max(i, j)) for i, j in pairs}) == len(pairs)
+    per_image = np.bincount(pairs.ravel(), minlength=n)
+    assert set(per_image[sub]) == {100} and not per_image[np.setdiff1d(np.arange(n), sub)].any()
+    exact = np.einsum("ij,ij->i", d[pairs[:, 0]].astype(np.float64), d[pairs[:, 1]].astype(np.float64))
+    np.testing.assert_allclose(scores, exact, rtol=0, atol=1e-6)
+    big = unit_rows(rng, 3 * n, dim).astype(np.float32)
+    at = rng.choice(3 * n, n, replace=False)
+    big[at] = d
+    np.testing.assert_array_equal(training_pair_scores(big, rows=at, max_pairs=20_000, seed=7, images=m), scores)
+    # the independent pairs are never a subset's; a subset too small for max_pairs is refused
+    assert training_pair_scores(d, max_pairs=20_000, seed=7, sample="pairs", images=m).size == 20_000
+    with pytest.raises(VPRInputError, match="images=150"):
+        training_pair_scores(d, max_pairs=20_000, images=150)
+
+
 def hub_descriptors(n=2_500, dim=32, places=250, seed=0):
     """Place structure plus a per-image shift along one direction: some images score high with
     everything (row effects), the case where pairs sharing a row are most correlated."""
@@ -173,13 +207,18 @@ def hub_descriptors(n=2_500, dim=32, places=250, seed=0):
     return (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
 
 
-def test_tile_sample_threshold_agrees_with_independent_pairs_within_sampling_error():
+@pytest.mark.parametrize("images", [None, 1_250], ids=["all images", "subset"])
+def test_tile_sample_threshold_agrees_with_independent_pairs_within_sampling_error(images):
     # The tile sample's pairs share rows and columns (correlated); over seeds its θ must
     # centre on the independent-pairs θ, within their sampling error, and spread no wider.
+    # A subset of 1,250 of the 2,500 images gives tiles of 16 × 16 at 20,000 pairs, as
+    # AUTO_TILE_IMAGES (131,072) gives tiles of 15 × 15 at AUTO_MAX_PAIRS above it.
     d = hub_descriptors()
     full = auto_global_threshold(training_pair_scores(d, max_pairs=10**8))  # all 3.1·10⁶ pairs
     seeds = 40
-    theta = {kind: np.array([auto_global_threshold(training_pair_scores(d, max_pairs=20_000, seed=s, sample=kind))
+    kw = {} if images is None else {"images": images}
+    theta = {kind: np.array([auto_global_threshold(training_pair_scores(d, max_pairs=20_000, seed=s, sample=kind,
+                                                                         **kw))
                              for s in range(seeds)]) for kind in ("tiles", "pairs")}
     sd = {k: v.std(ddof=1) for k, v in theta.items()}
     assert 1e-3 < sd["pairs"] < 0.05  # a real sampling error to compare against

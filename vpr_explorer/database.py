@@ -363,9 +363,9 @@ def _decide_block(
     The pool's threads each take pieces of whole places: one float32 GEMM of the piece's
     database rows (a slice of ``db``, the rows grouped by place, or, when ``db`` is None,
     gathered by the piece itself from ``d`` at ``rows``: the same contiguous float32 rows)
-    against the block's queries (each similarity the same float32 number as ``similarity``
-    gives: a GEMM splits rows and columns, never the sum, and the values do not depend on the
-    rows' order or the BLAS threads), then the piece's place maxima. The
+    against the block's queries (each similarity ``similarity``'s float32 number, bit for bit on
+    OpenBLAS's SkylakeX kernel, within a few ulp where the kernel rounds by shape: see
+    ``retrieval.similarity_t``), then the piece's place maxima. The
     image-level baseline reads back only the places within the tolerance of its thresholds
     (``retrieval.score_layout_block``). A block with a non-finite similarity (a NaN or inf
     in a descriptor) takes the straightforward path, which defines what that means.

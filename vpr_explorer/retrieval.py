@@ -91,12 +91,14 @@ def similarity(queries: np.ndarray, database: np.ndarray) -> np.ndarray:
 def similarity_t(database: np.ndarray, queries: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """``similarity(queries, database).T``, computed as ``(n_database, n_queries)`` (into ``out``).
 
-    On products of a few hundred rows and queries these are the same float32 numbers as
-    ``similarity`` gives, bit for bit: a GEMM computes each as one dot product, never split,
-    whichever operand comes first (``tests/test_decide_fused.py``, and the 110k-image route in
-    ``benchmarks/bench_app_scale.py --move-only``). Tiny products (one query, a few rows) take
-    other BLAS kernels and may differ in the last bits, as ``similarity`` itself does between a
-    one-query block and a larger one; the tolerance rule (module doc) absorbs that.
+    How each number is rounded is the BLAS kernel's: OpenBLAS's SkylakeX kernel computes each
+    as one dot product in the same order whichever operand comes first, so on products of a
+    few hundred rows and queries these are ``similarity``'s numbers bit for bit (the 110k-image
+    route in ``benchmarks/bench_app_scale.py --move-only`` checks it); its Haswell kernel
+    (``OPENBLAS_CORETYPE=Haswell``) rounds by operand order and position, a few ulp (≤ 3e-7
+    measured), as tiny products (one query, a few rows) do on any kernel. The tolerance rule
+    (module doc) absorbs that: ``tests/test_decide_fused.py`` allows a decision to differ only
+    where a score lies within 5e-7 of a boundary.
     """
     return np.matmul(np.asarray(database, dtype=np.float32), np.asarray(queries, dtype=np.float32).T, out=out)
 

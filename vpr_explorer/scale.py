@@ -451,17 +451,19 @@ def _full_sums(d: np.ndarray, lay: Layout, query_rows: np.ndarray) -> _FullSums:
     total = np.zeros(dim)
     gram_all = np.zeros((dim, dim))
     gram = np.zeros((n_p, m, m))
+    queries = np.zeros((len(query_rows), dim))  # Σ_{q∈Q_r} d_q per split
     for b in range(lay.n_blocks):
-        x = _layout_rows64(d, lay, lay.rows(b))
+        rows = lay.rows(b)
+        x = _layout_rows64(d, lay, rows)
         total += x.sum(axis=0)
         gram_all += x.T @ x
         x3 = x.reshape(m, -1, dim).transpose(1, 0, 2)  # (G, m, D): each place's images
         gram[lay.place_range(b)] = x3 @ x3.transpose(0, 2, 1)
-    queries = np.zeros((len(query_rows), dim))
-    q_img = lay.image_of_row[query_rows]
-    for r in range(len(query_rows)):
-        for lo in range(0, q_img.shape[1], _CHUNK):
-            queries[r] += np.asarray(d[q_img[r, lo : lo + _CHUNK]], dtype=np.float64).sum(axis=0)
+        # the block's queries of every split at once: its (rows × R) query indicator, transposed, times x
+        r_of, local = np.nonzero((query_rows >= rows.start) & (query_rows < rows.stop))
+        indicator = np.zeros((len(query_rows), rows.stop - rows.start))
+        indicator[r_of, query_rows[r_of, local] - rows.start] = 1.0
+        queries += indicator @ x
     dot_total, dot_place, sq = np.zeros(n_rows), np.zeros(n_rows), np.zeros(n_rows)
     dot_q = np.zeros((n_rows, len(query_rows)))
     try:  # dᵢᵀCdᵢ = |Lᵀdᵢ|² with C = LLᵀ: a triangular product, half the flops of dᵢᵀ(Cdᵢ)
@@ -500,13 +502,26 @@ class _PassResult:
     near: _NearSlots
 
 
-def _as_layout32(d: np.ndarray, lay: Layout) -> np.ndarray:
-    """``(n_rows, D)`` float32 descriptors in layout order, zero rows for padding."""
-    x = np.zeros((lay.n_rows, d.shape[1]), dtype=np.float32)
-    real = np.flatnonzero(lay.image_of_row >= 0)
-    for lo in range(0, len(real), _CHUNK):
-        r = real[lo : lo + _CHUNK]
-        x[r] = np.asarray(d[lay.image_of_row[r]], dtype=np.float32)
+def _as_layout32(d: np.ndarray, lay: Layout, threads: int = 1) -> np.ndarray:
+    """``(n_rows, D)`` float32 descriptors in layout order, zero rows for padding.
+
+    Gathered ``_CHUNK`` rows at a time by ``threads`` threads (numpy's gather and conversion
+    release the GIL; each chunk writes its own rows, so the result does not depend on them).
+    """
+    x = np.empty((lay.n_rows, d.shape[1]), dtype=np.float32)
+    img = lay.image_of_row
+
+    def chunk(lo: int) -> None:
+        part = img[lo : lo + _CHUNK]
+        x[lo : lo + len(part)] = d[np.maximum(part, 0)]
+        x[lo + np.flatnonzero(part < 0)] = 0.0  # padding
+
+    if threads > 1:
+        with ThreadPoolExecutor(threads) as pool:
+            list(pool.map(chunk, range(0, lay.n_rows, _CHUNK)))
+    else:
+        for lo in range(0, lay.n_rows, _CHUNK):
+            chunk(lo)
     return x
 
 
@@ -539,11 +554,16 @@ def _side(s3: np.ndarray, t1: np.ndarray, floor: np.ndarray, *, axis: int) -> di
     ``(m, places, cols)`` (axis=0: its columns are); ``t1`` its maximum over that axis.
     Returns the entries' local row and place, t1/a1/t2/a2 and their ``(n, m)`` slot scores.
     """
+    # the few rows (columns) with any entry first: the full comparison then runs on those only
     if axis == 1:
-        r, c = np.nonzero(t1 >= floor[:, None])
+        hit = np.flatnonzero(t1.max(axis=1) >= floor)
+        r, c = np.nonzero(t1[hit] >= floor[hit, None])
+        r = hit[r]
         vals = s3[r, :, c]
     else:
-        c, r = np.nonzero(t1 >= floor[None, :])
+        hit = np.flatnonzero(t1.max(axis=0) >= floor)
+        c, r = np.nonzero(t1[:, hit] >= floor[None, hit])
+        r = hit[r]
         vals = s3[:, c, r].T
     return {"row": r, "place": c, **_top2_rows(vals), "vals": vals}
 
@@ -724,7 +744,10 @@ def _blocked_pass(
     ``threads`` threads run panels side by side, BLAS in one thread each, and the main thread
     merges their results in task order, so the sums and the table do not depend on the number
     of threads. Diagonal blocks come first: they hold each image's own place, hence b and
-    the row's floor, which the off-diagonal blocks need. ``progress(pairs done, message)``
+    the row's floor, which the off-diagonal blocks need. BLAS runs in one thread whatever
+    ``threads`` is: OpenBLAS's Haswell sgemm splits the sum of a (64 × 2,048) @ (2,048 × 50)
+    product (the downdate's shape) between its threads, which would make V depend on their
+    number. ``progress(pairs done, message)``
     after each pair. ``device``: a torch device for the panel products (``_BlockProducts``);
     the bookkeeping stays in numpy on the CPU.
     """
@@ -783,9 +806,10 @@ def _blocked_pass(
         with ThreadPoolExecutor(threads) as pool, one_blas_thread():
             run(pairs[:nb], pool)  # the diagonal: b and the floors, which every other panel reads
             run(pairs[nb:], pool)
-    else:
-        run(pairs[:nb], None)
-        run(pairs[nb:], None)
+    else:  # BLAS in one thread here too: a multithreaded sgemm may split the sums (below)
+        with one_blas_thread():
+            run(pairs[:nb], None)
+            run(pairs[nb:], None)
     return _PassResult(v, best_own, records, near)
 
 
@@ -905,10 +929,12 @@ def _place_thresholds(stats: NegativeStats, method: ThresholdMethod, lay: Layout
 
 
 def _split_thresholds(r: int, sp: Split, lay: Layout, sums: _FullSums, pas: _PassResult, held: np.ndarray,
-                      n_places: int, auto: float, user_theta: float | None, content: np.ndarray) -> _SplitData:
-    """Split r's statistics and thresholds from the downdated moments (module doc, steps 1 and 3)."""
+                      n_places: int, auto: float, user_theta: float | None, content: np.ndarray,
+                      mu_n: tuple[np.ndarray, np.ndarray]) -> _SplitData:
+    """Split r's statistics and thresholds from the downdated moments (module doc, steps 1 and 3);
+    ``mu_n``: ``_split_mu`` of its training rows."""
     rows = lay.row_of_image[sp.train]
-    mu, n_neg = _split_mu(r, rows, lay, sums, held)
+    mu, n_neg = mu_n
     v = pas.v[rows, r]
     labels = lay.places[lay.place_of_row[rows]].astype(np.int64)
     stats = NegativeStats(mu=mu, sigma=_sigma(sums, rows, v, mu, n_neg), n_neg=n_neg.astype(np.int64),
@@ -1384,10 +1410,9 @@ def scale_splits(
     held = lay.slot_of_row[query_rows]
     sums = _full_sums(d, lay, query_rows)
     # every θ_p is a convex combination of its place's μᵢ: all lie in [min μ, max μ] (the pass's floor)
-    mu_lo, mu_hi = np.inf, -np.inf
-    for r, sp in enumerate(splits):
-        mu = _split_mu(r, lay.row_of_image[sp.train], lay, sums, held[r])[0]
-        mu_lo, mu_hi = min(mu_lo, float(mu.min())), max(mu_hi, float(mu.max()))
+    mus = [_split_mu(r, lay.row_of_image[sp.train], lay, sums, held[r]) for r, sp in enumerate(splits)]
+    mu_lo = min(float(mu.min()) for mu, _ in mus)
+    mu_hi = max(float(mu.max()) for mu, _ in mus)
     runs = len(splits)
     n_pairs = lay.n_blocks * (lay.n_blocks + 1) // 2
     steps = runs + n_pairs + lay.n_blocks  # per split (automatic θ), per block pair, per row block
@@ -1408,12 +1433,12 @@ def scale_splits(
     pass_report = (lambda done, what: report(runs + done, what)) if report else None
     entries = _Entries(lay, table_memory, spill_dir)
     try:
-        x = _as_layout32(d, lay)
+        x = _as_layout32(d, lay, threads)
         pas = _blocked_pass(x, lay, query_rows, row_traversal, entries, max_k, (mu_lo, mu_hi), sums.centre,
                             threads, pass_report, device)
         del x
         content = _content_classes(d, lay)
-        data = [_split_thresholds(r, sp, lay, sums, pas, held[r], n_places, autos[r], user_theta, content)
+        data = [_split_thresholds(r, sp, lay, sums, pas, held[r], n_places, autos[r], user_theta, content, mus[r])
                 for r, sp in enumerate(splits)]
         kappa = _error_scale(d, lay, sums, data, seed)
         for sd in data:

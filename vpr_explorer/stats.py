@@ -64,6 +64,7 @@ import contextlib
 import functools
 import os
 import threading
+import warnings
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -342,11 +343,12 @@ def _centred_gram(
     two threads at about 70% of their rate, then mirrored the triangle in one thread). Each
     task adds its tile to a float64 sum of that tile while the tile is in cache, and E is
     assembled once, the tiles below the diagonal mirrored. Each entry is still one inner
-    product of depth L, so the error bound is unchanged; at depth ``BLOCK`` (4,096) they are
-    also the same float32 numbers as one syrk, since OpenBLAS cuts that depth alike for
-    both, while at some other depths (a last block of 1,234 or 3,000 rows) the GEMM's cut
-    differs in the last bits. So other blocks keep the one syrk: the statistics are those of
-    the code before, bit for bit (``tests/test_stats.py``).
+    product of depth L, so the error bound is unchanged. On OpenBLAS's SkylakeX kernel, at
+    depth ``BLOCK`` (4,096), they are also the same float32 numbers as one syrk, since it cuts
+    that depth alike for both, while at some other depths (a last block of 1,234 or 3,000
+    rows) the GEMM's cut differs in the last bits; so other blocks keep the one syrk, and
+    there the statistics are those of the code before, bit for bit. Its Haswell kernel rounds
+    by shape and threads: within the bound (``tests/test_stats.py`` checks both).
     """
     n, dim = d.shape
     m = centre if d.dtype == np.float32 else centre.astype(np.float64)  # float32 − float32: one rounding
@@ -584,8 +586,11 @@ def one_blas_thread():
     ``database.decide_traversal``'s pieces of places.
 
     Process-wide (OpenBLAS has one setting): nested and concurrent callers share one limiter,
-    the last to leave restores the count. The GEMMs used here give the same value per element
-    whatever the thread count (they split rows and columns between threads, never the sum).
+    the last to leave restores the count. On OpenBLAS's SkylakeX kernel the GEMMs used here
+    give the same value per element whatever the thread count (they split rows and columns
+    between threads, never the sum); its Haswell kernel splits the sum of some shapes (a
+    (64 × 2,048) @ (2,048 × 50) product) between threads, so callers that promise the same
+    numbers for any number of their own threads keep BLAS in one thread throughout.
     Without threadpoolctl, nothing is changed.
     """
     try:
@@ -595,6 +600,7 @@ def one_blas_thread():
         return
     with _BLAS_LOCK:
         if _BLAS_USERS[0] == 0:
+            _take_blas_control()
             _BLAS_USERS[1] = threadpool_limits(limits=1, user_api="blas")
         _BLAS_USERS[0] += 1
     try:
@@ -603,8 +609,26 @@ def one_blas_thread():
         with _BLAS_LOCK:
             _BLAS_USERS[0] -= 1
             if _BLAS_USERS[0] == 0:
+                _take_blas_control()
                 _BLAS_USERS[1].restore_original_limits()
                 _BLAS_USERS[1] = None
+
+
+def _take_blas_control() -> None:
+    """Let this thread set OpenBLAS's thread count (under ``_BLAS_LOCK``, the one limiter's lock).
+
+    threadpoolctl (3.8) ignores limits set on a pthreads OpenBLAS from any thread but the first
+    that set one while that thread lives: once the main thread had entered ``one_blas_thread``
+    (a library call before the app, as in ``benchmarks/bench_million.py``), the app's script
+    threads' limits were dropped, and each pool thread's GEMMs ran with all of BLAS's threads
+    (a 500,000-image fit in the app 2.9 s instead of 1.8 s). The limiter is process-wide by
+    design, so whichever thread sets or restores it takes control first.
+    """
+    from threadpoolctl import OpenBLASController
+
+    clear = getattr(OpenBLASController, "clear_controlling_thread", None)  # none before threadpoolctl 3.8
+    if clear is not None:
+        clear(force=True)
 
 
 def _centre(d: np.ndarray) -> np.ndarray:
@@ -750,6 +774,55 @@ def positive_means(
 CHECK_ELEMS = 1 << 24
 
 
+_TORCH: list = []  # torch, once imported by ``_torch``
+_TORCH_STARTED: list = []  # whether ``prepare_float16_reads`` started its import
+_TORCH_LOCK = threading.Lock()
+
+
+def _torch():
+    """torch, imported on first use, its one warning about read-only arrays spent: torch warns once per
+    process that it could write to one, and ``as_float32`` only reads them (a memory map's rows)."""
+    with _TORCH_LOCK:
+        if not _TORCH:
+            import torch
+
+            spent = np.zeros(1, dtype=np.float16)
+            spent.flags.writeable = False
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)
+                torch.from_numpy(spent)
+            _TORCH.append(torch)
+    return _TORCH[0]
+
+
+def prepare_float16_reads() -> None:
+    """Import torch for ``as_float32`` in a background thread now (about 1 s), not in the first pass
+    over a float16 map: the app calls this when it loads a float16 database."""
+    with _TORCH_LOCK:
+        if _TORCH or _TORCH_STARTED:
+            return
+        _TORCH_STARTED.append(True)
+    threading.Thread(target=_torch, name="vpr-import-torch", daemon=True).start()
+
+
+def as_float32(block: np.ndarray) -> np.ndarray:
+    """``np.asarray(block, dtype=np.float32)``, a float16 block converted by torch's vectorised cast.
+
+    The same numbers (every float16 is a float32; a NaN stays NaN, a signalling one quieted), about
+    five times faster: numpy's float16 cast is not vectorised (1.25 ns an entry on this machine,
+    0.4 s CPU for the 500,000 × 512 database images in places of a million-image route, and every
+    pass over them pays it again; torch's: 0.08 s). Any other dtype is numpy's ``asarray`` (a
+    float32 block is returned as is). ``RowsOf`` reads every float16 block through it, so the
+    fits, scores and decisions of a mapped database do, and the automatic θ's tile sample.
+    """
+    if block.dtype != np.float16:  # a byte-swapped float16 too: numpy's cast
+        return np.asarray(block, dtype=np.float32)
+    torch = _torch()
+    out = np.empty(block.shape, dtype=np.float32)
+    torch.from_numpy(out).copy_(torch.from_numpy(np.ascontiguousarray(block)))
+    return out
+
+
 class RowsOf:
     """Rows ``rows`` of a matrix, read a block at a time: ``descriptors[rows]`` never formed.
 
@@ -782,7 +855,7 @@ class RowsOf:
                 block = self.base[idx[0] : idx[-1] + 1]
             else:
                 block = self.base[idx]
-        return np.asarray(block, dtype=self.dtype)
+        return as_float32(block) if self.dtype == np.float32 else np.asarray(block, dtype=self.dtype)
 
 
 def validate_rows(view: RowsOf, what: str = "descriptors") -> None:

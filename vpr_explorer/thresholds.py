@@ -21,7 +21,7 @@ import numpy as np
 from scipy.stats import norm
 
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.stats import SIGMA_FLOOR, NegativeStats, mixture_moments, one_blas_thread
+from vpr_explorer.stats import SIGMA_FLOOR, NegativeStats, as_float32, mixture_moments, one_blas_thread
 
 #: Φ⁻¹(1 − 10⁻⁶) ≈ 4.753, the automatic threshold's multiple of the robust spread.
 AUTO_Z = float(norm.ppf(1 - 1e-6))
@@ -29,6 +29,14 @@ AUTO_Z = float(norm.ppf(1 - 1e-6))
 AUTO_MAX_PAIRS = 2_000_000
 #: How a training set with more pairs than ``AUTO_MAX_PAIRS`` is sampled (``training_pair_scores``).
 AUTO_SAMPLES = ("tiles", "pairs")
+#: Images the tile sample reads at most (2¹⁷, above the largest training sets of the protocols and
+#: the app's 110k route, whose samples are unchanged): a larger training set's tiles are drawn over
+#: a seeded subset of this many, so at 500,000 images they are 8,590 GEMMs of groups of 15 over
+#: 131,072 gathered rows, not 125,000 GEMMs of groups of 4 over all 500,000: 0.07 s CPU instead of
+#: 0.38 s from a float16 memory map of 500,000 × 512, the θ within 1.3 standard errors of the
+#: independent pairs' and its spread over seeds 1.24× theirs (1.43× over all images)
+#: (``benchmarks/bench_auto_sample.py --n 500000 --dim 512 --mmap --seeds 20``).
+AUTO_TILE_IMAGES = 1 << 17
 #: Rows gathered at a time by the tile sample (2,048 × 2,048 float32: 16 MiB): at 33,108 × 2,048
 #: (the app at 110k images) 17 chunks share the threads evenly, and each reuses the memory of the
 #: last instead of mapping fresh pages (64 MiB chunks: five, in two threads, each a new mapping).
@@ -106,7 +114,7 @@ def adaptive_k(positive_mean: np.ndarray, negative_mean: np.ndarray, negative_st
 
 def training_pair_scores(
     descriptors: np.ndarray, *, max_pairs: int = AUTO_MAX_PAIRS, seed: int = 0, rows: np.ndarray | None = None,
-    sample: str = "tiles", block: int = PAIR_BLOCK, workers: int = PAIR_WORKERS,
+    sample: str = "tiles", block: int = PAIR_BLOCK, workers: int = PAIR_WORKERS, images: int = AUTO_TILE_IMAGES,
 ) -> np.ndarray:
     """Similarities of distinct training pairs: all of them (i < j), or a seeded sample of about ``max_pairs``.
 
@@ -115,17 +123,23 @@ def training_pair_scores(
             (then the result is exactly that of ``descriptors[rows]``, without copying it).
         sample: above ``max_pairs`` pairs, which sample (README, "The app at that scale"):
 
-            * ``"tiles"`` (default): a seeded permutation of the n images cut into
-              g = ⌈n²/max_pairs⌉ (≥ 3) groups of ⌊n/g⌋ or ⌈n/g⌉ images, and every pair between
-              group a and group a + 1 (mod g): g dense tiles of about (max_pairs/n)² scores,
-              each one float32 GEMM of gathered rows. About n²/g ≤ max_pairs pairs, all
-              distinct, no image with itself, and every image in the same number of them to
-              within 2 (balanced, as in the full set, where each is in n − 1). Pairs in one tile
-              share rows and columns, so they are not independent: ``tests/test_thresholds.py``
-              and ``benchmarks/bench_auto_sample.py`` show that the automatic θ from them
-              agrees with the independent-pairs θ within its sampling error.
+            * ``"tiles"`` (default): a seeded permutation of the n images, of which the first
+              m = min(n, ``images``) are cut into g = ⌈m²/max_pairs⌉ (≥ 3) groups of ⌊m/g⌋ or
+              ⌈m/g⌉ images, and every pair between group a and group a + 1 (mod g): g dense
+              tiles of about (max_pairs/m)² scores, each one float32 GEMM of gathered rows.
+              About m²/g ≤ max_pairs pairs, all distinct, no image with itself, and every image
+              of the m in the same number of them to within 2 (balanced, as in the full set,
+              where each is in n − 1). Up to ``images`` training images (``AUTO_TILE_IMAGES``)
+              the m are all of them; above, a uniform seeded subset, so the tiles stay GEMMs of
+              about max_pairs/``images`` images a side and only m rows are read, however large
+              the training set. Pairs in one tile share rows and columns, and a subset's pairs
+              share its images, so they are not independent: ``tests/test_thresholds.py`` and
+              ``benchmarks/bench_auto_sample.py`` show that the automatic θ from them agrees
+              with the independent-pairs θ within its sampling error, with the subset too.
             * ``"pairs"``: ``max_pairs`` independent uniform pairs (i, j ≠ i), scored ``block``
               at a time by ``workers`` threads (each gathers 2·block rows: memory-bound).
+        images: the most images the ``"tiles"`` sample reads (above, a seeded subset of this
+            many); it must leave more than ``max_pairs`` pairs.
 
     Each score is the same float32 value whatever ``block``, ``workers`` or the BLAS thread count.
     """
@@ -140,7 +154,7 @@ def training_pair_scores(
 
     def gather(idx: np.ndarray) -> np.ndarray:
         """float32 rows ``idx`` of the training set."""
-        return np.asarray(descriptors[idx if rows is None else rows[idx]], dtype=np.float32)
+        return as_float32(descriptors[idx if rows is None else rows[idx]])
 
     if total <= max_pairs:
         d = np.asarray(descriptors if rows is None else descriptors[rows], dtype=np.float32)
@@ -148,7 +162,11 @@ def training_pair_scores(
         return (d @ d.T)[iu]
     rng = np.random.default_rng(seed)
     if sample == "tiles":
-        return _tile_scores(gather, rng.permutation(n), *tile_groups(n, max_pairs), max(1, workers))
+        if n > images and images * (images - 1) // 2 <= max_pairs:
+            raise VPRInputError(f"images={images}: a subset of the tile sample needs more than max_pairs="
+                                f"{max_pairs} pairs")
+        perm = rng.permutation(n)[:images]  # up to ``images`` images, all of them, as before the subset
+        return _tile_scores(gather, perm, *tile_groups(len(perm), max_pairs), max(1, workers))
     i = rng.integers(0, n, size=max_pairs)
     j = rng.integers(0, n - 1, size=max_pairs)
     j = j + (j >= i)  # uniform over j != i
@@ -337,7 +355,7 @@ def pooled_pair_sample(
     perm = images[np.random.default_rng(seed).permutation(n)]
 
     def gather(idx: np.ndarray) -> np.ndarray:
-        return np.asarray(descriptors[idx], dtype=np.float32)
+        return as_float32(descriptors[idx])
 
     pooled = _tile_scores(gather, perm, edges, tiles, max(1, workers))
     image_a, image_b = _tile_pairs(perm, edges, tiles)

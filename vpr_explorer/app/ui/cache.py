@@ -63,7 +63,7 @@ from vpr_explorer.pipeline import (
 )
 from vpr_explorer.places import PlaceSpec
 from vpr_explorer.shared_scores import SHARED_LIMIT, SharedScores
-from vpr_explorer import retrieval_views
+from vpr_explorer import retrieval_views, stats
 from vpr_explorer.retrieval_views import RetrievalFitted, RetrievalOverview, RetrievalPlaces
 from vpr_explorer.views import (
     Fitted,
@@ -345,6 +345,14 @@ def load(source: str, descriptor: str, *, layout: str = Layout.AUTO.value, radiu
     holds the file's content hash (``ImportedDescriptors.key``), the layout and the radius,
     so no cache below serves results of an edited file or another ground truth.
     """
+    loaded = _load(source, descriptor, layout=layout, radius=radius, file=file)
+    if loaded.descriptors.dtype == np.float16:  # a mapped database: its reads' cast is imported meanwhile
+        stats.prepare_float16_reads()
+    return loaded
+
+
+def _load(source: str, descriptor: str, *, layout: str, radius: float | None, file: str | Path | None) -> Loaded:
+    """``load``'s result, from the memo or computed."""
     ds = dataset(source, layout, radius)
     path = descriptor_path(descriptor, file)
     files = _images_key(ds, path)
