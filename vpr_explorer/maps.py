@@ -86,11 +86,15 @@ def layout_map(
                         meta="database, between places", marker=dict(color=SKIPPED, size=5),
                         hovertemplate="database image between places<extra></extra>"))
     inside = ~out
-    colours = np.array(PALETTE, dtype=object)[place[inside] % len(PALETTE)]
+    # the place's palette index as a number on a scale of the palette's colours: plotly checks a
+    # numeric array at once, a list of 20,000 colour strings one by one (0.1 s a figure)
+    last = len(PALETTE) - 1
+    scale = [[k / last, c] for k, c in enumerate(PALETTE)]
     trace = _scatter(int(inside.sum()))
     fig.add_trace(trace(x=db_m[inside, 0], y=db_m[inside, 1], mode="markers", name="database, coloured by place",
                         meta="database places", text=[f"P{p}" for p in place[inside]],
-                        marker=dict(color=list(colours), size=7),
+                        marker=dict(color=place[inside] % len(PALETTE), colorscale=scale, cmin=0, cmax=last,
+                                    showscale=False, size=7),
                         hovertemplate="database image of %{text}<extra></extra>"))
     trace = _scatter(len(q))  # thin crosses over the dots: queries often lie on the database
     fig.add_trace(trace(x=q_m[:, 0], y=q_m[:, 1], mode="markers", name="queries (click one)", meta="queries",

@@ -294,10 +294,17 @@ def places_overview(theta: np.ndarray, positive_mean: np.ndarray, negative_mean:
 
 def mixture_grid(detail: PlaceDetail, n: int = 400) -> np.ndarray:
     """The x values a mixture figure draws its curves on: covering negatives, positives and thresholds."""
-    pts = np.r_[detail.negatives, detail.positives, detail.query_raw, list(detail.theta.values()), detail.auto,
-                detail.mu - 4 * detail.sigma, detail.mu + 4 * detail.sigma]
-    pts = pts[np.isfinite(pts)]
-    lo, hi = float(pts.min()), float(pts.max())
+    parts = (detail.negatives, detail.positives, detail.query_raw, list(detail.theta.values()), [detail.auto],
+             detail.mu - 4 * detail.sigma, detail.mu + 4 * detail.sigma)
+    lo, hi = np.inf, -np.inf
+    for part in parts:  # each part's own range: a place of a million-image database has 10⁷ negatives
+        a = np.asarray(part, dtype=np.float64).ravel()
+        if a.size and not (np.isfinite(a.min()) and np.isfinite(a.max())):
+            a = a[np.isfinite(a)]
+        if a.size:
+            lo, hi = min(lo, float(a.min())), max(hi, float(a.max()))
+    if lo > hi:  # nothing finite to cover
+        lo, hi = 0.0, 1.0
     pad = 0.03 * (hi - lo if hi > lo else 1.0)
     return np.linspace(lo - pad, hi + pad, n)
 
