@@ -29,6 +29,7 @@ flops, R = splits: 7.8% of N²·D at R = 50, D = 1,280), the float64 full-set su
 and the per-split steps. Compare kernels with
 ``env -u OPENBLAS_CORETYPE -u OPENBLAS_L2_SIZE python benchmarks/bench_nordland_scale.py``.
 ``--device cpu`` (or ``cuda``) runs the pass's block products through torch.
+``--phases`` prints the protocol's wall and CPU seconds per step (timers around ``scale``'s functions).
 ``--check`` also runs ``evaluation.paper_protocol`` and asserts identical tables (small N).
 ``--storage float16`` writes the descriptors as a float16 ``.npy`` and memory-maps it, as
 the descriptor cache can.
@@ -118,6 +119,35 @@ class PerSplitSample:
         return auto_global_threshold(training_pair_scores(self.descriptors, rows=self.trains[r], seed=self.seed + r))
 
 
+#: The protocol's steps (module doc of ``scale``): full-set sums, each split's μ, the automatic θ's sample,
+#: the layout copy, the pass, identical places, per-split thresholds, error scale, scoring, assembly.
+PHASES = ("_full_sums", "_split_mu", "pooled_pair_sample", "_as_layout32", "_blocked_pass", "_content_classes",
+          "_split_thresholds", "_error_scale", "_uncertainty", "_score_splits", "_assemble")
+
+
+def _time_phases() -> dict[str, list]:
+    """Wrap ``scale``'s step functions with timers; returns name -> [wall s, CPU s of the process, calls]."""
+    out: dict[str, list] = {}
+
+    def wrap(name):
+        fn = getattr(scale, name)
+
+        def timed_fn(*a, **k):
+            w, c = time.perf_counter(), time.process_time()
+            try:
+                return fn(*a, **k)
+            finally:
+                acc = out.setdefault(name, [0.0, 0.0, 0])
+                acc[0] += time.perf_counter() - w
+                acc[1] += time.process_time() - c
+                acc[2] += 1
+        setattr(scale, name, timed_fn)
+
+    for name in PHASES:
+        wrap(name)
+    return out
+
+
 def peak_gib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB on Linux
 
@@ -142,6 +172,8 @@ def main() -> None:
     ap.add_argument("--device", default=None, help="torch device for the pass's block products (default: numpy)")
     ap.add_argument("--profile", action="store_true",
                     help="print the protocol's CPU profile (cProfile on CPU time), the 15 largest by cumulative time")
+    ap.add_argument("--phases", action="store_true",
+                    help="print the protocol's wall and CPU seconds per step (timers around scale's functions)")
     ap.add_argument("--per-split-sample", action="store_true",
                     help="also time the protocol with a tile sample per split for the automatic θ "
                          "(before issue 13 §4)")
@@ -179,6 +211,7 @@ def main() -> None:
                                    cross_condition=args.cross_condition, progress=bar,
                                    settings={"data": "nordland-like synthetic"}, device=args.device)
 
+    phases = _time_phases() if args.phases else None
     if args.profile:
         import cProfile
         import pstats
@@ -190,6 +223,9 @@ def main() -> None:
         ev, w_fast, c_fast = timed(protocol)
     print(f"fast paper protocol ({args.runs} splits):        {w_fast:8.1f} s wall  {c_fast:8.1f} s CPU   "
           f"peak RSS {peak_gib():.2f} GiB", flush=True)
+    if phases is not None:
+        for name, (wall, cpu, calls) in phases.items():
+            print(f"  {name:<20} {wall:7.2f} s wall {cpu:7.2f} s CPU  ({calls} calls)")
     if args.per_split_sample:
         autos: dict[str, list[float]] = {"pooled": [], "per split": []}
 
