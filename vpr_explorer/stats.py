@@ -621,7 +621,7 @@ def _take_blas_control() -> None:
     that set one while that thread lives: once the main thread had entered ``one_blas_thread``
     (a library call before the app, as in ``benchmarks/bench_million.py``), the app's script
     threads' limits were dropped, and each pool thread's GEMMs ran with all of BLAS's threads
-    (a 500,000-image fit in the app 2.9 s instead of 1.8 s). The limiter is process-wide by
+    (the app's fits took about twice the library's in ``bench_million.py --app``). The limiter is process-wide by
     design, so whichever thread sets or restores it takes control first.
     """
     from threadpoolctl import OpenBLASController
@@ -774,44 +774,38 @@ def positive_means(
 CHECK_ELEMS = 1 << 24
 
 
-_TORCH: list = []  # torch, once imported by ``_torch``
-_TORCH_STARTED: list = []  # whether ``prepare_float16_reads`` started its import
-_TORCH_LOCK = threading.Lock()
-
-
+@functools.cache
 def _torch():
     """torch, imported on first use, its one warning about read-only arrays spent: torch warns once per
     process that it could write to one, and ``as_float32`` only reads them (a memory map's rows)."""
-    with _TORCH_LOCK:
-        if not _TORCH:
-            import torch
+    import torch
 
-            spent = np.zeros(1, dtype=np.float16)
-            spent.flags.writeable = False
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", UserWarning)
-                torch.from_numpy(spent)
-            _TORCH.append(torch)
-    return _TORCH[0]
+    spent = np.zeros(1, dtype=np.float16)
+    spent.flags.writeable = False
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        torch.from_numpy(spent)
+    return torch
+
+
+_TORCH_PREPARED = threading.Event()  # ``prepare_float16_reads`` started the import
 
 
 def prepare_float16_reads() -> None:
     """Import torch for ``as_float32`` in a background thread now (about 1 s), not in the first pass
-    over a float16 map: the app calls this when it loads a float16 database."""
-    with _TORCH_LOCK:
-        if _TORCH or _TORCH_STARTED:
-            return
-        _TORCH_STARTED.append(True)
-    threading.Thread(target=_torch, name="vpr-import-torch", daemon=True).start()
+    over a float16 map: the app calls this when it loads a float16 database. (Two callers at once
+    may both start a thread: importing twice is harmless.)"""
+    if not _TORCH_PREPARED.is_set():
+        _TORCH_PREPARED.set()
+        threading.Thread(target=_torch, name="vpr-import-torch", daemon=True).start()
 
 
 def as_float32(block: np.ndarray) -> np.ndarray:
     """``np.asarray(block, dtype=np.float32)``, a float16 block converted by torch's vectorised cast.
 
-    The same numbers (every float16 is a float32; a NaN stays NaN, a signalling one quieted), about
-    five times faster: numpy's float16 cast is not vectorised (1.25 ns an entry on this machine,
-    0.4 s CPU for the 500,000 × 512 database images in places of a million-image route, and every
-    pass over them pays it again; torch's: 0.08 s). Any other dtype is numpy's ``asarray`` (a
+    The same numbers (every float16 is a float32; a NaN stays NaN, a signalling one quieted), and
+    faster: numpy's float16 cast is not vectorised, and every pass over a million-image route's
+    float16 map pays it again. Any other dtype is numpy's ``asarray`` (a
     float32 block is returned as is). ``RowsOf`` reads every float16 block through it, so the
     fits, scores and decisions of a mapped database do, and the automatic θ's tile sample.
     """
