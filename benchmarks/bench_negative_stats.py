@@ -73,13 +73,15 @@ def step_flops(n: int, dim: int, labels: np.ndarray) -> dict[str, float]:
     row sums; the plain formulation); per place, float64: the k × (k+2) scores of each of
     its k images against the place, T and m, 2·Σ_p k_p(k_p + 2)·D; centring and T 2·N·D.
     float32 does: syrk N·D(D+1); quadratic forms through the block triangular W,
-    2·N·Σ_J b_J·end_J ≈ (1 + 1/4)·N·D² (``stats._quadratic_forms``); the same per-place terms.
+    2·N·Σ_J b_J·end_J ≈ (1 + 1/8)·N·D² (``stats._quadratic_forms``); the same per-place terms.
     """
     k = np.bincount(labels)
     k = k[k > 0].astype(float)
     places = 2 * float((k * (k + 2)).sum()) * dim
     gram = float(n) * dim * (dim + 1)
-    edges = np.linspace(0, dim, min(4, dim) + 1).round().astype(int)
+    from vpr_explorer.stats import _TRI_BLOCKS
+
+    edges = np.linspace(0, dim, min(_TRI_BLOCKS, dim) + 1).round().astype(int)
     tri = 2.0 * n * sum(float(hi - lo) * hi for lo, hi in zip(edges[:-1], edges[1:])) + 2.0 * n * dim
     return {
         "gram": gram,

@@ -91,6 +91,11 @@ def test_place_detail_scores_equal_a_pairwise_reference(demo, demo_pixels, regro
     assert d.theta["weighted"] == pytest.approx(model.theta["weighted"][p])
     assert d.theta_k(1.5) == pytest.approx(model.thresholds(1.5)["weighted"][p])
     assert d.share_negatives_above(-2.0) == 1.0 and d.share_negatives_above(2.0) == 0.0
+    # the scores are kept as float32 (as scored); a θ between two float32 values is compared in float64
+    top = float(d.negatives.max())
+    assert d.negatives.dtype == np.float32
+    assert d.share_negatives_above(top) == pytest.approx(np.mean(d.negatives == d.negatives.max()))
+    assert d.share_negatives_above(top + 1e-9) == 0.0  # rounded to float32, top + 1e-9 would be top
 
 
 def test_top_candidates_keeps_the_right_place(demo, demo_pixels, regrouped):
@@ -221,8 +226,8 @@ def test_mixture_figure_curves_and_lines_are_the_library_values(demo, demo_pixel
     # The negative scores are binned on the server (10⁶ of them at 100k images): the bars
     # are numpy's density histogram of every negative score, and integrate to 1.
     bars = by_meta(fig, "negatives")
-    density, edges = np.histogram(d.negatives, bins=plots.NEGATIVE_BINS, density=True)
-    np.testing.assert_allclose(bars.y, density)
+    density, edges = np.histogram(d.negatives.astype(np.float64), bins=plots.NEGATIVE_BINS, density=True)
+    np.testing.assert_array_equal(bars.y, density)  # float32 scores binned on float64 edges
     np.testing.assert_allclose(bars.x, (edges[:-1] + edges[1:]) / 2)
     assert np.sum(np.asarray(bars.y) * np.asarray(bars.width)) == pytest.approx(1.0)
     np.testing.assert_allclose(by_meta(fig, "positives").x, d.positives)

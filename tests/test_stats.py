@@ -163,32 +163,38 @@ def float32_product_bound(a, b):
 
 
 @pytest.mark.parametrize("dim", [96, 130, 256])
-def test_centred_gram_in_tiles_is_one_syrk_within_its_bound(dim):
-    # a full block's Gram comes as 4 syrks and 6 GEMMs (tiles on and above the diagonal of 4
-    # column blocks, uneven at dim 130) run side by side (BLAS in one thread each), the last
-    # partial block's as one syrk: together, within the float32 bound of the exact Gram per
-    # block, and on OpenBLAS's SkylakeX kernel the numbers of one syrk per block, bit for bit
+def test_centred_gram_in_lanes_is_one_syrk_per_block_within_its_bound(dim):
+    # each block's Gram is one syrk, run side by side (BLAS in one thread each) and added to
+    # lane k mod _GRAM_LANES, the last partial block's too: within the float32 bound of the
+    # exact Gram per block, the same numbers for 1, 2 and 3 threads, and on OpenBLAS's SkylakeX
+    # kernel the numbers of one syrk per block summed lane by lane, bit for bit
     from concurrent.futures import ThreadPoolExecutor
 
-    from vpr_explorer.stats import BLOCK, _centre, _centred_gram
+    from vpr_explorer.stats import _GRAM_LANES, _centre, _centred_gram
 
+    block = 1000
     rng = np.random.default_rng(4)
-    d = unit_rows(rng, 2 * BLOCK + 123, dim).astype(np.float32)
+    d = unit_rows(rng, 6 * block + 123, dim).astype(np.float32)
     m = _centre(d)
-    expected, exact, bound = np.zeros((dim, dim)), np.zeros((dim, dim)), np.zeros((dim, dim))
-    for lo in range(0, len(d), BLOCK):
-        e = d[lo : lo + BLOCK] - m
-        expected += np.matmul(e.T, e)
+    lanes = [np.zeros((dim, dim)) for _ in range(_GRAM_LANES)]
+    exact, bound = np.zeros((dim, dim)), np.zeros((dim, dim))
+    for k, lo in enumerate(range(0, len(d), block)):
+        e = d[lo : lo + block] - m
+        lanes[k % _GRAM_LANES] += np.matmul(e.T, e)
         exact += e.T.astype(np.float64) @ e.astype(np.float64)
         bound += float32_product_bound(e, e)
-    for threads in (1, 2):
+    expected = lanes[0] + lanes[1] + lanes[2] + lanes[3]
+    got = {}
+    for threads in (1, 2, 3):
         with ThreadPoolExecutor(threads) as pool:
-            gram, total = _centred_gram(d, m, BLOCK, pool, threads > 1)
+            gram, total = got[threads] = _centred_gram(d, m, block, pool, threads > 1)
         assert (np.abs(gram - exact) <= bound + 1e-12).all()
         if openblas_skylakex():
             np.testing.assert_array_equal(gram, expected)
         np.testing.assert_array_equal(gram, gram.T)
         np.testing.assert_allclose(total, d.sum(axis=0, dtype=np.float64), rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(got[3][0], got[2][0])  # one BLAS thread per syrk in both
+    np.testing.assert_array_equal(got[3][1], got[1][1])  # T: the same parts in the same order
 
 
 def _quadratic_forms_by_block(d, gram, block):
@@ -337,6 +343,28 @@ def test_positive_means_against_pairs():
         sub = s[np.ix_(idx, idx)]
         assert abs(pm[p] - sub[~np.eye(len(idx), dtype=bool)].mean()) < 1e-12
     assert np.isnan(pm[2])
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_the_fits_positive_means_from_the_place_terms_against_pairs(monkeypatch, dtype):
+    # stats_rows takes them from the place terms' float64 same-place scores: places of 1 (NaN),
+    # 2, 7 and one past _BIG_PLACE (scored a band of rows at a time), in shuffled row order
+    from vpr_explorer import stats
+
+    monkeypatch.setattr(stats, "_BIG_PLACE", 16)
+    rng = np.random.default_rng(12)
+    labels = np.r_[[0], [1, 1], np.full(7, 2), np.full(40, 3), np.repeat(np.arange(4, 30), 5)]
+    labels = labels[rng.permutation(len(labels))]
+    d = (unit_rows(rng, len(labels), 24) * 0.3 + rng.standard_normal(24)).astype(dtype)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    _, pm = stats.stats_rows(d, None, labels, 30, threads=2)
+    s = d.astype(np.float64) @ d.astype(np.float64).T
+    assert np.isnan(pm[0])
+    for p in range(1, 30):
+        idx = np.flatnonzero(labels == p)
+        sub = s[np.ix_(idx, idx)]
+        assert abs(pm[p] - sub[~np.eye(len(idx), dtype=bool)].mean()) < 1e-13, p
+    np.testing.assert_allclose(pm, positive_means(d, labels, 30), rtol=0, atol=1e-13)
 
 
 def _positive_means_one_product(d, labels, n_places, rows):

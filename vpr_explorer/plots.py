@@ -335,7 +335,9 @@ def mixture_figure(
     density = None
     if detail.negatives.size:
         # Binned here, not in the browser: a place of a 100k-image database has ~10⁶ negative scores.
-        lo, hi = float(detail.negatives.min()), float(detail.negatives.max())
+        # float64 edges (Python floats would be taken as float32 beside float32 scores): the bins of the
+        # scores' float64 values, bit for bit
+        lo, hi = np.float64(detail.negatives.min()), np.float64(detail.negatives.max())
         density, edges = np.histogram(detail.negatives, bins=NEGATIVE_BINS, range=(lo, hi if hi > lo else lo + 0.01),
                                       density=True)
         fig.add_trace(go.Bar(x=(edges[:-1] + edges[1:]) / 2, y=density, width=np.diff(edges),

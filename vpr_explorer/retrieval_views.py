@@ -363,7 +363,7 @@ def place_detail(fitted: RetrievalFitted, descriptors: np.ndarray, place: int) -
     same = sims[:, mine]
     return PlaceDetail(
         place=int(place), images=own, mu=mu, sigma=sigma, weight=weight,
-        negatives=sims[:, ~mine].ravel().astype(np.float64),
+        negatives=np.compress(~mine, sims, axis=1).ravel(),  # float32 (C order: flattened without a copy)
         positives=same[np.triu_indices(len(own), k=1)].astype(np.float64),
         query_images=np.zeros(0, dtype=np.int64), query_raw=np.zeros(0),
         theta={name: float(t[place]) for name, t in model.theta.items()},

@@ -30,7 +30,7 @@ so the float32 error is relative to |dᵢ|·|eⱼ|, not to |sᵢⱼ|, and the la
 cancels (μᵢ − aᵢ is the gap between the negatives' mean and the all-image mean). μᵢ, aᵢ, dᵢ·T
 and the same-place terms are float64 products (``_place_terms``): μ is exact to float64
 rounding, as before. Three passes: E (``_centred_gram``), the float64 terms place by place
-(``_place_terms``), dᵢᵀEdᵢ (``_quadratic_forms``, (1 + 1/4)·N·D² flops by symmetry).
+(``_place_terms``), dᵢᵀEdᵢ (``_quadratic_forms``, (1 + 1/8)·N·D² flops by symmetry).
 
 **Error bound.** u = 2⁻²⁴, γ_k = k·u/(1 − k·u), |·| elementwise, L = min(block, N) the rows
 of one float32 Gram, S = Σⱼ |eⱼ||eⱼ|ᵀ. To first order in u:
@@ -86,8 +86,8 @@ _CENTRE_ROWS = 4096  # rows averaged for the centre m
 _BIG_PLACE = 1024  # places with more images get their same-place scores a band of rows at a time
 _PART = 512  # rows per part of the elementwise work shared out to threads (fixed: see ``_parts``)
 _MEAN_ROWS = 8192  # rows converted to float64 at a time by ``positive_means``
-_TRI_BLOCKS = 4  # column blocks of W: the quadratic forms take (1 + 1/4)·N·D² flops instead of 2·N·D²
-_GRAM_SPLIT = 4  # column blocks of E: a block's Gram as 4 syrks and 6 GEMMs (``_centred_gram``)
+_TRI_BLOCKS = 8  # column blocks of W: the quadratic forms take (1 + 1/8)·N·D² flops instead of 2·N·D² (5–10% faster than 4 blocks at D = 512 to 2,048, both kernels)
+_GRAM_LANES = 4  # float64 sums of E that blocks of rows are dealt to in turn (``_centred_gram``)
 _QUAD_ROWS = 1024  # rows per pool task of ``_quadratic_forms``
 
 
@@ -309,20 +309,24 @@ def _closed_form_float64(
 
 
 def _closed_form_float32(
-    d: np.ndarray, labels: np.ndarray, counts: np.ndarray, n_neg: np.ndarray, block: int, threads: int
+    d: np.ndarray, labels: np.ndarray, counts: np.ndarray, n_neg: np.ndarray, block: int, threads: int,
+    terms: list | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``(mu, var)``, each ``(n,)``: E and dᵢᵀEdᵢ as float32 GEMMs of centred rows, the rest float64.
 
     Three passes (module docstring): the centred Gram E, the float64 terms place by place,
     the quadratic forms. Elementwise work runs in ``threads`` threads over fixed parts.
+    ``terms``, a list, receives the place terms' Σ_{j∈p} sᵢⱼ and sᵢᵢ (``_positive_from_terms``).
     """
     centre = _centre(d)
     # BLAS in one thread throughout when the products run side by side (entered once: each
     # entry asks threadpoolctl for the loaded libraries)
     with ThreadPoolExecutor(threads) as pool, one_blas_thread() if threads > 1 else contextlib.nullcontext():
         gram, total = _centred_gram(d, centre, block, pool, threads > 1)
-        dot_total, a, same, same_sq = _place_terms(d, labels, counts, np.stack([total, centre]), pool)
+        dot_total, a, same, same_sq, own = _place_terms(d, labels, counts, np.stack([total, centre]), pool)
         quad = _quadratic_forms(d, gram, block, pool, threads > 1)
+    if terms is not None:
+        terms += [same, own]
     mu = (dot_total - same) / n_neg  # Σ_{j∉p} sᵢⱼ / n⁻ᵢ
     # E⁻[(s − aᵢ)²]: Σ_all (sᵢⱼ − aᵢ)² = dᵢᵀEdᵢ, less the same-place terms
     return mu, (quad - same_sq) / n_neg - (mu - a) ** 2
@@ -333,60 +337,57 @@ def _centred_gram(
 ) -> tuple[np.ndarray, np.ndarray]:
     """E = Σⱼ (dⱼ − m)(dⱼ − m)ᵀ ``(D, D)`` and T = Σⱼ dⱼ ``(D,)``, both float64.
 
-    Per block of rows: the centred rows, each rounded once from dⱼ − m itself (so the error
-    is relative to |dⱼ − m|, not |dⱼ|), then the float32 Gram, added to a float64 E. The
-    buffers are reused: a fresh 20 MB array per block costs more in page faults than the sums.
-
-    The Gram of a block of ``BLOCK`` rows is cut into the tiles on and above the diagonal of
-    ``_GRAM_SPLIT`` column blocks (4 syrks, 6 GEMMs): pool tasks of near-equal work, the
-    GEMMs first, each with BLAS in one thread when ``side_by_side`` (numpy's one syrk ran its
-    two threads at about 70% of their rate, then mirrored the triangle in one thread). Each
-    task adds its tile to a float64 sum of that tile while the tile is in cache, and E is
-    assembled once, the tiles below the diagonal mirrored. Each entry is still one inner
-    product of depth L, so the error bound is unchanged. On OpenBLAS's SkylakeX kernel, at
-    depth ``BLOCK`` (4,096), they are also the same float32 numbers as one syrk, since it cuts
-    that depth alike for both, while at some other depths (a last block of 1,234 or 3,000
-    rows) the GEMM's cut differs in the last bits; so other blocks keep the one syrk, and
-    there the statistics are those of the code before, bit for bit. Its Haswell kernel rounds
-    by shape and threads: within the bound (``tests/test_stats.py`` checks both).
+    Per block of ``block`` rows (read in order, in this thread: a ``_FirstPass`` reads the next
+    one meanwhile): the centred rows, each rounded once from dⱼ − m itself (so the error is
+    relative to |dⱼ − m|, not |dⱼ|), then the block's float32 Gram (one syrk of depth L), added
+    to a float64 sum. Block k goes to lane k mod ``_GRAM_LANES``, one pool task per block with
+    BLAS in one thread when ``side_by_side``; a lane's sum takes its blocks in order (block k
+    waits for block k − lanes), and E is the lanes' sums added in lane order. So E is the same
+    numbers for any thread count, the syrks run whole and side by side (the rate of one
+    single-threaded syrk per thread: numpy's one syrk in two BLAS threads ran them at about
+    70% and mirrored the triangle in one; tiles of it lost as much on task overhead), and at
+    most ``threads`` blocks are in flight. Each entry is one inner product of depth L
+    rounded to float32, so the error bound is that of the module docstring for any
+    order of the sums (``tests/test_stats.py`` checks it, and on OpenBLAS's SkylakeX kernel
+    the numbers of one syrk per block summed lane by lane, bit for bit).
     """
     n, dim = d.shape
     m = centre if d.dtype == np.float32 else centre.astype(np.float64)  # float32 − float32: one rounding
-    edges = np.linspace(0, dim, min(_GRAM_SPLIT, dim) + 1).round().astype(int)
-    cols = [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
-    # GEMMs (twice the flops of a syrk of the same width) first, so the pool ends on the small tasks
-    tiles = sorted(((i, j) for i in range(len(cols)) for j in range(i, len(cols))), key=lambda t: t[0] == t[1])
-    sums64 = {t: np.zeros((cols[t[0]].stop - cols[t[0]].start, cols[t[1]].stop - cols[t[1]].start)) for t in tiles}
-    out32 = {t: np.empty(a.shape, dtype=np.float32) for t, a in sums64.items()}
-    e = np.empty((min(block, n), dim), dtype=np.float32)
-    sums = []
-    for lo in range(0, n, block):
-        x, eb = d[lo : lo + block], e[: min(block, n - lo)]
+    lanes = [np.zeros((dim, dim)) for _ in range(min(_GRAM_LANES, -(-n // block)))]
+    parts: dict[int, np.ndarray] = {}  # row -> the float64 sum of the part of ``_PART`` rows from it
+    buffers = threading.local()  # each thread's centred rows and float32 Gram, reused across its blocks
 
-        def centre_part(sl: slice, x: np.ndarray = x, eb: np.ndarray = eb) -> np.ndarray:
+    def task(lane: int, lo: int, x: np.ndarray) -> None:
+        if not hasattr(buffers, "e"):
+            buffers.e = np.empty((min(block, n), dim), dtype=np.float32)
+            buffers.g = np.empty((dim, dim), dtype=np.float32)
+        eb = buffers.e[: len(x)]
+        for p in range(0, len(x), _PART):
+            sl = slice(p, min(p + _PART, len(x)))
             np.subtract(x[sl], m, out=eb[sl], casting="same_kind")
-            return x[sl].sum(axis=0, dtype=np.float64)
+            parts[lo + p] = x[sl].sum(axis=0, dtype=np.float64)
+        np.matmul(eb.T, eb, out=buffers.g)  # eᵢᵀeᵢ: numpy hands Xᵀ X to syrk (and mirrors it)
+        np.add(lanes[lane], buffers.g, out=lanes[lane])
 
-        def tile(t: tuple[int, int], eb: np.ndarray = eb) -> None:
-            # eᵢᵀeᵢ: numpy hands Xᵀ X to syrk, half the products of a GEMM
-            np.matmul(eb[:, cols[t[0]]].T, eb[:, cols[t[1]]], out=out32[t])
-            np.add(sums64[t], out32[t], out=sums64[t])
-
-        sums += _parts(pool, centre_part, len(x))
-        if len(x) == BLOCK:
-            _side_by_side(pool, tuple(functools.partial(tile, t) for t in tiles), side_by_side)
-        else:  # one syrk, mirrored: its tiles taken apart (see the docstring)
-            whole = np.matmul(eb.T, eb)
-
-            def add_tile(t: tuple[int, int], whole: np.ndarray = whole) -> None:
-                np.add(sums64[t], whole[cols[t[0]], cols[t[1]]], out=sums64[t])
-
-            list(pool.map(add_tile, tiles))
-    gram = np.empty((dim, dim))
-    for (i, j), tile_sum in sums64.items():
-        gram[cols[i], cols[j]] = tile_sum
-        gram[cols[j], cols[i]] = tile_sum.T  # a diagonal tile is symmetric: the same numbers
-    return gram, np.sum(sums, axis=0)  # in part order: the same sum whatever the thread count
+    threads = max(1, pool._max_workers) if side_by_side else 1
+    futures: dict[int, object] = {}
+    with one_blas_thread() if side_by_side else contextlib.nullcontext():
+        for k, lo in enumerate(range(0, n, block)):
+            x = d[lo : lo + block]
+            for wait in (k - len(lanes), k - threads):  # the lane's last block; at most ``threads`` in flight
+                if wait in futures:
+                    futures.pop(wait).result()
+            if side_by_side:
+                futures[k] = pool.submit(task, k % len(lanes), lo, x)
+            else:
+                task(k % len(lanes), lo, x)
+        for future in futures.values():
+            future.result()
+    gram = lanes[0]
+    for lane in lanes[1:]:
+        gram += lane
+    # in part order: the same sum whatever the thread count
+    return gram, np.sum([parts[lo] for lo in sorted(parts)], axis=0)
 
 
 def _side_by_side(pool: ThreadPoolExecutor, tasks: tuple[Callable[[], None], ...], parallel: bool) -> None:
@@ -407,8 +408,8 @@ def _side_by_side(pool: ThreadPoolExecutor, tasks: tuple[Callable[[], None], ...
 
 def _place_terms(
     d: np.ndarray, labels: np.ndarray, counts: np.ndarray, proj: np.ndarray, pool: ThreadPoolExecutor
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """dᵢ·T, aᵢ = dᵢ·m, Σ_{j∈p} sᵢⱼ and Σ_{j∈p} (sᵢⱼ − aᵢ)², each ``(n,)``, in float64.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """dᵢ·T, aᵢ = dᵢ·m, Σ_{j∈p} sᵢⱼ, Σ_{j∈p} (sᵢⱼ − aᵢ)² and sᵢᵢ = ‖dᵢ‖², each ``(n,)``, in float64.
 
     Args:
         proj: ``(2, D)`` float64 T and m.
@@ -418,7 +419,7 @@ def _place_terms(
     """
     n, dim = d.shape
     order, slabs = _place_slabs(labels, counts, _PART)
-    out = np.empty((4, n))
+    out = np.empty((5, n))
 
     def part(slab: tuple[int, int, int]) -> None:
         lo, hi, k = slab
@@ -431,18 +432,34 @@ def _place_terms(
             rows = max(1, _BIG_PLACE**2 // k)
             for r in range(0, k, rows):
                 band = slice(r, min(r + rows, k))
-                out[:, order[lo:hi][band]] = _terms(x[0, band] @ x[0].T, k)
+                out[:, order[lo:hi][band]] = _terms(x[0, band] @ x[0].T, k, band.start)
 
     list(pool.map(part, slabs))
-    return out[0], out[1], out[2], out[3]
+    return out[0], out[1], out[2], out[3], out[4]
 
 
-def _terms(g: np.ndarray, k: int) -> np.ndarray:
-    """``(4, m)`` dᵢ·T, aᵢ, Σ_{j∈p} sᵢⱼ, Σ_{j∈p} (sᵢⱼ − aᵢ)² from ``(..., k + 2)`` scores against
-    the place's k images, T and m (leading axes flattened to m rows)."""
+def _terms(g: np.ndarray, k: int, first: int = 0) -> np.ndarray:
+    """``(5, m)`` dᵢ·T, aᵢ, Σ_{j∈p} sᵢⱼ, Σ_{j∈p} (sᵢⱼ − aᵢ)², sᵢᵢ from ``(..., r, k + 2)`` scores of r
+    of a place's images (the place's from image ``first`` on) against its k images, T and m
+    (leading axes flattened to m rows)."""
+    r = np.arange(g.shape[-2])
+    own = g[..., r, first + r].reshape(-1)
     g = g.reshape(-1, k + 2)
     a = g[:, k + 1]
-    return np.stack([g[:, k], a, g[:, :k].sum(axis=1), ((g[:, :k] - a[:, None]) ** 2).sum(axis=1)])
+    return np.stack([g[:, k], a, g[:, :k].sum(axis=1), ((g[:, :k] - a[:, None]) ** 2).sum(axis=1), own])
+
+
+def _positive_from_terms(same: np.ndarray, own: np.ndarray, labels: np.ndarray, n_places: int) -> np.ndarray:
+    """``(n_places,)`` ``positive_means`` from the place terms: Σ_{i≠j∈p} sᵢⱼ = Σ_{i∈p} (Σ_{j∈p} sᵢⱼ − sᵢᵢ),
+    the float64 scores the closed form took of each place's images anyway (the same value as
+    ‖T_p‖² − Σ‖dᵢ‖² to float64 rounding, summed otherwise); NaN for a place of one image."""
+    counts = np.bincount(labels, minlength=n_places).astype(np.float64)
+    pairs = counts * (counts - 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = (np.bincount(labels, weights=same, minlength=n_places)
+               - np.bincount(labels, weights=own, minlength=n_places)) / pairs
+    out[pairs == 0] = np.nan
+    return out
 
 
 def _quadratic_forms(
@@ -452,7 +469,7 @@ def _quadratic_forms(
 
     E is symmetric, so dᵀEd = dᵀWd with W block upper triangular (``_TRI_BLOCKS`` column
     blocks: 2·E_IJ above the diagonal blocks, E_JJ on them, exact in float32): column block
-    J of dW is d[:, :J_end] @ W[:J_end, J], (1 + 1/4)·N·D² flops instead of 2·N·D².
+    J of dW is d[:, :J_end] @ W[:J_end, J], (1 + 1/8)·N·D² flops instead of 2·N·D².
 
     Each pool task takes ``_QUAD_ROWS`` rows through every column block and their row sums,
     with BLAS in one thread when ``side_by_side``: the tasks are equal, so the threads stay
@@ -558,7 +575,7 @@ def _closed_form_torch(
             quad[lo : lo + len(x)] = ((x @ gram32).to(torch.float64) * x.to(torch.float64)).sum(dim=1)
         quad, total = quad.cpu().numpy(), total.cpu().numpy()
     with ThreadPoolExecutor(threads) as pool:
-        dot_total, a, same, same_sq = _place_terms(d, labels, counts, np.stack([total, centre]), pool)
+        dot_total, a, same, same_sq, _ = _place_terms(d, labels, counts, np.stack([total, centre]), pool)
     mu = (dot_total - same) / n_neg
     return mu, (quad - same_sq) / n_neg - (mu - a) ** 2
 
@@ -888,66 +905,14 @@ def negative_stats_rows(
     return NegativeStats(mu=mu, sigma=sigma, n_neg=n_neg.astype(np.int64), labels=labels, n_places=n_places)
 
 
-class _PlaceSums:
-    """``positive_means``' sums fed consecutive blocks of rows: each place's descriptor sum and each row's squared
-    norm, float64, over chunks of ``_MEAN_ROWS`` rows (the same chunks, products and order as ``positive_means``,
-    so the same numbers bit for bit). A chunk adds only to the places it holds: the dense ``(n_places, D)``
-    product of the sparse indicator was added whole per chunk (at 20,000 places × 512, 80 MB a chunk: 2 s
-    of a 500,000-image fit)."""
-
-    def __init__(self, labels: np.ndarray, n_places: int, dim: int) -> None:
-        self.labels, self.n_places = labels, n_places
-        n = len(labels)
-        self.sums = np.zeros((n_places, dim))
-        self.sq = np.empty(n)
-        self.buf = np.empty((min(_MEAN_ROWS, n), dim))
-        self.filled = 0  # rows of the current chunk in ``buf``
-        self.done = 0  # rows summed
-
-    def add(self, block: np.ndarray) -> None:
-        """The next rows, in order (any dtype; converted to float64 exactly)."""
-        at = 0
-        while at < len(block):
-            take = min(len(block) - at, len(self.buf) - self.filled, len(self.labels) - self.done - self.filled)
-            np.copyto(self.buf[self.filled : self.filled + take], block[at : at + take], casting="same_kind")
-            self.filled += take
-            at += take
-            if self.filled == min(len(self.buf), len(self.labels) - self.done):
-                self._chunk()
-
-    def _chunk(self) -> None:
-        lo, x = self.done, self.buf[: self.filled]
-        lab = self.labels[lo : lo + len(x)]
-        present, local = np.unique(lab, return_inverse=True)
-        part = sparse.csr_matrix((np.ones(len(x)), (local, np.arange(len(x)))), shape=(len(present), len(x)))
-        self.sums[present] += part @ x  # each place's row: its rows of the chunk in order, as the full product
-        self.sq[lo : lo + len(x)] = np.einsum("ij,ij->i", x, x)
-        self.done += len(x)
-        self.filled = 0
-
-    def means(self) -> np.ndarray:
-        counts = np.bincount(self.labels, minlength=self.n_places).astype(np.float64)
-        return _mean_positive(self.sums, self.sq, self.labels, counts, self.n_places)
-
-
-def positive_means_rows(descriptors: np.ndarray, rows: np.ndarray | None, labels: np.ndarray,
-                        n_places: int) -> np.ndarray:
-    """``positive_means(descriptors[rows], labels, n_places)``, reading ``_MEAN_ROWS`` rows at a time (same sums)."""
-    view = RowsOf(descriptors, rows)
-    sums = _PlaceSums(np.asarray(labels), n_places, view.shape[1])
-    for lo in range(0, len(view), _MEAN_ROWS):
-        sums.add(view[lo : lo + _MEAN_ROWS])
-    return sums.means()
-
-
 class _FirstPass(RowsOf):
     """A ``RowsOf`` that hands every block the closed form's first pass reads (consecutive slices from row 0,
-    ``_centred_gram``) to ``consumers`` as well: the checks and the positive means ride on the Gram's reading
-    and conversion of each block instead of two passes of their own. Other reads (the centre's sample, the
+    ``_centred_gram``) to ``consumers`` as well: the checks ride on the Gram's reading and conversion of
+    each block instead of a pass of their own. Other reads (the centre's sample, the
     place terms' gathers) are served as by ``RowsOf``; ``complete`` tells whether every row went by, in order.
 
     With ``ahead`` (a one-thread executor), a slice read starts reading (and consuming) the next slice of the
-    same length in that thread: the reading, conversion and sums of block k + 1 overlap block k's GEMMs.
+    same length in that thread: the reading, conversion and checks of block k + 1 overlap block k's GEMMs.
     A read-ahead that is not asked for next (the pass read otherwise) leaves the view incomplete.
     Once every row went by (or the order broke), reads are ``RowsOf``'s, from any thread.
     """
@@ -1012,23 +977,22 @@ class _FirstPass(RowsOf):
 
 def stats_rows(descriptors: np.ndarray, rows: np.ndarray | None, labels: np.ndarray, n_places: int | None = None, *,
                block: int = BLOCK, threads: int | None = None) -> tuple[NegativeStats, np.ndarray]:
-    """``negative_stats_rows`` and ``positive_means_rows`` of the same rows, reading each block for both.
+    """``negative_stats_rows`` and the positive means of the same rows, reading each block once for the checks.
 
     The closed form's first pass (the Gram) reads the rows in consecutive blocks; each block,
-    converted once, is also checked (``validate_descriptors``: a bad row stops the fit with
-    the message of ``validate_rows``) and added to the positive means' sums. Five conversions
-    of every row (checks, Gram, place terms, quadratic forms, positive means) become three.
-    The next block is read, converted, checked and summed in a thread of its own while the
-    current one's products run (``_FirstPass``; also in the quadratic forms' pass). The
-    numbers are those of the two functions bit for bit (the same operations on the same
-    float32 blocks); should the first pass read otherwise, the checks and sums run on their own.
+    converted once, is also checked (``validate_descriptors``: a bad row stops the fit with the
+    message of ``validate_rows``, before any product of it). The next block is read, converted
+    and checked in a thread of its own while the current one's products run (``_FirstPass``).
+    The statistics are those of ``negative_stats_rows`` bit for bit (the same operations on the
+    same float32 blocks); should the first pass read otherwise, the checks run on their own.
+    The positive means come from the place terms' float64 same-place scores
+    (``_positive_from_terms``): ``positive_means`` to float64 rounding, with no pass of their own.
     """
     base = RowsOf(descriptors, rows)
     if base.shape[0] == 0 or base.shape[1] == 0:
         raise VPRInputError(f"training descriptors: expected a non-empty (n_images, dim) array, got {base.shape}")
     n = len(base)
     labels, n_places = _check_labels(labels, n, n_places)
-    sums = _PlaceSums(labels, n_places, base.shape[1])
 
     def check(lo: int, x: np.ndarray) -> None:
         try:
@@ -1039,17 +1003,15 @@ def stats_rows(descriptors: np.ndarray, rows: np.ndarray | None, labels: np.ndar
     threads = min(os.cpu_count() or 1, 8) if threads is None else max(1, int(threads))
     counts = np.bincount(labels, minlength=n_places)
     n_neg = n - counts[labels]
+    terms: list[np.ndarray] = []
     with ThreadPoolExecutor(1, thread_name_prefix="vpr-read-ahead") as ahead:
-        view = _FirstPass(descriptors, rows, [check, lambda lo, x: sums.add(x)], ahead if threads > 1 else None)
+        view = _FirstPass(descriptors, rows, [check], ahead if threads > 1 else None)
         try:
-            mu, var = _closed_form_float32(view, labels, counts, n_neg, int(block), threads)
+            mu, var = _closed_form_float32(view, labels, counts, n_neg, int(block), threads, terms)
         finally:
             view.close()
-    if not view.complete:  # the first pass read otherwise: check and sum on their own
+    if not view.complete:  # the first pass read otherwise: the checks on their own
         validate_rows(base, "training descriptors")
-        sums = _PlaceSums(labels, n_places, base.shape[1])
-        for lo in range(0, n, _MEAN_ROWS):
-            sums.add(base[lo : lo + _MEAN_ROWS])
     sigma = np.sqrt(np.clip(var, 0.0, None))
     stats = NegativeStats(mu=mu, sigma=sigma, n_neg=n_neg.astype(np.int64), labels=labels, n_places=n_places)
-    return stats, sums.means()
+    return stats, _positive_from_terms(*terms, labels, n_places)

@@ -241,7 +241,8 @@ class PlaceDetail:
         place: the place id.
         images: ``(n_p,)`` dataset image indices of the place's database images.
         mu, sigma, weight: ``(n_p,)`` the mixture components N(μᵢ, σᵢ²) and weights wᵢ.
-        negatives: every negative score s(i, j), i in the place, j a database image of another place.
+        negatives: every negative score s(i, j), i in the place, j a database image of another place
+            (float32, as scored: a place of a million-image database has 10⁷ of them).
         positives: same-place scores s(i, j), i < j both database images of the place.
         query_images: dataset image indices of the query traversal's frames of this place.
         query_raw: ``(len(query_images),)`` raw_p of those query frames: what decides them.
@@ -271,7 +272,8 @@ class PlaceDetail:
 
     def share_negatives_above(self, theta: float) -> float:
         """Share of negative scores at or above ``theta`` (other places this θ would keep)."""
-        return float((self.negatives >= theta).mean()) if self.negatives.size else math.nan
+        # compared in float64 (a Python float against float32 scores would be rounded to float32)
+        return float((self.negatives >= np.float64(theta)).mean()) if self.negatives.size else math.nan
 
     def share_positives_below(self, theta: float) -> float:
         """Share of same-place database scores below ``theta``."""
@@ -295,7 +297,7 @@ def place_detail(
     # One row per image of the place against the whole database (a view, not a copy, when
     # the database is whole traversals): O(n_p · n_database), never all pairs.
     sims = similarity(d[own], database_rows(d, model.images))
-    negatives = sims[:, ~mine].ravel().astype(np.float64)
+    negatives = np.compress(~mine, sims, axis=1).ravel()  # float32, as scored (C order: no copy to flatten)
     same = sims[:, mine]
     positives = same[np.triu_indices(len(own), k=1)].astype(np.float64)
     q = dataset.traversal_index(query)
