@@ -72,6 +72,19 @@ def test_regroup_thresholds_come_from_the_database_only(demo, demo_pixels, regro
     assert set(demo.image_traversal[regrouped.model.images]) == {0, 1}
 
 
+@pytest.mark.parametrize("n", [1, 1000, 3 * (1 << 10) + 17])
+def test_density_histogram_in_parts_is_one_numpy_histogram(monkeypatch, n):
+    # parts of 1,024 values counted side by side: numpy's density histogram of the float64 copy, bit for bit
+    monkeypatch.setattr(plots, "HISTOGRAM_PART", 1 << 10)
+    x = (np.random.default_rng(n).standard_normal(n) * 0.1 + 0.3).astype(np.float32)
+    lo, hi = float(x.min()), float(x.max()) + 0.01
+    density, edges = plots.density_histogram(x, 60, lo, hi)
+    want, want_edges = np.histogram(x.astype(np.float64), bins=60, range=(lo, hi), density=True)
+    np.testing.assert_array_equal(density, want)
+    np.testing.assert_array_equal(edges, want_edges)
+    assert edges.dtype == np.float64
+
+
 def test_place_detail_scores_equal_a_pairwise_reference(demo, demo_pixels, regrouped):
     p = 4
     d = place_detail(regrouped.model, demo_pixels, demo, regrouped.places, p, "snow")
