@@ -78,8 +78,8 @@ EVAL_ROWS = 32
 #: 2,048 rows at D = 512. Blocks of 64 MB (``CHECK_ELEMS``) were fresh mappings each time
 #: (above glibc's largest reuse threshold): page faults cost 4× the conversion itself; blocks
 #: of 16 MB left the converted rows out of cache before a narrow product (one query, one
-#: place's images, the overview's sample) read them: at 500,000 rows in places, one query's
-#: row took 0.10 s against 0.05 s, the same speed for the protocol's 268 queries a block.
+#: place's images, the overview's sample) read them; the protocol's wide blocks of queries
+#: score as fast either way (``benchmarks/bench_million.py`` times both kinds).
 SCORE_BLOCK_ELEMS = 1 << 20
 #: threads converting and scoring blocks side by side (BLAS in one thread each)
 SCORE_THREADS = min(os.cpu_count() or 1, 4)
