@@ -227,7 +227,9 @@ def test_quadratic_forms_in_row_tasks_are_the_block_products(monkeypatch, dtype)
     from vpr_explorer.stats import BLOCK, _centre, _centred_gram, _quadratic_forms
 
     rng = np.random.default_rng(11)
-    d = unit_rows(rng, BLOCK + 1500, 130).astype(dtype)
+    # 260 columns: W's 8 column blocks 32 or 33 wide (uneven); narrower ones (16 at D = 130) send
+    # the tasks' products to OpenBLAS's small-matrix kernel, which rounds otherwise (within the bound)
+    d = unit_rows(rng, BLOCK + 1500, 260).astype(dtype)
     with ThreadPoolExecutor(2) as pool:
         gram, _ = _centred_gram(d, _centre(d), BLOCK, pool, True)
     expected = _quadratic_forms_by_block(d, gram, BLOCK)
