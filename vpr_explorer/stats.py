@@ -86,7 +86,7 @@ _CENTRE_ROWS = 4096  # rows averaged for the centre m
 _BIG_PLACE = 1024  # places with more images get their same-place scores a band of rows at a time
 _PART = 512  # rows per part of the elementwise work shared out to threads (fixed: see ``_parts``)
 _MEAN_ROWS = 8192  # rows converted to float64 at a time by ``positive_means``
-_TRI_BLOCKS = 8  # column blocks of W: the quadratic forms take (1 + 1/8)·N·D² flops instead of 2·N·D² (5–10% faster than 4 blocks at D = 512 to 2,048, both kernels)
+_TRI_BLOCKS = 8  # column blocks of W: the quadratic forms take (1 + 1/8)·N·D² flops instead of 2·N·D²
 _GRAM_LANES = 4  # float64 sums of E that blocks of rows are dealt to in turn (``_centred_gram``)
 _QUAD_ROWS = 1024  # rows per pool task of ``_quadratic_forms``
 
