@@ -209,8 +209,12 @@ def test_an_error_during_extraction_is_on_a_line_of_its_own(tmp_path):
 
 def test_ctrl_c_is_one_line_and_exit_130(tmp_path):
     """SIGINT while descriptors are extracted (an empty cache: efficientnet-lite0 takes seconds on the demo)."""
+    # ``python -m vpr_explorer.cli`` with Python's own Ctrl-C handler, whatever SIGINT disposition this
+    # process had when it forked (tests/test_cache_interrupt.py's DEFAULT_SIGINT says why)
+    cli = ("import runpy, signal; signal.signal(signal.SIGINT, signal.default_int_handler); "
+           "runpy.run_module('vpr_explorer.cli', run_name='__main__', alter_sys=True)")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "vpr_explorer.cli", "evaluate", "--dataset", "demo", "--descriptor",
+        [sys.executable, "-c", cli, "evaluate", "--dataset", "demo", "--descriptor",
          "efficientnet-lite0", "--cache-dir", str(tmp_path / "cache"), "--runs", "1"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=dict(os.environ),
     )
