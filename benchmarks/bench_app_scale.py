@@ -186,15 +186,16 @@ def time_move(descriptors, dataset, group: int = 4, step: int = 10) -> None:
     t_move, cpu_move = time.perf_counter() - start, time.process_time() - cpu
     # Side by side, the same frames: the straightforward decisions (issue 13 §3's "before"),
     # then the fused ones again, alternating, best of each (the load on a shared machine changes).
-    t_plain, t_fused, same, raw_gap, differ = [], [], True, 0.0, np.zeros(len(r.frames), bool)
+    t_plain, t_fused, raw_same, raw_gap, differ = [], [], True, 0.0, np.zeros(len(r.frames), bool)
     for _ in range(2):
         for fused, times in ((False, t_plain), (True, t_fused)):
             start = time.perf_counter()
             again = decide_traversal(f.model, descriptors, dataset, f.places, f.query, frames=r.frames, fused=fused)
             times.append(time.perf_counter() - start)
-            same = same and _same_decisions(again, r.decisions)
             gap, frames = _differences(again, r.decisions)
+            raw_same = raw_same and np.array_equal(again.raw, r.decisions.raw)
             raw_gap, differ = max(raw_gap, gap), differ | frames
+    same = raw_same and not differ.any()
     n_db, n_q = len(r.model.images), len(r.frames)
     peak = before.best(measure_peak(m=4096, k=dim, n=2048))  # best of before and after: the load changes
     for line in peak.lines():
@@ -219,17 +220,12 @@ def time_move(descriptors, dataset, group: int = 4, step: int = 10) -> None:
           flush=True)
 
 
-def _same_decisions(a, b) -> bool:
-    """Every rank, answer, image and raw_p of two ``TraversalDecisions`` equal (bit for bit)."""
-    return not _differences(a, b)[1].any() and np.array_equal(a.raw, b.raw)
-
-
 def _differences(a, b) -> tuple[float, np.ndarray]:
     """max |Δraw_p| and the frames whose best image, rank, answer or kept count differ."""
     frames = (a.best != b.best).any(axis=1)
     for k in a.outcomes:
         for f in ("rank", "answer_place", "answer_image", "n_kept"):
-            frames |= np.asarray(getattr(a.outcomes[k], f) != getattr(b.outcomes[k], f)).reshape(len(frames), -1).any(axis=1)
+            frames |= getattr(a.outcomes[k], f) != getattr(b.outcomes[k], f)  # (n_frames,) each
     with np.errstate(invalid="ignore"):
         delta = np.nan_to_num(np.abs(a.raw.astype(np.float64) - b.raw.astype(np.float64)), nan=0.0)
     return float(delta.max(initial=0.0)), frames

@@ -367,7 +367,7 @@ def mixture_figure(
     density = None
     if detail.negatives.size:
         # Binned here, not in the browser: a place of a 100k-image database has ~10⁶ negative scores.
-        lo, hi = np.float64(detail.negatives.min()), np.float64(detail.negatives.max())
+        lo, hi = float(detail.negatives.min()), float(detail.negatives.max())  # float64 edges: density_histogram
         density, edges = density_histogram(detail.negatives, NEGATIVE_BINS, lo, hi if hi > lo else lo + 0.01)
         fig.add_trace(go.Bar(x=(edges[:-1] + edges[1:]) / 2, y=density, width=np.diff(edges),
                              customdata=np.stack([edges[:-1], edges[1:]], axis=1),

@@ -454,10 +454,15 @@ def _positive_from_terms(same: np.ndarray, own: np.ndarray, labels: np.ndarray, 
     the float64 scores the closed form took of each place's images anyway (the same value as
     ‖T_p‖² − Σ‖dᵢ‖² to float64 rounding, summed otherwise); NaN for a place of one image."""
     counts = np.bincount(labels, minlength=n_places).astype(np.float64)
+    return _mean_over_pairs(np.bincount(labels, weights=same, minlength=n_places)
+                            - np.bincount(labels, weights=own, minlength=n_places), counts)
+
+
+def _mean_over_pairs(pair_sums: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """``pair_sums / (n(n − 1))`` per place of ``counts`` n images; NaN for a place with fewer than two."""
     pairs = counts * (counts - 1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        out = (np.bincount(labels, weights=same, minlength=n_places)
-               - np.bincount(labels, weights=own, minlength=n_places)) / pairs
+        out = pair_sums / pairs
     out[pairs == 0] = np.nan
     return out
 
@@ -739,11 +744,7 @@ def _mean_positive(sums: np.ndarray, sq: np.ndarray, labels: np.ndarray, counts:
     """``(n_places,)`` mean same-place score from each place's descriptor sum and each image's squared norm:
     (‖Σ d‖² − Σ ‖d‖²) / (n(n − 1)); NaN for a place with fewer than two images."""
     norms = np.bincount(labels, weights=sq, minlength=n_places)
-    pairs = counts * (counts - 1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        out = (np.einsum("ij,ij->i", sums, sums) - norms) / pairs
-    out[pairs == 0] = np.nan
-    return out
+    return _mean_over_pairs(np.einsum("ij,ij->i", sums, sums) - norms, counts)
 
 
 def positive_means(
