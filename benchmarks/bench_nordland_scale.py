@@ -119,9 +119,9 @@ class PerSplitSample:
         return auto_global_threshold(training_pair_scores(self.descriptors, rows=self.trains[r], seed=self.seed + r))
 
 
-#: The protocol's steps (module doc of ``scale``): full-set sums, each split's μ, the automatic θ's sample,
+#: The protocol's steps (module doc of ``scale``): full-set sums, each split's μ, the automatic θs and their sample,
 #: the layout copy, the pass, identical places, per-split thresholds, error scale, scoring, assembly.
-PHASES = ("_full_sums", "_split_mu", "pooled_pair_sample", "_as_layout32", "_blocked_pass", "_content_classes",
+PHASES = ("_full_sums", "_split_mu", "_automatic_thetas", "pooled_pair_sample", "_as_layout32", "_blocked_pass", "_content_classes",
           "_split_thresholds", "_error_scale", "_uncertainty", "_score_splits", "_assemble")
 
 

@@ -106,7 +106,7 @@ def main() -> None:
         with ThreadPoolExecutor(args.threads) as pool, one_blas_thread():
             for res in pool.map(lambda t: scale._panel_task(state, t, (0.0, 0.2), is_query), tasks):
                 v[res.rows] += res.v_rows  # the merge, in task order
-                v[rj] += res.v_cols
+                v[res.cols] += res.v_cols.T
 
     def gemm_rate_cpu() -> float:
         return gemm_rate(np.float32, ni, args.dim, nj, args.repeats, clock=time.process_time)

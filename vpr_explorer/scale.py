@@ -107,7 +107,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -131,7 +131,14 @@ from vpr_explorer.evaluation import (
 )
 from vpr_explorer.retrieval import METHODS_BY_KEY, TIE_TOLERANCE, Outcome
 from vpr_explorer.shared_scores import SharedScores
-from vpr_explorer.stats import SIGMA_FLOOR, NegativeStats, mixture_moments, one_blas_thread
+from vpr_explorer.stats import (
+    SIGMA_FLOOR,
+    NegativeStats,
+    mixture_moments,
+    one_blas_thread,
+    run_in_lanes,
+    triangular_blocks,
+)
 from vpr_explorer.thresholds import (
     ThresholdMethod,
     adaptive_k,
@@ -149,6 +156,10 @@ PANEL_ROWS = 1536
 #: float32 scores (1 MiB) and their squares stay in a core's cache while they give both
 #: downdate products and both maxima.
 _SLAB_ROWS = 64
+#: Panels on a diagonal block are this many times shorter: each computes the block's places
+#: from its own on (``_panel_task``), so 8 panels of a 4,096-row block compute 9/16 of it
+#: (3 would compute 2/3; the triangle alone is 1/2).
+_DIAGONAL_SPLIT = 3
 #: ``pr=True`` hands runs × places² up to this to ``paper_protocol`` (the per-place PR curves
 #: score every query against every place at each of ~200 k: about 60 s at this size).
 PR_FAMILY_CELLS = 10_000_000
@@ -160,6 +171,10 @@ TABLE_MEMORY = 2 * 1024**3
 _W_CHUNK = 2048
 #: Descriptor rows read (and converted) at a time outside the pass.
 _CHUNK = 8192
+#: Float64 sums of the full-set sums' first pass that row blocks are dealt to in turn (``_full_sums``).
+_SUM_LANES = 4
+#: Rows per float64 product of the full-set sums' quadratic forms (their products stay in cache).
+_QUAD_ROWS = 1024
 #: One top-2 table entry: layout row, place index, best score and its slot, second best and its slot.
 _ENTRY = (("row", np.int32), ("place", np.int32), ("t1", np.float32), ("a1", np.uint8), ("t2", np.float32),
           ("a2", np.uint8), ("near", np.uint8))
@@ -420,64 +435,95 @@ class _FullSums:
     a_centred: np.ndarray  # (n_rows,) aᵢ = Σ_{j∉p(i)} (dᵢ·dⱼ − c)²
 
 
-def _layout_rows64(d: np.ndarray, lay: Layout, rows: slice) -> np.ndarray:
-    """``(len(rows), D)`` float64 descriptors of these layout rows, zero rows for padding."""
+def _layout_rows64(d: np.ndarray, lay: Layout, rows: slice, out: np.ndarray, x32: np.ndarray | None) -> np.ndarray:
+    """``(len(rows), D)`` float64 descriptors of these layout rows in ``out``'s memory, zero rows
+    for padding: converted from ``x32`` (``_as_layout32``, the same values when ``d`` holds
+    float32 or float16) where given, gathered from ``d`` otherwise."""
+    x = out[: rows.stop - rows.start]
+    if x32 is not None:
+        np.copyto(x, x32[rows])
+        return x
     img = lay.image_of_row[rows]
-    out = np.zeros((len(img), d.shape[1]), dtype=np.float64)
-    real = img >= 0
-    out[real] = d[img[real]]
-    return out
+    np.copyto(x, d[np.maximum(img, 0)])
+    x[img < 0] = 0.0
+    return x
 
 
-def _quadratic_forms(x: np.ndarray, gram: np.ndarray, chol: np.ndarray | None) -> np.ndarray:
-    """``(n,)`` xᵢᵀCxᵢ of float64 rows ``x`` (overwritten), from C's Cholesky factor L when given.
+def _quadratic_forms(x: np.ndarray, cols: list[tuple[int, int]], w: list[np.ndarray], y: np.ndarray) -> np.ndarray:
+    """``(n,)`` xᵢᵀCxᵢ of float64 rows ``x``, through C's block upper triangular W
+    (``stats.triangular_blocks``) in float64 GEMMs, ``y`` a buffer of x's shape or larger.
 
-    With L: |Lᵀxᵢ|², one BLAS triangular product (dtrmm). Cholesky is backward stable: LLᵀ =
-    C + E with |Eⱼₖ| ≤ γ_D·√(CⱼⱼCₖₖ), so for unit rows the error is at most γ_D·trace C ≈
-    D·1.1e-16·N, about what the float64 product dᵢᵀ(Cdᵢ) carries.
+    (1 + 1/8)·N·D² flops. The error of each product is that of a float64 inner product,
+    at most γ_D·|xᵢ|ᵀ|W||xᵢ| ≤ 2γ_D·Σⱼ (|xᵢ|·|dⱼ|)² ≤ 2γ_D·N for unit rows: about 3·10⁻¹⁴·N at
+    D = 1,280, far below the float32 rounding of the pass's V that step 6 bounds.
     """
-    if chol is None:
-        return np.einsum("ij,ij->i", x @ gram, x)
-    from scipy.linalg.blas import dtrmm
-
-    y = dtrmm(1.0, chol, x.T, side=0, lower=1, trans_a=1, overwrite_b=1)  # Lᵀxᵀ, (D, n), in x's memory
-    return np.einsum("ij,ij->j", y, y)
+    y = y[: len(x)]
+    for (c0, c1), wj in zip(cols, w):
+        np.matmul(x[:, :c1], wj, out=y[:, c0:c1])
+    return np.einsum("ij,ij->i", y, x)
 
 
-def _full_sums(d: np.ndarray, lay: Layout, query_rows: np.ndarray) -> _FullSums:
-    """T, T_p, C and the quadratic forms, once (O(N·D²) float64), from the original values (step 1)."""
+def _full_sums(d: np.ndarray, lay: Layout, query_rows: np.ndarray, threads: int = 1,
+               x32: np.ndarray | None = None) -> _FullSums:
+    """T, T_p, C and the quadratic forms, once (O(N·D²) float64), from the original values (step 1).
+
+    Two passes over the layout's row blocks, as pool tasks in ``threads`` threads with BLAS in
+    one thread each. The first sums T, C (one syrk per block) and each split's Σ_q d_q into
+    float64 lanes (block k on lane k mod ``_SUM_LANES``, in order: ``stats.run_in_lanes``) and
+    forms the within-place grams; the second gives each row its dot products and quadratic
+    form. So the sums are the same numbers for any thread count. ``x32``: the float32 layout
+    rows (``_as_layout32``), read instead of gathering from ``d`` when ``d`` is float32 or float16.
+    """
     n_rows, dim = lay.n_rows, d.shape[1]
-    m, n_p = lay.slots, len(lay.places)
-    total = np.zeros(dim)
-    gram_all = np.zeros((dim, dim))
+    m, n_p, runs = lay.slots, len(lay.places), len(query_rows)
+    if x32 is not None and np.dtype(d.dtype).itemsize > 4:
+        x32 = None  # float64 descriptors: the sums take their own values, not float32 roundings
+    widest = int(np.diff(lay.block_start).max()) * m
+    buffers = threading.local()  # each thread's float64 rows and products, reused across its blocks
+
+    def rows64(b: int) -> np.ndarray:
+        if not hasattr(buffers, "x"):
+            buffers.x, buffers.y = np.empty((widest, dim)), np.empty((min(_QUAD_ROWS, widest), dim))
+        return _layout_rows64(d, lay, lay.rows(b), buffers.x, x32)
+
+    lanes = [(np.zeros(dim), np.zeros((dim, dim)), np.zeros((runs, dim)))
+             for _ in range(min(_SUM_LANES, lay.n_blocks))]
     gram = np.zeros((n_p, m, m))
-    queries = np.zeros((len(query_rows), dim))  # Σ_{q∈Q_r} d_q per split
-    for b in range(lay.n_blocks):
-        rows = lay.rows(b)
-        x = _layout_rows64(d, lay, rows)
+
+    def first(lane: int, b: int) -> None:
+        rows, x = lay.rows(b), rows64(b)
+        total, gram_all, queries = lanes[lane]
         total += x.sum(axis=0)
-        gram_all += x.T @ x
+        gram_all += x.T @ x  # numpy hands Xᵀ X to syrk
         x3 = x.reshape(m, -1, dim).transpose(1, 0, 2)  # (G, m, D): each place's images
         gram[lay.place_range(b)] = x3 @ x3.transpose(0, 2, 1)
         # the block's queries of every split at once: its (rows × R) query indicator, transposed, times x
         r_of, local = np.nonzero((query_rows >= rows.start) & (query_rows < rows.stop))
-        indicator = np.zeros((len(query_rows), rows.stop - rows.start))
+        indicator = np.zeros((runs, rows.stop - rows.start))
         indicator[r_of, query_rows[r_of, local] - rows.start] = 1.0
         queries += indicator @ x
+
     dot_total, dot_place, sq = np.zeros(n_rows), np.zeros(n_rows), np.zeros(n_rows)
-    dot_q = np.zeros((n_rows, len(query_rows)))
-    try:  # dᵢᵀCdᵢ = |Lᵀdᵢ|² with C = LLᵀ: a triangular product, half the flops of dᵢᵀ(Cdᵢ)
-        chol = np.linalg.cholesky(gram_all)
-    except np.linalg.LinAlgError:  # C not (numerically) positive definite: D > N, or degenerate descriptors
-        chol = None
-    for b in range(lay.n_blocks):
-        rows = lay.rows(b)
-        x = _layout_rows64(d, lay, rows)
-        gb = gram[lay.place_range(b)]  # (G, m, m); row (k, g) of the block is gb[g, k]
-        dot_total[rows] = x @ total
-        dot_q[rows] = x @ queries.T
-        dot_place[rows] = gb.sum(axis=2).T.reshape(-1)
-        sq[rows] = _quadratic_forms(x, gram_all, chol) - (gb**2).sum(axis=2).T.reshape(-1)  # Σ_{j∉p} s²
+    dot_q = np.zeros((n_rows, runs))
+    with ThreadPoolExecutor(max(1, threads)) as pool, one_blas_thread():
+        run_in_lanes(pool, range(lay.n_blocks), len(lanes), first)
+        total, gram_all, queries = lanes[0]
+        for lane in lanes[1:]:  # in lane order
+            for acc, part in zip(lanes[0], lane):
+                acc += part
+        cols, w = triangular_blocks(gram_all, np.float64)
+
+        def second(b: int) -> None:
+            rows, x = lay.rows(b), rows64(b)
+            gb = gram[lay.place_range(b)]  # (G, m, m); row (k, g) of the block is gb[g, k]
+            dot_total[rows] = x @ total
+            dot_q[rows] = x @ queries.T
+            dot_place[rows] = gb.sum(axis=2).T.reshape(-1)
+            quad = np.concatenate([_quadratic_forms(x[lo : lo + _QUAD_ROWS], cols, w, buffers.y)
+                                   for lo in range(0, len(x), _QUAD_ROWS)])
+            sq[rows] = quad - (gb**2).sum(axis=2).T.reshape(-1)  # Σ_{j∉p} s²
+
+        list(pool.map(second, range(lay.n_blocks)))
     # scores are taken relative to c in the pass: (s − c)² sums carry float32 rounding in
     # proportion to |s − c|, not |s| (descriptors with a shared component score 0.7 everywhere)
     n_lab = int(lay.sizes.sum())
@@ -587,25 +633,27 @@ class _BlockProducts:
             self.device = torch_device(device)
             self.xt = torch.from_numpy(x).to(self.device)
 
-    def __call__(self, rows: np.ndarray, rj: slice, out: np.ndarray) -> None:
+    def __call__(self, rows: np.ndarray, cols: slice | np.ndarray, out: np.ndarray) -> None:
         if self.device is None:
-            np.matmul(self.x[rows], self.x[rj].T, out=out)
+            np.matmul(self.x[rows], self.x[cols].T, out=out)
             return
         import torch
 
         from vpr_explorer.stats import ieee_float32
 
         idx = torch.from_numpy(rows).to(self.device)
+        cdx = cols if isinstance(cols, slice) else torch.from_numpy(cols).to(self.device)
         with ieee_float32():
             if self.device.type == "cpu":
-                torch.matmul(self.xt[idx], self.xt[rj].T, out=torch.from_numpy(out))
+                torch.matmul(self.xt[idx], self.xt[cdx].T, out=torch.from_numpy(out))
             else:
-                torch.from_numpy(out).copy_(self.xt[idx] @ self.xt[rj].T)
+                torch.from_numpy(out).copy_(self.xt[idx] @ self.xt[cdx].T)
 
 
 @dataclass(frozen=True)
 class _Panel:
-    """One task of the pass: the places ``g0:g1`` (within block ``bi``) against block ``bj``."""
+    """One task of the pass: the places ``g0:g1`` (within block ``bi``) against block ``bj``;
+    on the diagonal (``bi == bj``), against the block's places from ``g0`` on."""
 
     bi: int
     bj: int
@@ -620,7 +668,8 @@ class _PanelResult:
     panel: _Panel
     rows: np.ndarray  # (n,) layout rows of the panel: slot-major over its places
     v_rows: np.ndarray  # (n, R) float64: the panel rows' share of V
-    v_cols: np.ndarray | None  # (cols, R) float64: block J's rows' share of V (off-diagonal panels)
+    cols: slice | np.ndarray  # layout rows of ``v_cols``: block J's (off the diagonal), or the block's after the panel
+    v_cols: np.ndarray | None  # (R, cols) float64: those rows' share of V, transposed
     best: np.ndarray | None  # (n,) b of the panel rows (diagonal panels)
     sides: list  # (table row block, side dict with layout rows/places, own place per entry or None)
 
@@ -644,34 +693,49 @@ class _PassState:
         return buf
 
 
-def _panel_task(st: _PassState, p: _Panel, mu_range: tuple[float, float], is_query: np.ndarray) -> _PanelResult:
+def _panel_task(st: _PassState, p: _Panel, mu_range: tuple[float, float], is_query: np.ndarray,
+                wait: Callable[[], object] | None = None) -> _PanelResult:
     """Everything the splits need from one panel of S, in one thread (step 2).
 
     The panel holds every slot of the places ``g0:g1`` of block I, slot-major, so that both
-    sides of the top-2 table reduce over a place's images inside it: its rows against block
-    J's places, and (off the diagonal) block J's rows against its places. After its GEMM the
-    panel is read slot by slot, a slab of up to ``_SLAB_ROWS`` rows of one slot (1 MiB at
-    4,096 columns) at a time, which stays in cache while it gives its squares, both
-    downdate products and both maxima.
+    sides of the top-2 table reduce over a place's images inside it: its rows against the
+    columns' places, and block J's rows (the columns) against its places. Off the diagonal
+    the columns are block J; on it, the block's places from ``g0`` on (slot-major too): the
+    pairs with earlier places came with those places' panels, by symmetry, so a diagonal
+    block's GEMMs cover its triangle and the panels on it (the panel's own places with each
+    other) only. After its GEMM the panel is read slot by slot, a slab of up to
+    ``_SLAB_ROWS`` rows of one slot (1 MiB at 4,096 columns) at a time, which stays in cache
+    while it gives its squares, both downdate products and both maxima.
+
+    On the diagonal the columns' side is of places after the panel, whose floors come from
+    their own (diagonal) panels: ``wait()`` returns once those are merged (``_blocked_pass``
+    runs a diagonal block's panels last place first).
     """
     lay, m = st.lay, st.lay.slots
     ri, rj = lay.rows(p.bi), lay.rows(p.bj)
-    gi, gj = (ri.stop - ri.start) // m, (rj.stop - rj.start) // m
-    gp, nj = p.g1 - p.g0, rj.stop - rj.start
+    gi = (ri.stop - ri.start) // m
+    gp = p.g1 - p.g0
     rows = ri.start + (np.arange(m)[:, None] * gi + np.arange(p.g0, p.g1)[None, :]).ravel()
-    n, runs = len(rows), st.indicator.shape[1]
+    diagonal = p.bi == p.bj
+    if diagonal:  # the columns' places: the block's from g0 on (the panel's own first)
+        gj, c0 = gi - p.g0, p.g0
+        cols: slice | np.ndarray = ri.start + (np.arange(m)[:, None] * gi + np.arange(p.g0, gi)[None, :]).ravel()
+    else:
+        gj, c0, cols = (rj.stop - rj.start) // m, 0, rj
+    n, nj, runs = len(rows), m * gj, st.indicator.shape[1]
     s_buf, q_buf = st.buffers()
     s = s_buf[: n * nj].reshape(n, nj)
-    st.products(rows, rj, s)
-    diagonal = p.bi == p.bj
-    own = np.arange(p.g0, p.g1) + int(lay.block_start[p.bi] - lay.block_start[p.bj])  # the slab rows' place in J
-    mj, mp = st.indicator[rj], st.indicator[rows]
-    pad_j = st.pad[rj]
-    trav_j = st.row_traversal[rj] if st.row_traversal is not None else None
+    st.products(rows, cols, s)
+    own = np.arange(gp) if diagonal else None  # the slab rows' place among the columns' places
+    with_cols = not diagonal or gj > gp  # a columns' side: places outside the panel
+    mj, mp = st.indicator[cols], st.indicator[rows]
+    pad_j = st.pad[cols]
+    trav_j = st.row_traversal[cols] if st.row_traversal is not None else None
     v_rows = np.zeros((n, runs))
-    v_cols = None if diagonal else np.zeros((nj, runs), dtype=np.float32)
+    v_cols = np.zeros((runs, nj), dtype=np.float32) if with_cols else None  # transposed: the faster product
+    v_part = np.empty((runs, nj), dtype=np.float32) if with_cols else None
     row_max = np.empty((n, gj), dtype=np.float32)
-    col_max = None if diagonal else np.full((gp, nj), -np.inf, dtype=np.float32)
+    col_max = np.full((gp, nj), -np.inf, dtype=np.float32) if with_cols else None
     best = np.empty(n, dtype=np.float32) if diagonal else None
     for k, h0 in ((k, h0) for k in range(m) for h0 in range(0, gp, _SLAB_ROWS)):
         h1 = min(h0 + _SLAB_ROWS, gp)
@@ -682,10 +746,10 @@ def _panel_task(st: _PassState, p: _Panel, mu_range: tuple[float, float], is_que
         np.square(np.subtract(sk, st.centre, out=q), out=q)
         if diagonal:
             q.reshape(hs, m, gj)[np.arange(hs), :, own[hl]] = 0.0
-        for c0 in range(0, nj, _W_CHUNK):
-            v_rows[sl] += q[:, c0 : c0 + _W_CHUNK] @ mj[c0 : c0 + _W_CHUNK]
-        if not diagonal:
-            v_cols += q.T @ mp[sl]
+        for w0 in range(0, nj, _W_CHUNK):
+            v_rows[sl] += q[:, w0 : w0 + _W_CHUNK] @ mj[w0 : w0 + _W_CHUNK]
+        if with_cols:
+            np.add(v_cols, np.matmul(mp[sl].T, q, out=v_part), out=v_cols)
         # what a query may match: never padding; in cross-condition, not its own traversal
         pad_k = st.pad[rows[sl]]
         if pad_k.any():
@@ -700,19 +764,31 @@ def _panel_task(st: _PassState, p: _Panel, mu_range: tuple[float, float], is_que
             mine[:, k] = -np.inf
             best[sl] = mine.max(axis=1)
         np.max(sk3, axis=1, out=row_max[sl])
-        if not diagonal:
+        if with_cols:
             np.maximum(col_max[hl], sk, out=col_max[hl])
     floor = _floor(best, mu_range, is_query[rows]) if diagonal else st.floor[rows]
     side = _side(s.reshape(n, m, gj), row_max, floor, axis=1)
     r = side["row"]
     side["own"] = side["place"] == np.tile(own, m)[r] if diagonal else None
-    side["row"], side["place"] = rows[r] - ri.start, lay.block_start[p.bj] + side["place"]
+    side["row"], side["place"] = rows[r] - ri.start, lay.block_start[p.bj] + c0 + side["place"]
     sides = [(p.bi, side)]
-    if not diagonal:
-        side = _side(s.reshape(m, gp, nj), col_max, st.floor[rj], axis=0)
+    if with_cols:
+        if diagonal:  # the columns of the panel's own places are its rows' side already
+            if wait is not None:
+                wait()
+            col_floor = st.floor[cols]  # a copy (cols: an index array)
+            col_floor.reshape(m, gj)[:, :gp] = np.inf
+        else:
+            col_floor = st.floor[cols]
+        side = _side(s.reshape(m, gp, nj), col_max, col_floor, axis=0)
+        if diagonal:
+            side["row"] = cols[side["row"]] - rj.start
         side["own"], side["place"] = None, lay.block_start[p.bi] + p.g0 + side["place"]
         sides.append((p.bj, side))
-    return _PanelResult(p, rows, v_rows, None if diagonal else v_cols.astype(np.float64), best, sides)
+        if diagonal:  # those columns' V, too, came with the rows
+            after = (np.arange(nj) % gj) >= gp
+            v_cols, cols = v_cols[:, after], cols[after]
+    return _PanelResult(p, rows, v_rows, cols, None if v_cols is None else v_cols.astype(np.float64), best, sides)
 
 
 def _panels(lay: Layout, bi: int, bj: int, panel_rows: int) -> list[_Panel]:
@@ -772,12 +848,14 @@ def _blocked_pass(
         p = res.panel
         v[res.rows] += res.v_rows
         if res.v_cols is not None:
-            v[lay.rows(p.bj)] += res.v_cols
+            v[res.cols] += res.v_cols.T
         if res.best is not None:
             best_own[res.rows] = res.best
             floor[res.rows] = _floor(res.best, mu_range, is_query[res.rows])
         for row_block, side in res.sides:
             _store_side(entries, records, near, side, row_block, lay.rows(row_block).start, best_own)
+        if p in merged:
+            merged[p].set()
         left[(p.bi, p.bj)] -= 1
         if left[(p.bi, p.bj)] == 0:
             done[0] += 1
@@ -787,24 +865,36 @@ def _blocked_pass(
     def run(phase: list[tuple[int, int]], pool: ThreadPoolExecutor | None) -> None:
         tasks = []
         for bi, bj in phase:
-            ps = _panels(lay, bi, bj, panel_rows)
+            if bi == bj:  # shorter panels (more of the triangle left out), last place first (``_panel_task``)
+                ps = _panels(lay, bi, bj, max(1, panel_rows // _DIAGONAL_SPLIT))[::-1]
+                merged.update((t, threading.Event()) for t in ps)
+                waits.update((t, merged[before].wait) for before, t in zip(ps, ps[1:]))
+            else:
+                ps = _panels(lay, bi, bj, panel_rows)
             left[(bi, bj)] = len(ps)
             tasks += ps
         if pool is None:
             for t in tasks:
-                merge(_panel_task(st, t, mu_range, is_query))
+                merge(_panel_task(st, t, mu_range, is_query, waits.get(t)))
             return
         window: deque = deque()
         for t in tasks:  # a few tasks in flight ahead of the merge, merged in order
-            window.append(pool.submit(_panel_task, st, t, mu_range, is_query))
+            window.append(pool.submit(_panel_task, st, t, mu_range, is_query, waits.get(t)))
             if len(window) > 2 * threads:
                 merge(window.popleft().result())
         while window:
             merge(window.popleft().result())
 
+    merged: dict[_Panel, threading.Event] = {}  # diagonal panels: set once merged
+    waits: dict[_Panel, Callable[[], object]] = {}  # diagonal panels: the wait for the panel merged before
     if threads > 1:
         with ThreadPoolExecutor(threads) as pool, one_blas_thread():
-            run(pairs[:nb], pool)  # the diagonal: b and the floors, which every other panel reads
+            try:
+                run(pairs[:nb], pool)  # the diagonal: b and the floors, which every other panel reads
+            except BaseException:  # let waiting panels end, so that the pool can shut down
+                for event in merged.values():
+                    event.set()
+                raise
             run(pairs[nb:], pool)
     else:  # BLAS in one thread here too: a multithreaded sgemm may split the sums (below)
         with one_blas_thread():
@@ -1408,21 +1498,26 @@ def scale_splits(
     lay = make_layout(image_place, n_places, block)
     query_rows = np.stack([lay.row_of_image[sp.queries] for sp in splits])  # (R, P): queries by place index
     held = lay.slot_of_row[query_rows]
-    sums = _full_sums(d, lay, query_rows)
-    # every θ_p is a convex combination of its place's μᵢ: all lie in [min μ, max μ] (the pass's floor)
-    mus = [_split_mu(r, lay.row_of_image[sp.train], lay, sums, held[r]) for r, sp in enumerate(splits)]
-    mu_lo = min(float(mu.min()) for mu, _ in mus)
-    mu_hi = max(float(mu.max()) for mu, _ in mus)
     runs = len(splits)
     n_pairs = lay.n_blocks * (lay.n_blocks + 1) // 2
     steps = runs + n_pairs + lay.n_blocks  # per split (automatic θ), per block pair, per row block
     report = (lambda done, what: progress(done, steps, what)) if progress else None
-    # automatic θ (step 4): the reference's own pooled sample, drawn once for the run
-    sample = pooled_pair_sample(d, [sp.train for sp in splits], seed=seed)
-    autos: dict[int, float] = {}
-    for r in range(runs):
-        autos[r] = sample.theta(r)
-        if report:
+    with ThreadPoolExecutor(1) as aside:
+        # in a thread beside the full-set sums (which leave a core idle now and then: their
+        # lanes wait in turn), with more than one thread: the automatic θ (step 4, the
+        # reference's own pooled sample, drawn once for the run) and the twins' content
+        # classes, which need neither the sums nor the pass
+        later = aside.submit if threads > 1 else _now
+        autos, content = later(_automatic_thetas, d, splits, seed), later(_content_classes, d, lay)
+        x = _as_layout32(d, lay, threads)  # the pass's float32 rows, which the full-set sums read too
+        sums = _full_sums(d, lay, query_rows, threads, x)
+        # every θ_p is a convex combination of its place's μᵢ: all lie in [min μ, max μ] (the pass's floor)
+        mus = [_split_mu(r, lay.row_of_image[sp.train], lay, sums, held[r]) for r, sp in enumerate(splits)]
+        mu_lo = min(float(mu.min()) for mu, _ in mus)
+        mu_hi = max(float(mu.max()) for mu, _ in mus)
+        autos, content = autos.result(), content.result()
+    if report:
+        for r in range(runs):
             report(r + 1, f"split {r + 1}/{runs}: automatic θ")
     row_traversal = None
     if cross_condition:
@@ -1433,21 +1528,34 @@ def scale_splits(
     pass_report = (lambda done, what: report(runs + done, what)) if report else None
     entries = _Entries(lay, table_memory, spill_dir)
     try:
-        x = _as_layout32(d, lay, threads)
         pas = _blocked_pass(x, lay, query_rows, row_traversal, entries, max_k, (mu_lo, mu_hi), sums.centre,
                             threads, pass_report, device)
         del x
-        content = _content_classes(d, lay)
-        data = [_split_thresholds(r, sp, lay, sums, pas, held[r], n_places, autos[r], user_theta, content, mus[r])
-                for r, sp in enumerate(splits)]
-        kappa = _error_scale(d, lay, sums, data, seed)
-        for sd in data:
-            sd.uncertainty = _uncertainty(sd, lay, kappa)
-        outs, tops = _score_splits(entries, data, lay, pas, d, sums, report, runs + n_pairs)
+        with ThreadPoolExecutor(threads) as pool:  # splits side by side: each writes only its own results
+            data = list(pool.map(lambda r: _split_thresholds(r, splits[r], lay, sums, pas, held[r], n_places,
+                                                             autos[r], user_theta, content, mus[r]), range(runs)))
+            kappa = _error_scale(d, lay, sums, data, seed)
+            for sd in data:
+                sd.uncertainty = _uncertainty(sd, lay, kappa)
+            outs, tops = _score_splits(entries, data, lay, pas, d, sums, report, runs + n_pairs)
+            return list(pool.map(lambda r: _assemble(data[r], outs[r], tops[r],
+                                                     pas.best_own[query_rows[r]].astype(np.float64), image_place,
+                                                     image_traversal, n_places), range(runs)))
     finally:
         entries.close()
-    return [_assemble(sd, outs[r], tops[r], pas.best_own[query_rows[r]].astype(np.float64), image_place,
-                      image_traversal, n_places) for r, sd in enumerate(data)]
+
+
+def _now(fn: Callable, *args) -> Future:
+    """``fn(*args)`` run now, in a finished future (``executor.submit``'s stand-in)."""
+    future: Future = Future()
+    future.set_result(fn(*args))
+    return future
+
+
+def _automatic_thetas(d: np.ndarray, splits: list[Split], seed: int) -> list[float]:
+    """Each split's automatic global θ from one pooled tile sample for the run (module doc, step 4)."""
+    sample = pooled_pair_sample(d, [sp.train for sp in splits], seed=seed)
+    return [sample.theta(r) for r in range(len(splits))]
 
 
 def fast_paper_protocol(
