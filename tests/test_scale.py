@@ -9,6 +9,8 @@ fast path resolves up to max(ks) (beyond: max(ks) + 1; Recall@K needs no more).
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 
@@ -444,6 +446,107 @@ def test_panels_slabs_and_threads_give_the_same_numbers(monkeypatch):
             assert a.keys() == b.keys()
             for k in a:
                 np.testing.assert_array_equal(b[k], a[k], err_msg=k)
+
+
+def test_the_pass_against_straightforward_float64_sums():
+    # V (each split's squared scores against its queries of other places) and b (the best
+    # score of the image's own place, itself left out) of every labelled row, against plain
+    # float64 sums over all pairs: panels of one place and of several, so that diagonal
+    # blocks have many panels, each against the block's places from its own on (the rest
+    # come by symmetry)
+    d, labels, _ = awkward(seed=4)
+    splits = draw_splits(labels, 260, runs=3, seed=2)
+    lay = scale.make_layout(labels, 260, 400)
+    query_rows = np.stack([lay.row_of_image[sp.queries] for sp in splits])
+    centre = scale._full_sums(d, lay, query_rows).centre
+    for panel_rows in (45, 240, scale.PANEL_ROWS):
+        pas = scale._blocked_pass(scale._as_layout32(d, lay), lay, query_rows, None,
+                                  scale._Entries(lay, scale.TABLE_MEMORY, None), 7, (0.0, 0.2), centre, 2, None,
+                                  panel_rows=panel_rows)
+        real = np.flatnonzero(lay.image_of_row >= 0)
+        x = d[lay.image_of_row[real]].astype(np.float64)
+        place = lay.place_of_row[real]
+        s = x @ x.T
+        q = (s - centre) ** 2
+        q[place[:, None] == place[None, :]] = 0.0
+        queries = np.zeros((len(real), len(splits)))
+        position = np.full(lay.n_rows, -1)
+        position[real] = np.arange(len(real))
+        for r in range(len(splits)):
+            queries[position[query_rows[r]], r] = 1.0
+        v = q @ queries
+        np.testing.assert_allclose(pas.v[real], v, rtol=1e-5, atol=1e-7)
+        mine = np.where(place[:, None] == place[None, :], s, -np.inf)
+        np.fill_diagonal(mine, -np.inf)
+        np.testing.assert_allclose(pas.best_own[real], mine.max(axis=1), rtol=0, atol=1e-6)
+    short, several = (scale._panels(lay, 0, 0, rows // scale._DIAGONAL_SPLIT) for rows in (45, 240))
+    assert len(short) > 10 and len(several) > 3 and min(p.g1 - p.g0 for p in several) > 2
+
+
+def test_a_failing_panel_on_the_diagonal_ends_the_pass(monkeypatch):
+    # diagonal panels wait for the ones merged before them; an error in one must reach the
+    # caller, not leave the others waiting (the pool could then never shut down)
+    d, labels, _ = awkward(seed=4)
+    splits = draw_splits(labels, 260, runs=2, seed=2)
+    lay = scale.make_layout(labels, 260, 400)
+    query_rows = np.stack([lay.row_of_image[sp.queries] for sp in splits])
+    calls, side = [0], scale._side
+
+    def failing_side(*a, **k):
+        calls[0] += 1
+        if calls[0] == 3:
+            raise RuntimeError("a panel failed")
+        return side(*a, **k)
+
+    monkeypatch.setattr(scale, "_side", failing_side)
+    outcome = []
+
+    def run():
+        try:
+            scale._blocked_pass(scale._as_layout32(d, lay), lay, query_rows, None,
+                                scale._Entries(lay, scale.TABLE_MEMORY, None), 7, (0.0, 0.2), 0.1, 2, None,
+                                panel_rows=45)
+        except RuntimeError as e:
+            outcome.append(str(e))
+
+    worker = threading.Thread(target=run, daemon=True)
+    worker.start()
+    worker.join(120)
+    assert not worker.is_alive() and outcome == ["a panel failed"]
+
+
+def test_full_sums_against_plain_float64_and_any_thread_count():
+    # T, T_p, each split's query sums, the within-place grams, c and aᵢ = Σ_{j∉p(i)} (sᵢⱼ − c)²
+    # against the formulas computed directly in float64; block sums dealt to lanes in order,
+    # so 1, 2 and 3 threads, and the layout copy or a gather from the descriptors, give the
+    # same numbers bit for bit (9 blocks: more than the lanes)
+    d, labels, _ = awkward(seed=5)
+    splits = draw_splits(labels, 260, runs=4, seed=3)
+    lay = scale.make_layout(labels, 260, 250)
+    assert lay.n_blocks > scale._SUM_LANES
+    query_rows = np.stack([lay.row_of_image[sp.queries] for sp in splits])
+    first = scale._full_sums(d, lay, query_rows, 1)
+    for threads, x32 in ((2, None), (3, scale._as_layout32(d, lay)), (1, scale._as_layout32(d, lay))):
+        other = scale._full_sums(d, lay, query_rows, threads, x32)
+        for field in ("dot_other", "dot_queries", "gram", "a_centred"):
+            np.testing.assert_array_equal(getattr(other, field), getattr(first, field), err_msg=field)
+        assert other.centre == first.centre
+    real = np.flatnonzero(lay.image_of_row >= 0)
+    x = d[lay.image_of_row[real]].astype(np.float64)
+    place = lay.place_of_row[real]
+    s = x @ x.T
+    same = place[:, None] == place[None, :]
+    n = len(real)
+    centre = np.float32((s.sum() - np.trace(s)) / (n * (n - 1)))
+    assert first.centre == float(centre)
+    np.testing.assert_allclose(first.dot_other[real], np.where(same, 0.0, s).sum(axis=1), rtol=1e-12, atol=1e-11)
+    for r in range(len(splits)):
+        np.testing.assert_allclose(first.dot_queries[real, r], x @ d[splits[r].queries].astype(np.float64).sum(axis=0),
+                                   rtol=1e-12, atol=1e-11)
+    np.testing.assert_allclose(first.gram[place, lay.slot_of_row[real], lay.slot_of_row[real]], np.diag(s), rtol=1e-12)
+    a = np.where(same, 0.0, (s - float(centre)) ** 2).sum(axis=1)
+    np.testing.assert_allclose(first.a_centred[real], a, rtol=1e-10)
+    assert not first.a_centred[lay.image_of_row < 0].any() and not first.dot_other[lay.image_of_row < 0].any()
 
 
 def test_torch_device_products_give_the_same_numbers(monkeypatch):

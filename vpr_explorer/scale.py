@@ -531,7 +531,7 @@ def _full_sums(d: np.ndarray, lay: Layout, query_rows: np.ndarray, threads: int 
     centre = float(np.float32((total @ total - norms) / max(n_lab * (n_lab - 1), 1)))
     n_other = n_lab - lay.sizes[lay.place_of_row]
     dot_other = dot_total - dot_place
-    a_centred = sq - 2 * centre * dot_other + centre**2 * n_other
+    a_centred = np.where(lay.image_of_row >= 0, sq - 2 * centre * dot_other + centre**2 * n_other, 0.0)
     return _FullSums(dot_other, dot_q, gram, centre, a_centred)
 
 
