@@ -29,7 +29,8 @@ flops, R = splits: 7.8% of N²·D at R = 50, D = 1,280), the float64 full-set su
 and the per-split steps. Compare kernels with
 ``env -u OPENBLAS_CORETYPE -u OPENBLAS_L2_SIZE python benchmarks/bench_nordland_scale.py``.
 ``--device cpu`` (or ``cuda``) runs the pass's block products through torch.
-``--phases`` prints the protocol's wall and CPU seconds per step (timers around ``scale``'s functions).
+``--phases`` prints the protocol's wall and CPU seconds per step (timers around ``scale``'s functions;
+steps that run beside each other overlap, and their CPU seconds are the whole process's).
 ``--check`` also runs ``evaluation.paper_protocol`` and asserts identical tables (small N).
 ``--storage float16`` writes the descriptors as a float16 ``.npy`` and memory-maps it, as
 the descriptor cache can.
@@ -173,7 +174,9 @@ def main() -> None:
     ap.add_argument("--profile", action="store_true",
                     help="print the protocol's CPU profile (cProfile on CPU time), the 15 largest by cumulative time")
     ap.add_argument("--phases", action="store_true",
-                    help="print the protocol's wall and CPU seconds per step (timers around scale's functions)")
+                    help="print the protocol's wall and CPU seconds per step (timers around scale's functions; "
+                         "CPU seconds are the process's: the automatic θs and content classes run beside the "
+                         "full-set sums, the per-split steps side by side, so those overlap)")
     ap.add_argument("--per-split-sample", action="store_true",
                     help="also time the protocol with a tile sample per split for the automatic θ "
                          "(before issue 13 §4)")

@@ -9,9 +9,9 @@ similarity; this module does one pass over the image pairs for all splits.
 Algorithm
 ---------
 A split holds exactly one image of every place out (the query) and trains on the rest.
-``scale_splits`` runs the steps below as 1 (full-set sums), 4 (the automatic θ), 2, 1 and
-3 (per split), 6 (error bounds), then 5 and 6 together; the functions doing each step are
-named at its end.
+``scale_splits`` runs the steps below as 1 (full-set sums; 4, the automatic θ, beside them
+in a second thread), 2, 1 and 3 (per split), 6 (error bounds), then 5 and 6 together; the
+functions doing each step are named at its end.
 
 1. **Negative statistics by downdating** (DESIGN.md §2). From the full-set sums T = Σⱼ dⱼ,
    T_p, C = Σⱼ dⱼdⱼᵀ and aᵢ = Σ_{j∉p(i)} (dᵢ·dⱼ − c)² (from dᵢᵀCdᵢ, float64, once; c is the
@@ -23,12 +23,12 @@ named at its end.
        σᵢ²                = E[(s − c)²]ᵢ − (μᵢ − c)²
 
    so no split forms a D×D gram: dᵢ·Σ_q d_q for all splits is one (N×D)·(D×R) product,
-   dᵢᵀCdᵢ is |Lᵀdᵢ|² with C = LLᵀ (Cholesky, float64: a triangular product, half the flops
-   of dᵢᵀ(Cdᵢ); the general product where C is not positive definite), and V comes out of
-   the pass (2). μ, hence the simple θ, is exact to float64 rounding; σ
-   carries the float32 rounding of the scores in V (taken about c, so descriptors whose
-   scores all sit near 0.8 lose no more than centred ones), which moves a weighted θ_p by
-   ~1e-11 (synthetic) to ~2e-9 (Nordland pixels). Step 6 keeps that from changing any
+   dᵢᵀCdᵢ is dᵢᵀWdᵢ with W block upper triangular (``stats.triangular_blocks``: float64
+   GEMMs, (1 + 1/8)·N·D² flops instead of 2·N·D²), and V comes out of the pass (2). μ,
+   hence the simple θ, is exact to float64 rounding; σ carries the float32 rounding of the
+   scores in V (taken about c, so descriptors whose scores all sit near 0.8 lose no more
+   than centred ones), which moves a weighted θ_p by ~1e-11 (synthetic) to ~2e-9 (Nordland
+   pixels). Step 6 keeps that from changing any
    outcome. Places whose training images are byte-identical get one θ, as in the
    reference (same inputs, same operations: their margins tie exactly).
    ``_full_sums``, ``_split_mu``, ``_sigma``; twins: ``_content_classes``, ``_twins``.
@@ -37,7 +37,9 @@ named at its end.
    (the BLAS kernel, block shape and threads change the summation order): every tie and
    answer is therefore decided with ``retrieval.TIE_TOLERANCE``, which such differences
    never cross, so the outcomes are the reference's. Each block pair is cut into panels of
-   whole places of block I (``PANEL_ROWS`` rows, every slot of each place): a panel is one
+   whole places of block I (``PANEL_ROWS`` rows, every slot of each place; on a diagonal
+   block, panels ``_DIAGONAL_SPLIT`` times shorter, each against the block's places from its
+   own on, so that the block's GEMMs cover little more than its triangle): a panel is one
    GEMM in one thread, read after it slab by slab (``_SLAB_ROWS`` rows of one slot, which
    stay in cache) for everything below; panels run side by side in ``threads`` threads
    (BLAS in one thread each) and are merged in task order, so the sums and the table are
@@ -454,7 +456,7 @@ def _quadratic_forms(x: np.ndarray, cols: list[tuple[int, int]], w: list[np.ndar
     (``stats.triangular_blocks``) in float64 GEMMs, ``y`` a buffer of x's shape or larger.
 
     (1 + 1/8)·N·D² flops. The error of each product is that of a float64 inner product,
-    at most γ_D·|xᵢ|ᵀ|W||xᵢ| ≤ 2γ_D·Σⱼ (|xᵢ|·|dⱼ|)² ≤ 2γ_D·N for unit rows: about 3·10⁻¹⁴·N at
+    at most γ_D·|xᵢ|ᵀ|W||xᵢ| ≤ 2γ_D·Σⱼ (|xᵢ|·|dⱼ|)² ≤ 2γ_D·N for unit rows: about 3·10⁻¹³·N at
     D = 1,280, far below the float32 rounding of the pass's V that step 6 bounds.
     """
     y = y[: len(x)]
@@ -820,10 +822,12 @@ def _blocked_pass(
     ``threads`` threads run panels side by side, BLAS in one thread each, and the main thread
     merges their results in task order, so the sums and the table do not depend on the number
     of threads. Diagonal blocks come first: they hold each image's own place, hence b and
-    the row's floor, which the off-diagonal blocks need. BLAS runs in one thread whatever
-    ``threads`` is: OpenBLAS's Haswell sgemm splits the sum of a (64 × 2,048) @ (2,048 × 50)
-    product (the downdate's shape) between its threads, which would make V depend on their
-    number. ``progress(pairs done, message)``
+    the row's floor, which the off-diagonal blocks need. A diagonal block's panels run last
+    place first, and each waits, before the side of its columns (the block's later places),
+    until the panel before it is merged: the floors of those columns are then known. BLAS
+    runs in one thread whatever ``threads`` is: OpenBLAS's Haswell sgemm splits the sum of
+    a (64 × 2,048) @ (2,048 × 50) product (the downdate's shape) between its threads, which
+    would make V depend on their number. ``progress(pairs done, message)``
     after each pair. ``device``: a torch device for the panel products (``_BlockProducts``);
     the bookkeeping stays in numpy on the CPU.
     """
