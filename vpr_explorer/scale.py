@@ -486,6 +486,7 @@ def _full_sums(d: np.ndarray, lay: Layout, query_rows: np.ndarray, threads: int 
     def rows64(b: int) -> np.ndarray:
         if not hasattr(buffers, "x"):
             buffers.x, buffers.y = np.empty((widest, dim)), np.empty((min(_QUAD_ROWS, widest), dim))
+            buffers.g = np.empty((dim, dim))
         return _layout_rows64(d, lay, lay.rows(b), buffers.x, x32)
 
     lanes = [(np.zeros(dim), np.zeros((dim, dim)), np.zeros((runs, dim)))
@@ -496,7 +497,7 @@ def _full_sums(d: np.ndarray, lay: Layout, query_rows: np.ndarray, threads: int 
         rows, x = lay.rows(b), rows64(b)
         total, gram_all, queries = lanes[lane]
         total += x.sum(axis=0)
-        gram_all += x.T @ x  # numpy hands Xᵀ X to syrk
+        gram_all += np.matmul(x.T, x, out=buffers.g)  # numpy hands Xᵀ X to syrk
         x3 = x.reshape(m, -1, dim).transpose(1, 0, 2)  # (G, m, D): each place's images
         gram[lay.place_range(b)] = x3 @ x3.transpose(0, 2, 1)
         # the block's queries of every split at once: its (rows × R) query indicator, transposed, times x
