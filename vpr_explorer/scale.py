@@ -140,6 +140,7 @@ from vpr_explorer.stats import (
     one_blas_thread,
     run_in_lanes,
     triangular_blocks,
+    triangular_quadratic_forms,
 )
 from vpr_explorer.thresholds import (
     ThresholdMethod,
@@ -451,20 +452,6 @@ def _layout_rows64(d: np.ndarray, lay: Layout, rows: slice, out: np.ndarray, x32
     return x
 
 
-def _quadratic_forms(x: np.ndarray, cols: list[tuple[int, int]], w: list[np.ndarray], y: np.ndarray) -> np.ndarray:
-    """``(n,)`` xᵢᵀCxᵢ of float64 rows ``x``, through C's block upper triangular W
-    (``stats.triangular_blocks``) in float64 GEMMs, ``y`` a buffer of x's shape or larger.
-
-    (1 + 1/8)·N·D² flops. The error of each product is that of a float64 inner product,
-    at most γ_D·|xᵢ|ᵀ|W||xᵢ| ≤ 2γ_D·Σⱼ (|xᵢ|·|dⱼ|)² ≤ 2γ_D·N for unit rows: about 3·10⁻¹³·N at
-    D = 1,280, far below the float32 rounding of the pass's V that step 6 bounds.
-    """
-    y = y[: len(x)]
-    for (c0, c1), wj in zip(cols, w):
-        np.matmul(x[:, :c1], wj, out=y[:, c0:c1])
-    return np.einsum("ij,ij->i", y, x)
-
-
 def _full_sums(d: np.ndarray, lay: Layout, query_rows: np.ndarray, threads: int = 1,
                x32: np.ndarray | None = None) -> _FullSums:
     """T, T_p, C and the quadratic forms, once (O(N·D²) float64), from the original values (step 1).
@@ -522,7 +509,9 @@ def _full_sums(d: np.ndarray, lay: Layout, query_rows: np.ndarray, threads: int 
             dot_total[rows] = x @ total
             dot_q[rows] = x @ queries.T
             dot_place[rows] = gb.sum(axis=2).T.reshape(-1)
-            quad = np.concatenate([_quadratic_forms(x[lo : lo + _QUAD_ROWS], cols, w, buffers.y)
+            # float64 products: each xᵢᵀWxᵢ is off by at most γ_D·|xᵢ|ᵀ|W||xᵢ| ≤ 2γ_D·N for unit
+            # rows, about 3·10⁻¹³·N at D = 1,280: far below the float32 rounding of V (step 6)
+            quad = np.concatenate([triangular_quadratic_forms(x[lo : lo + _QUAD_ROWS], cols, w, buffers.y)
                                    for lo in range(0, len(x), _QUAD_ROWS)])
             sq[rows] = quad - (gb**2).sum(axis=2).T.reshape(-1)  # Σ_{j∉p} s²
 

@@ -512,10 +512,7 @@ def _quadratic_forms(
         if buffers.x is not None:  # float64 input rounded once (float16 converts exactly)
             np.copyto(buffers.x[: len(x)], x, casting="same_kind")
             x = buffers.x[: len(x)]
-        y = buffers.y[: len(x)]
-        for (c0, c1), wj in zip(cols, w):
-            np.matmul(x[:, :c1], wj, out=y[:, c0:c1])
-        quad[lo : lo + len(x)] = np.einsum("ij,ij->i", y, x, dtype=np.float64)
+        quad[lo : lo + len(x)] = triangular_quadratic_forms(x, cols, w, buffers.y)
 
     _side_by_side(pool, tuple(functools.partial(rows, lo) for lo in range(0, n, _QUAD_ROWS)), side_by_side)
     return quad
@@ -533,6 +530,16 @@ def triangular_blocks(gram: np.ndarray, dtype) -> tuple[list[tuple[int, int]], l
     for wj, (lo, _) in zip(w, cols):
         wj[:lo] *= 2
     return cols, w
+
+
+def triangular_quadratic_forms(x: np.ndarray, cols: list[tuple[int, int]], w: list[np.ndarray],
+                               y: np.ndarray) -> np.ndarray:
+    """``(n,)`` xᵢᵀWxᵢ of the rows ``x`` through ``triangular_blocks``' W: each column block of xW
+    into ``y`` (a buffer of W's dtype, at least x's shape), then the float64 row sums of (xW)∘x."""
+    y = y[: len(x)]
+    for (c0, c1), wj in zip(cols, w):
+        np.matmul(x[:, :c1], wj, out=y[:, c0:c1])
+    return np.einsum("ij,ij->i", y, x, dtype=np.float64)
 
 
 def torch_device(device: object):
