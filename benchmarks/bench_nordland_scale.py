@@ -24,8 +24,9 @@ rate on the pass's block shape (4,096 × D @ D × 4,096) are measured in the sam
 it needs, N²·D (half of the 2·N²·D of all ordered pairs: the product is symmetric), as a
 share of that peak. Counted for the protocol too: the similarities, nothing else. Its other
 work is overhead against that count: the diagonal blocks' second triangle (1/n_blocks more
-GEMM flops), the second-moment downdate's products against the query indicators (2·N²·R
-flops, R = splits: 7.8% of N²·D at R = 50, D = 1,280), the float64 full-set sums (O(N·D²))
+GEMM flops), the second-moment downdate's products against the query indicators (N²·R
+flops dense for the panels' rows, R = splits: 3.9% of N²·D at R = 50, D = 1,280, and about
+N²·R/(2m) sparse additions for block J's rows, m images per place), the float64 full-set sums (O(N·D²))
 and the per-split steps. Compare kernels with
 ``env -u OPENBLAS_CORETYPE -u OPENBLAS_L2_SIZE python benchmarks/bench_nordland_scale.py``.
 ``--device cpu`` (or ``cuda``) runs the pass's block products through torch.

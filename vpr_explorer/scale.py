@@ -47,9 +47,11 @@ functions doing each step are named at its end.
    block J's rows:
 
    * V (above): ((S − c)∘(S − c)) @ M, same-place pairs zeroed, with M the (N × R) query
-     indicator: float32 products over chunks of ``_W_CHUNK`` columns for the panel's rows
-     (one nonzero term per place in the chunk) and over the panel's rows for block J's
-     (one per place of the panel), summed in float64;
+     indicator: for the panel's rows, float32 products over chunks of ``_W_CHUNK`` columns
+     (one nonzero term per place in the chunk); for block J's, each slab row that is a
+     query of split r added to split r's float32 sum (a sparse (R × rows) indicator, about
+     R/m rows per split: 1/m of the dense product's flops, ``_PassState.slab_queries``),
+     one term per place of the panel; both summed in float64 across panels;
    * the **top-2 table**: per (image, place) the best and second-best score and the slots
      reaching them. In split r, raw_p of a query is p's best score unless p's held-out
      image is that best, then the second (on a tie the second equals the best). A query is
@@ -113,6 +115,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import sparse
 
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.evaluation import (
@@ -677,6 +680,20 @@ class _PassState:
         self.size = min(max(panel_rows, 1) + lay.slots, widest) * widest  # a panel: at most panel_rows + m rows
         self.slab = _SLAB_ROWS * widest
         self.local = threading.local()
+        self.sparse_queries: dict[tuple[int, int], sparse.csr_array] = {}
+
+    def slab_queries(self, row0: int, n: int) -> sparse.csr_array:
+        """``(R, n)`` float32 CSR: the indicator of layout rows ``row0 … row0 + n − 1``, transposed.
+
+        A slab's rows are a query in about R/m splits each, so ``slab_queries(…) @ q`` adds
+        each such row of q once (a twelfth of the flops of the dense product at m = 12). Kept
+        per slab: block I's panels are the same for every block J.
+        """
+        key = (row0, n)
+        found = self.sparse_queries.get(key)
+        if found is None:  # threads may build the same one: equal values, either is kept
+            found = self.sparse_queries[key] = sparse.csr_array(self.indicator[row0 : row0 + n].T)
+        return found
 
     def buffers(self) -> tuple[np.ndarray, np.ndarray]:
         buf = getattr(self.local, "buf", None)
@@ -720,12 +737,11 @@ def _panel_task(st: _PassState, p: _Panel, mu_range: tuple[float, float], is_que
     st.products(rows, cols, s)
     own = np.arange(gp) if diagonal else None  # the slab rows' place among the columns' places
     with_cols = not diagonal or gj > gp  # a columns' side: places outside the panel
-    mj, mp = st.indicator[cols], st.indicator[rows]
+    mj = st.indicator[cols]
     pad_j = st.pad[cols]
     trav_j = st.row_traversal[cols] if st.row_traversal is not None else None
     v_rows = np.zeros((n, runs))
-    v_cols = np.zeros((runs, nj), dtype=np.float32) if with_cols else None  # transposed: the faster product
-    v_part = np.empty((runs, nj), dtype=np.float32) if with_cols else None
+    v_cols = np.zeros((runs, nj), dtype=np.float32) if with_cols else None  # transposed: rows of the slab's q added
     row_max = np.empty((n, gj), dtype=np.float32)
     col_max = np.full((gp, nj), -np.inf, dtype=np.float32) if with_cols else None
     best = np.empty(n, dtype=np.float32) if diagonal else None
@@ -740,8 +756,8 @@ def _panel_task(st: _PassState, p: _Panel, mu_range: tuple[float, float], is_que
             q.reshape(hs, m, gj)[np.arange(hs), :, own[hl]] = 0.0
         for w0 in range(0, nj, _W_CHUNK):
             v_rows[sl] += q[:, w0 : w0 + _W_CHUNK] @ mj[w0 : w0 + _W_CHUNK]
-        if with_cols:
-            np.add(v_cols, np.matmul(mp[sl].T, q, out=v_part), out=v_cols)
+        if with_cols:  # the slab rows that are queries, as a sparse (R × rows) indicator: few of them per split
+            np.add(v_cols, st.slab_queries(int(rows[sl.start]), hs) @ q, out=v_cols)
         # what a query may match: never padding; in cross-condition, not its own traversal
         pad_k = st.pad[rows[sl]]
         if pad_k.any():
