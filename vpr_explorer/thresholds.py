@@ -346,7 +346,10 @@ def pooled_pair_sample(
     empty = np.empty(0, dtype=np.int64)
     if not sampled:
         return PooledPairSample(descriptors, trains, max_pairs, np.empty(0, dtype=np.float32), empty, empty)
-    images = np.unique(np.concatenate(sampled))
+    member = np.zeros(len(descriptors), dtype=bool)  # the union, ascending (np.unique's result, without its sort)
+    for t in sampled:
+        member[t] = True
+    images = np.flatnonzero(member)
     n_min = min(len(t) for t in sampled)
     n = len(images)
     g = min(n, max(3, -(-n_min * n_min // max_pairs)))
