@@ -230,6 +230,31 @@ def test_identical_places_tie_exactly_as_in_the_reference(monkeypatch):
     assert_same_splits(ref_splits, fast_splits, 10)  # and with them every margin tie
 
 
+def test_twins_compare_only_places_that_share_an_image_and_match_all_places():
+    # content classes with padding (-1), repeats inside one place (not a twin), places
+    # sharing some images but not all, and places whose training sets are equal in some splits
+    rng = np.random.default_rng(5)
+    n_p, m = 300, 6
+    classes = np.arange(n_p * m).reshape(n_p, m)
+    classes[rng.random((n_p, m)) < 0.2] = -1  # padding slots
+    classes[:, 0] = np.arange(n_p) * m  # every place has an image
+    classes[10, 3] = classes[10, 2]  # a repeat within place 10 alone
+    classes[200:210] = classes[100]  # ten places of the same images as place 100
+    classes[50, :3] = classes[60, :3]  # places 50 and 60 share three images
+    classes[71] = classes[70][::-1]  # the same images in another order
+    content = scale._Content(classes, scale._shared_places(classes))
+    assert list(content.shared) == [50, 60, 70, 71, 100] + list(range(200, 210))
+    for _ in range(20):
+        held = rng.integers(0, m, n_p)
+        k = np.arange(m - 1)[None, :]
+        seq = np.where(k < held[:, None], classes[:, :-1], classes[:, 1:])  # every place compared
+        _, first, inverse = np.unique(seq, axis=0, return_index=True, return_inverse=True)
+        np.testing.assert_array_equal(scale._twins(content, held), first[inverse.ravel()])
+    none = scale._Content(classes[:50], scale._shared_places(classes[:50]))
+    assert len(none.shared) == 0
+    np.testing.assert_array_equal(scale._twins(none, held[:50]), np.arange(50))
+
+
 def test_near_tie_repair_recomputes_exactly(monkeypatch):
     # with every weighted θ declared unreliable, every query is a near tie: the repair path
     # recomputes its places in float64, which must then agree with the closed form to the

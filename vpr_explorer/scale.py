@@ -962,8 +962,31 @@ def _split_mu(r: int, train_rows: np.ndarray, lay: Layout, sums: _FullSums, held
     return sum_neg / n_neg, n_neg
 
 
-def _content_classes(d: np.ndarray, lay: Layout) -> np.ndarray:
-    """``(P, m)`` a class per slot: equal for byte-identical descriptors, ``-1`` for padding."""
+@dataclass(frozen=True, eq=False)
+class _Content:
+    """The slots' content classes, and the places that can have a twin."""
+
+    classes: np.ndarray  # (P, m) a class per slot: equal for byte-identical descriptors, -1 for padding
+    shared: np.ndarray  # place indices, ascending, with a slot whose class another place has too
+
+
+def _shared_places(classes: np.ndarray) -> np.ndarray:
+    """Place indices with a slot whose content class appears in another place as well.
+
+    Only they can have a twin: any other place trains, in every split, on an image that no
+    other place holds.
+    """
+    n_p = classes.shape[0]
+    place, _ = np.nonzero(classes >= 0)
+    pairs = np.unique(classes[classes >= 0] * n_p + place)  # distinct (class, place), class-major
+    cls = pairs // n_p
+    in_many = np.bincount(cls)[cls] > 1
+    return np.unique(pairs[in_many] % n_p)
+
+
+def _content_classes(d: np.ndarray, lay: Layout) -> _Content:
+    """A class per slot (``(P, m)``: equal for byte-identical descriptors, ``-1`` for padding),
+    and the places that share a class with another place (``_shared_places``)."""
     real = np.flatnonzero(lay.image_of_row >= 0)
     img = lay.image_of_row[real]
     w = np.random.default_rng(0).standard_normal(d.shape[1])
@@ -994,20 +1017,28 @@ def _content_classes(d: np.ndarray, lay: Layout) -> np.ndarray:
     cls[order] = sorted_cls
     content = np.full((len(lay.places), lay.slots), -1, dtype=np.int64)
     content[lay.place_of_row[real], lay.slot_of_row[real]] = cls
-    return content
+    return _Content(content, _shared_places(content))
 
 
-def _twins(content: np.ndarray, held: np.ndarray) -> np.ndarray:
+def _twins(content: _Content, held: np.ndarray) -> np.ndarray:
     """``(P,)`` for each place, the first place whose training images are the same, in order.
 
+    Only the places that share a content class with another place are compared (the others
+    are their own first); none at all on routes without repeated frames.
+
     Args:
-        content: ``(P, m)`` content class of each slot (``-1`` for padding).
+        content: the slots' content classes (``_content_classes``).
         held: ``(P,)`` held-out slot of each place in this split.
     """
-    k = np.arange(content.shape[1] - 1)[None, :]
-    seq = np.where(k < held[:, None], content[:, :-1], content[:, 1:])  # the training slots, in order
-    _, first, inverse = np.unique(seq, axis=0, return_index=True, return_inverse=True)
-    return first[inverse.ravel()]
+    twins = np.arange(len(held))
+    shared = content.shared
+    if len(shared) > 1:
+        classes = content.classes[shared]
+        k = np.arange(classes.shape[1] - 1)[None, :]
+        seq = np.where(k < held[shared, None], classes[:, :-1], classes[:, 1:])  # the training slots, in order
+        _, first, inverse = np.unique(seq, axis=0, return_index=True, return_inverse=True)
+        twins[shared] = shared[first[inverse.ravel()]]
+    return twins
 
 
 def _sigma(sums: _FullSums, rows: np.ndarray, v: np.ndarray, mu: np.ndarray, n_neg: np.ndarray) -> np.ndarray:
@@ -1029,7 +1060,7 @@ def _place_thresholds(stats: NegativeStats, method: ThresholdMethod, lay: Layout
 
 
 def _split_thresholds(r: int, sp: Split, lay: Layout, sums: _FullSums, pas: _PassResult, held: np.ndarray,
-                      n_places: int, auto: float, user_theta: float | None, content: np.ndarray,
+                      n_places: int, auto: float, user_theta: float | None, content: _Content,
                       mu_n: tuple[np.ndarray, np.ndarray]) -> _SplitData:
     """Split r's statistics and thresholds from the downdated moments (module doc, steps 1 and 3);
     ``mu_n``: ``_split_mu`` of its training rows."""
