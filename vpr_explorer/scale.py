@@ -171,9 +171,10 @@ _DIAGONAL_SPLIT = 3
 PR_FAMILY_CELLS = 10_000_000
 #: Bytes of top-2 table entries kept in RAM; beyond, entries go to a temporary file.
 TABLE_MEMORY = 2 * 1024**3
-#: Rows of M per float32 product of the second-moment downdate: each float32 sum has one
-#: nonzero term per place among them (about 170 for Nordland's places of 12 images); the
-#: chunks are summed in float64.
+#: Rows of M per float32 product of the second-moment downdate's dense side (a panel's own
+#: rows; block J's rows take the sparse one, ``_PassState.slab_queries``): each float32 sum
+#: has one nonzero term per place among them (about 170 for Nordland's places of 12 images);
+#: the chunks are summed in float64.
 _W_CHUNK = 2048
 #: Descriptor rows read (and converted) at a time outside the pass.
 _CHUNK = 8192
