@@ -3,6 +3,11 @@
 Real-data tests skip with a clear reason when ``VPR_EXPLORER_DATA`` is unset (or fail, with
 ``--require-data``). ``.ci/run`` sets it and fails the run when any test is skipped, so CI
 never skips them.
+
+The app's data root (``VPR_EXPLORER_DATA_ROOT``) is, for the session, the nearest folder that
+holds both pytest's temporary folders (where tests write datasets) and the real datasets:
+the app tests open both. The tests of the data root itself (``test_app_data_root.py``) set
+their own.
 """
 
 from __future__ import annotations
@@ -12,6 +17,7 @@ from pathlib import Path
 
 import pytest
 
+from vpr_explorer.app import DATA_ROOT_ENV
 from vpr_explorer.settings import CACHE_ENV, DATA_ENV
 
 
@@ -38,6 +44,26 @@ def isolated_cache(tmp_path_factory) -> Path:
         os.environ.pop(CACHE_ENV, None)
     else:
         os.environ[CACHE_ENV] = old
+
+
+@pytest.fixture(scope="session", autouse=True)
+def app_data_root(tmp_path_factory) -> Path:
+    """The app's data root for the session: the nearest folder holding pytest's temporary folders and the real data.
+
+    Set in the environment, so that AppTest sessions and the servers the tests start (which
+    inherit it) open the datasets the tests write and the real ones alike.
+    """
+    folders = [tmp_path_factory.getbasetemp().resolve()]
+    if os.environ.get(DATA_ENV):
+        folders.append(Path(os.environ[DATA_ENV]).expanduser().resolve())
+    root = Path(os.path.commonpath(folders))
+    old = os.environ.get(DATA_ROOT_ENV)
+    os.environ[DATA_ROOT_ENV] = str(root)
+    yield root
+    if old is None:
+        os.environ.pop(DATA_ROOT_ENV, None)
+    else:
+        os.environ[DATA_ROOT_ENV] = old
 
 
 @pytest.fixture(scope="session")

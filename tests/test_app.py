@@ -660,10 +660,11 @@ def test_an_unavailable_descriptor_is_listed_with_its_reason_and_refused(app, mo
 
 
 @pytest.mark.realdata
-def test_gardens_point_pages_show_the_library_numbers(app, data_root, gardens_point, gp_pixels):
+def test_gardens_point_pages_show_the_library_numbers(app, data_root, gardens_point, gp_pixels, monkeypatch):
     gp = str(data_root / "GardensPointWalking")
+    monkeypatch.setenv("VPR_EXPLORER_DATA_ROOT", str(data_root))  # its folders are listed on the Dataset page
     at = app.run()
-    assert "GardensPointWalking  (under VPR_EXPLORER_DATA)" in at.selectbox(key="w_source").options
+    assert "GardensPointWalking  (under the data root)" in at.selectbox(key="w_source").options
     at.selectbox(key="w_source").set_value(gp).run()
     assert_clean(at)
     assert at.session_state["view"].source == gp

@@ -21,7 +21,7 @@ from images import write_random_route
 from test_app import ROOT, TIMEOUT, assert_clean, metric, page
 from test_app import fresh_caches, navigation_mode  # noqa: F401  (autouse fixtures: every AppTest here needs them)
 
-from vpr_explorer.app import DATASET_ENV, DESCRIPTORS_ENV, ENTRY, PAGES, started_view
+from vpr_explorer.app import DATA_ROOT_ENV, DATASET_ENV, DESCRIPTORS_ENV, ENTRY, PAGES, started_view
 from vpr_explorer.app.launch import SETTINGS, plan
 from vpr_explorer.datasets import load_dataset
 from vpr_explorer.descriptors.imported import write_descriptor_file
@@ -64,23 +64,25 @@ def test_the_launcher_serves_the_packaged_entry_on_this_machine_only(route):
     assert f["--server.address"] == "127.0.0.1" and f["--server.port"] == "8765"
     assert "--server.headless" not in f  # Streamlit opens a browser unless asked not to
     assert flags(plan(headless=True).argv)["--server.headless"] == "true"
-    assert launch.env == {DATASET_ENV: str(route)}
+    assert launch.env == {DATASET_ENV: str(route), DATA_ROOT_ENV: str(route.parent)}  # its neighbours open too
     url = urlsplit(launch.url)
     assert (url.scheme, url.netloc, url.path, parse_qs(url.query)) == ("http", "127.0.0.1:8765", "/",
                                                                        {"source": [str(route)]})
-    assert plan().url == "http://127.0.0.1:8501/" and plan().env == {}
+    assert plan().url == "http://127.0.0.1:8501/" and set(plan().env) == {DATA_ROOT_ENV}
 
 
 def test_the_link_holds_the_started_view_and_a_reachable_host(route, mine, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     launch = plan(dataset="route", descriptors=Path("mine.npz"), address="0.0.0.0")
-    assert launch.env == {DATASET_ENV: str(route), DESCRIPTORS_ENV: str(mine)}  # absolute: any directory
+    assert launch.env == {DATASET_ENV: str(route), DESCRIPTORS_ENV: str(mine),  # absolute: any directory
+                          DATA_ROOT_ENV: str(tmp_path)}
     url = urlsplit(launch.url)
     assert url.netloc == "127.0.0.1:8501"  # every interface: this machine's is one of them
     assert {k: v[0] for k, v in parse_qs(url.query).items()} == {"source": str(route), "descriptor": "mine"}
     assert started_view(launch.env) == {"source": str(route), "descriptor": "mine"}
     assert urlsplit(plan(address="::1", port=9000).url).netloc == "[::1]:9000"
-    assert flags(plan(dataset="demo").argv) and plan(dataset="demo").env == {DATASET_ENV: "demo"}
+    assert flags(plan(dataset="demo").argv) and plan(dataset="demo").env == {DATASET_ENV: "demo",
+                                                                             DATA_ROOT_ENV: str(plan().data_root)}
 
 
 def test_the_checkouts_streamlit_settings_travel_as_flags():
@@ -116,7 +118,7 @@ def test_the_app_opens_the_dataset_and_descriptor_file_it_was_started_on(route, 
         monkeypatch.setenv(name, value)
     at = AppTest.from_file(str(ENTRY), default_timeout=TIMEOUT).run()
     assert_clean(at)
-    assert at.text_input(key="w_folder").value == str(route)
+    assert at.selectbox(key="w_source").value == str(route)  # listed: the data root is the folder holding it
     assert at.radio(key="w_descriptor").value == "mine" and "pixels" in at.radio(key="w_descriptor").options
     assert any(f"mine descriptors ready: {2 * FRAMES} × 16 (read from {mine}" in s.value for s in at.success)
     assert at.query_params["source"] == str(route) and at.query_params["descriptor"] == "mine"

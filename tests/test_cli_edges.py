@@ -1,4 +1,4 @@
-"""The command line's hard edges (issue 10): bad numbers, options a protocol would ignore, what the
+"""The command line's hard edges: bad numbers, options a protocol would ignore, what the
 JSON records, the traversal protocol's direction, error lines beside progress bars, Ctrl-C.
 
 Refusals run ``main`` in this process (they stop before any work); runs, progress bars and
@@ -19,34 +19,18 @@ from pathlib import Path
 
 import pytest
 
+import cli_run
+from cli_run import refused, run
 from images import write_noisy_route
-from vpr_explorer.cli import main
 
 DEMO = ("--dataset", "demo", "--descriptor", "pixels")
 INTERRUPTED = "error: interrupted; run the same command again to resume (descriptors computed so far are cached)"
 
 
-def run(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "vpr_explorer.cli", *args], capture_output=True, text=True,
-                          timeout=600, env=dict(os.environ))
-
-
-def refused(capsys, *args: str) -> subprocess.CompletedProcess:
-    """``main(args)`` in this process, as a finished process (return code, stdout, stderr)."""
-    code = main(list(args))
-    out, err = capsys.readouterr()
-    return subprocess.CompletedProcess(args, code, out, err)
-
 
 def assert_one_error_line(r: subprocess.CompletedProcess, *fragments: str) -> str:
-    """Exit 2, no traceback, and exactly one stderr line (split at newlines only) that starts with ``error:``."""
-    assert r.returncode == 2, r.stderr
-    assert "Traceback" not in r.stderr
-    errors = [line for line in r.stderr.split("\n") if "error:" in line]
-    assert len(errors) == 1 and errors[0].startswith("error: "), repr(r.stderr[-500:])
-    for fragment in fragments:
-        assert fragment in errors[0], errors[0]
-    return errors[0]
+    """The one ``error:`` line (a progress bar's lines may stand beside it)."""
+    return cli_run.assert_one_error_line(r, *fragments, alone=False)
 
 
 def write_route(root: Path, names: tuple[str, ...], frames: int = 8, corrupt: str | None = None) -> Path:

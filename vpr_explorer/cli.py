@@ -7,9 +7,16 @@ cleared first, so that the line stands on its own.
 
 from __future__ import annotations
 
+import sys
+
+if __name__ == "__main__":
+    # ``python -m vpr_explorer.cli`` runs as the console script does: Ctrl-C is handled before the imports below
+    from vpr_explorer.entry import main as _entry_main
+
+    sys.exit(_entry_main())
+
 import argparse
 import json
-import sys
 from pathlib import Path
 
 from vpr_explorer.errors import VPRInputError
@@ -145,10 +152,37 @@ def _protocol_options(args: argparse.Namespace, options: dict | None = None) -> 
     return values
 
 
+def check_radius_option(args: argparse.Namespace) -> float | None:
+    """``--radius`` when given: a positive number of metres (``groundtruth.check_radius``), else ``None``."""
+    from vpr_explorer.groundtruth import check_radius
+
+    return None if args.radius is None else check_radius(args.radius, "radius")
+
+
+def check_radius_applies(args: argparse.Namespace, dataset) -> None:
+    """Refuse ``--radius`` for a dataset whose ground truth no radius makes (VPR-Bench, a manifest's place ids)."""
+    from vpr_explorer.layouts import VPR_BENCH_GT, Layout, RetrievalDataset, radius_applies
+
+    if args.radius is None or (isinstance(dataset, RetrievalDataset) and radius_applies(dataset)):
+        return
+    if not isinstance(dataset, RetrievalDataset):
+        where = "the frame index of aligned traversals"
+    elif dataset.layout is Layout.VPR_BENCH:
+        where = VPR_BENCH_GT
+    elif dataset.layout is Layout.MANIFEST:
+        where = "its place column (the same place id)"
+    else:
+        where = dataset.ground_truth.description
+    layout = dataset.layout.value if isinstance(dataset, RetrievalDataset) else "traversal folders"
+    raise VPRInputError(f"--radius applies to position-tagged layouts; {args.dataset} is {layout}, which takes its "
+                        f"ground truth from {where}: drop --radius")
+
+
 def _benchmark(args: argparse.Namespace):
     """The dataset when ``--dataset``/``--layout`` name a database/queries layout, else ``None``."""
     from vpr_explorer.layouts import RETRIEVAL_LAYOUTS, Layout, detect_layout
 
+    check_radius_option(args)
     if args.dataset == "demo":
         layout = Layout(args.layout)
     else:
@@ -162,8 +196,10 @@ def _benchmark(args: argparse.Namespace):
         return None
     from vpr_explorer.pipeline import open_dataset
 
-    return open_dataset(args.dataset, layout.value, radius=args.radius, database=getattr(args, "database", None),
-                        queries=getattr(args, "queries", None))
+    dataset = open_dataset(args.dataset, layout.value, radius=args.radius, database=getattr(args, "database", None),
+                           queries=getattr(args, "queries", None))
+    check_radius_applies(args, dataset)
+    return dataset
 
 
 def _places_spec(args: argparse.Namespace, dataset):
@@ -194,9 +230,10 @@ def _evaluate_benchmark(args: argparse.Namespace, dataset) -> int:
                             "images are right by its ground truth (position-tagged: --radius)")
     spec, metric = _places_spec(args, dataset)
     descriptor = _descriptor(args)
+    source: dict[str, str] = {}  # a descriptor file's path and sha256: never mistaken for an extractor's run
     if args.descriptors is not None:
         imp = imported_descriptors(dataset, args.descriptors, names_file=args.names, dtype=args.dtype)
-        desc, descriptor = imp.descriptors, imp.name
+        desc, descriptor, source = imp.descriptors, imp.name, imp.settings()
         for note in imp.notes:
             print(f"{args.descriptors.name}: {note}")
     else:
@@ -204,7 +241,7 @@ def _evaluate_benchmark(args: argparse.Namespace, dataset) -> int:
         desc = dataset_descriptors(dataset, descriptor, cache_root=args.cache_dir, progress=_bar("descriptors"),
                                    dtype=args.dtype)
     ev = evaluate_retrieval(dataset, desc, spec=spec, metric=metric, user_theta=args.theta,
-                            settings={"descriptor": descriptor, "dtype": args.dtype},
+                            settings={"descriptor": descriptor, **source, "dtype": args.dtype},
                             progress=_bar("queries"), pr=args.pr)
     print(dataset.describe())
     for note in dataset.notes:
@@ -268,7 +305,9 @@ def _list(args: argparse.Namespace) -> int:
 
     from vpr_explorer.descriptors.imported import relative_names
 
+    check_radius_option(args)
     dataset = open_dataset(args.dataset, args.layout, radius=args.radius)
+    check_radius_applies(args, dataset)
     for name in relative_names(dataset.image_paths, dataset.root):  # the names a descriptor file matches
         print(name)
     return 0
@@ -277,6 +316,16 @@ def _list(args: argparse.Namespace) -> int:
 def _record(args: argparse.Namespace) -> int:
     from vpr_explorer.recording import record_dataset
 
+    from vpr_explorer.layouts import Layout
+
+    check_radius_option(args)
+    for option in ("radius", "geometry"):
+        if getattr(args, option) is not None:
+            raise VPRInputError(f"--{option} applies to database/queries layouts; record plays back aligned "
+                                "traversal folders, whose frames say which database images are right")
+    if args.layout not in (Layout.AUTO.value, Layout.TRAVERSALS.value):
+        raise VPRInputError(f"--layout {args.layout}: record plays back aligned traversal folders only; leave "
+                            "--layout out (or give traversals)")
     playback = record_dataset(
         args.dataset, PlaceSpec(args.group, args.step, args.reading), _descriptor(args),
         database=args.database, queries=args.queries, out=args.out, k=args.k, tolerance=args.tolerance,
@@ -366,9 +415,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
     _bars.reset()
     try:
+        args = build_parser().parse_args(argv)  # the parser imports each command's modules: Ctrl-C is handled here too
         return args.func(args)
     except VPRInputError as exc:
         _bars.clear()
@@ -382,7 +431,3 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: interrupted; {exc}" if isinstance(exc, ExtractionInterrupted) else f"error: {INTERRUPTED}",
               file=sys.stderr)
         return 130
-
-
-if __name__ == "__main__":
-    sys.exit(main())

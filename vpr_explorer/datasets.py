@@ -17,7 +17,12 @@ unreadable file.
 from __future__ import annotations
 
 import csv
+import errno
+import os
 import re
+import stat
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -173,10 +178,65 @@ class Dataset:
         return t * self.n_frames + int(frame)
 
 
+def unusable(path: Path, exc: OSError) -> str:
+    """Why ``path`` cannot be read, for a message: a broken symbolic link names its target."""
+    if os.path.islink(path) and exc.errno in (errno.ENOENT, errno.ENOTDIR, errno.ELOOP):
+        try:
+            target = os.readlink(path)
+        except OSError:
+            target = "?"
+        if exc.errno == errno.ELOOP:
+            return f"{path}: a symbolic link to {target} in a loop of links that never reaches a file; remove or fix it"
+        return f"{path}: a symbolic link to {target}, which does not exist; remove or fix it"
+    return (f"{path}: cannot be read ({exc.strerror or exc}); fix it or its permissions, or remove it from the "
+            "dataset folder")
+
+
+def entries(folder: Path) -> list[Path]:
+    """The entries of ``folder``; a folder that cannot be listed raises ``VPRInputError`` naming it."""
+    try:
+        return list(folder.iterdir())
+    except OSError as exc:
+        raise VPRInputError(unusable(folder, exc)) from exc
+
+
+def kind(path: Path) -> str:
+    """What ``path`` is once symbolic links are followed: ``"file"``, ``"folder"`` or ``"other"`` (a device …).
+
+    Raises:
+        VPRInputError: naming ``path`` when it is a symbolic link to nothing (its target
+            missing, or a loop of links), or cannot be read.
+    """
+    try:
+        mode = os.stat(path).st_mode
+    except OSError as exc:
+        raise VPRInputError(unusable(path, exc)) from exc
+    return "file" if stat.S_ISREG(mode) else "folder" if stat.S_ISDIR(mode) else "other"
+
+
+@contextmanager
+def reading(path: Path) -> Iterator[None]:
+    """Turn an ``OSError`` met while reading the dataset at ``path`` into one ``VPRInputError`` naming the file."""
+    try:
+        yield
+    except OSError as exc:
+        where = Path(exc.filename) if exc.filename else path
+        if where == path and not os.path.islink(path):
+            raise VPRInputError(f"{path}: cannot be read ({exc.strerror or exc}); check the path and its "
+                                "permissions") from exc
+        raise VPRInputError(unusable(where, exc)) from exc
+
+
 def images_in(folder: Path) -> list[Path]:
-    """The images directly in ``folder`` (no hidden files), in natural order of their names."""
+    """The images directly in ``folder`` (no hidden files), in natural order of their names.
+
+    Raises:
+        VPRInputError: the folder cannot be listed, or an entry named as an image is a
+            symbolic link to nothing or cannot be read (it is named, never skipped unsaid).
+    """
     return sorted(
-        (p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")),
+        (p for p in entries(folder)
+         if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".") and kind(p) == "file"),
         key=lambda p: natural_key(p.name),
     )
 
@@ -187,7 +247,7 @@ def _read_positions(root: Path, n_frames: int) -> np.ndarray | None:
         if not path.is_file():
             continue
         try:
-            with path.open(newline="") as fh:
+            with path.open(newline="", encoding="utf-8-sig") as fh:
                 rows = [row for row in csv.reader(fh) if row and not row[0].strip().startswith("#")]
             if rows and not _is_number(rows[0][0]):
                 rows = rows[1:]  # header line
@@ -218,7 +278,8 @@ def _check_nonempty_files(paths: list[Path]) -> None:
 
 def load_traversal_folders(root: Path, traversals: list[str] | None = None) -> Dataset:
     """Read ``ROOT/<traversal>/<frames>``; ``traversals`` picks and orders sub-folders."""
-    subdirs = sorted((p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")), key=lambda p: natural_key(p.name))
+    subdirs = sorted((p for p in entries(root) if not p.name.startswith(".") and kind(p) == "folder"),
+                     key=lambda p: natural_key(p.name))
     if traversals is not None:
         by_name = {p.name: p for p in subdirs}
         missing = [t for t in traversals if t not in by_name]
@@ -300,13 +361,18 @@ def load_prepared_places(root: Path) -> Dataset:
 
 
 def load_dataset(path: str | Path, traversals: list[str] | None = None) -> Dataset:
-    """Load a dataset folder in either layout (see the module docstring)."""
+    """Load a dataset folder in either layout (see the module docstring).
+
+    An entry that cannot be read (no permission, a symbolic link to nothing) is refused by
+    name with a ``VPRInputError``, never skipped unsaid.
+    """
     root = Path(path).expanduser()
-    if not root.exists():
-        raise VPRInputError(f"{root}: the dataset folder does not exist; check the path")
-    if not root.is_dir():
-        raise VPRInputError(f"{root}: is a file, not a dataset folder; give the folder that holds the traversals")
-    flat = images_in(root)
-    if flat and any(PREPARED_NAME.match(p.stem) for p in flat):
-        return load_prepared_places(root)
-    return load_traversal_folders(root, traversals)
+    with reading(root):
+        if not root.exists():
+            raise VPRInputError(f"{root}: the dataset folder does not exist; check the path")
+        if not root.is_dir():
+            raise VPRInputError(f"{root}: is a file, not a dataset folder; give the folder that holds the traversals")
+        flat = images_in(root)
+        if flat and any(PREPARED_NAME.match(p.stem) for p in flat):
+            return load_prepared_places(root)
+        return load_traversal_folders(root, traversals)

@@ -19,6 +19,7 @@ made on demand, a few rows at a time.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -28,6 +29,10 @@ from vpr_explorer.errors import VPRInputError
 
 #: The field's positive radius in metres (VPR datasets downloader, most papers).
 DEFAULT_RADIUS = 25.0
+#: The largest ``|x|`` or ``|y|`` of a position, and the largest radius, in metres: UTM coordinates
+#: stay below 10⁷, and squared distances between positions this far out are still finite and exact
+#: enough to compare with a radius.
+MAX_METRES = 1e9
 
 
 def _csr(lists: Sequence[np.ndarray], n_database: int, what: str) -> tuple[np.ndarray, np.ndarray]:
@@ -84,17 +89,26 @@ class GroundTruth:
     @classmethod
     def from_positions(cls, query_xy: np.ndarray, database_xy: np.ndarray, radius: float = DEFAULT_RADIUS,
                        soft_radius: float | None = None) -> GroundTruth:
-        """Database images within ``radius`` metres of each query (UTM or any metric plane)."""
+        """Database images within ``radius`` metres of each query (UTM or any metric plane).
+
+        Within means distance ≤ ``radius``: an image exactly at the radius is right.
+
+        Raises:
+            VPRInputError: a radius that ``check_radius`` refuses, or a position that is not
+                finite or lies beyond ``MAX_METRES`` (``POSITION_RULE``).
+        """
         from scipy.spatial import cKDTree
 
-        radius = _check_radius(radius, "radius")
+        radius = check_radius(radius, "radius")
         q = np.asarray(query_xy, dtype=np.float64).reshape(-1, 2)
         db = np.asarray(database_xy, dtype=np.float64).reshape(-1, 2)
-        if not (np.isfinite(q).all() and np.isfinite(db).all()):
-            raise VPRInputError("positions: every query and database image needs finite x, y")
-        tree = cKDTree(db)
+        for side, xy in (("query", q), ("database image", db)):
+            bad = np.flatnonzero(~(np.abs(xy) <= MAX_METRES).all(axis=1))  # NaN and ±inf fail too
+            if bad.size:
+                raise VPRInputError(f"positions: {side} {bad[0]}: {position_problem(*xy[bad[0]])}")
+        tree = cKDTree(db)  # its radius search counts distance ≤ radius, as the field does
         hard = tree.query_ball_point(q, r=radius)
-        soft = tree.query_ball_point(q, r=_check_radius(soft_radius, "soft radius")) if soft_radius else None
+        soft = tree.query_ball_point(q, r=check_radius(soft_radius, "soft radius")) if soft_radius else None
         return cls.from_lists(hard, len(db), f"within {radius:g} m", soft)
 
     @classmethod
@@ -178,11 +192,37 @@ class GroundTruth:
                                       None if self.soft_indptr is None else [self.soft_positives(q) for q in queries])
 
 
-def _check_radius(value, name: str) -> float:
+POSITION_RULE = (f"positions are metres (UTM east/north, or x/y in a local plane) with |x| and |y| at most "
+                 f"{MAX_METRES:,.0f}")
+"""What a position must be, for messages that refuse one."""
+
+
+def position_text(xy) -> str:
+    """A position as a message shows it, e.g. ``(1e+300, 6960000)``."""
+    return "(" + ", ".join(f"{float(v):g}" for v in xy) + ")"
+
+
+def position_problem(x: float, y: float) -> str | None:
+    """Why ``(x, y)`` cannot be a position (not finite, or beyond ``MAX_METRES``), or ``None``."""
+    if not (math.isfinite(x) and math.isfinite(y)):
+        return f"the position {position_text((x, y))} is not finite"
+    if abs(x) > MAX_METRES or abs(y) > MAX_METRES:
+        return f"the position {position_text((x, y))} is out of range: {POSITION_RULE}"
+    return None
+
+
+def check_radius(value, name: str = "radius") -> float:
+    """``value`` as a radius in metres: a finite number above 0 and at most ``MAX_METRES``.
+
+    Raises:
+        VPRInputError: naming ``name`` and the value.
+    """
     try:
         r = float(value)
     except (TypeError, ValueError):
         raise VPRInputError(f"{name}={value!r}: must be a distance in metres, e.g. 25") from None
     if not np.isfinite(r) or r <= 0:
         raise VPRInputError(f"{name}={value!r}: must be a positive distance in metres, e.g. 25")
+    if r > MAX_METRES:
+        raise VPRInputError(f"{name}={value!r}: must be at most {MAX_METRES:,.0f} metres, e.g. 25")
     return r

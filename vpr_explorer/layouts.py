@@ -7,14 +7,18 @@ images, query images, positions where the layout has them, and a ``GroundTruth``
 | layout | on disk | right database images |
 |---|---|---|
 | ``database-queries`` | ``database/`` and ``queries/`` (also under ``images/test/``), the position in every file name as ``@UTM_east@UTM_north@zone@letter@…`` (VPR datasets downloader: St Lucia, Pittsburgh, Tokyo 24/7, MSLS, SF-XL) | within ``radius`` metres (25) |
-| ``vpr-bench`` | ``ref/``, ``query/`` and ``ground_truth_new.npy``, one row ``[query index, [reference indices]]`` per query | the listed ones |
+| ``vpr-bench`` | ``ref/``, ``query/`` and ``ground_truth_new.npy``, one row ``[query index, [reference indices]]`` per query (read by ``safe_npy``: nothing pickled in it is run) | the listed ones |
 | ``traversal-positions`` | traversal folders with ``positions.csv`` in each (``x,y`` in metres, or ``lat,lon``), frames need not line up | within ``radius`` metres |
 | ``manifest`` | a CSV ``path,role[,x,y][,place]`` (role ``database``/``query``), for everything else | within ``radius`` metres, or the same place id |
 
 Images are listed in natural order of their path below the folder (what ``vpr-explorer
 list`` prints): database first, then queries. Inconsistent input (a name without a
-position, a ground-truth row pointing past the reference images, mixed UTM zones) raises
-one ``VPRInputError`` naming the file and line.
+position, a position that is not finite or lies beyond ``groundtruth.MAX_METRES``, a
+ground-truth row pointing past the reference images, mixed UTM zones, an image that is a
+symbolic link to nothing or cannot be read) raises one ``VPRInputError`` naming the file
+and line. Lat/lon positions are converted to UTM in one zone for every traversal (the zone
+most frames lie in; ``RetrievalDataset.notes`` says which), so that distances between
+traversals are distances on the ground. CSV files may start with a UTF-8 byte-order mark.
 """
 
 from __future__ import annotations
@@ -28,9 +32,19 @@ from pathlib import Path
 
 import numpy as np
 
-from vpr_explorer.datasets import IMAGE_SUFFIXES, images_in, natural_key, traversal_roles
+from vpr_explorer.datasets import (
+    IMAGE_SUFFIXES,
+    entries,
+    images_in,
+    kind,
+    natural_key,
+    reading,
+    traversal_roles,
+    unusable,
+)
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.groundtruth import DEFAULT_RADIUS, GroundTruth
+from vpr_explorer.groundtruth import DEFAULT_RADIUS, GroundTruth, check_radius, position_problem
+from vpr_explorer.safe_npy import as_indices, read_npy
 
 
 class Layout(StrEnum):
@@ -48,6 +62,8 @@ class Layout(StrEnum):
 #: Layouts read into a ``RetrievalDataset`` (the others are ``datasets.Dataset``).
 RETRIEVAL_LAYOUTS = frozenset({Layout.DATABASE_QUERIES, Layout.VPR_BENCH, Layout.TRAVERSAL_POSITIONS, Layout.MANIFEST})
 VPR_BENCH_GT = "ground_truth_new.npy"
+#: The reference index VPR-Bench writes for a query with no right reference (``[-1]``).
+NO_REFERENCE = -1
 MANIFEST_NAMES = ("manifest.csv",)
 POSITIONS_FILE = "positions.csv"
 
@@ -117,9 +133,29 @@ class RetrievalDataset:
 
 
 def _images_below(folder: Path) -> list[Path]:
-    """Every image below ``folder`` (recursively), in natural order of the relative path."""
-    found = [p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
-             and not any(part.startswith(".") for part in p.relative_to(folder).parts)]
+    """Every image below ``folder`` (recursively), in natural order of the relative path.
+
+    Hidden files and folders are left out and symbolic links to folders are not followed; a
+    folder that cannot be listed, or an entry named as an image that is a symbolic link to
+    nothing or cannot be read, raises ``VPRInputError`` naming it.
+    """
+    found: list[Path] = []
+    todo = [folder]
+    while todo:
+        here = todo.pop()
+        try:
+            with os.scandir(here) as listing:
+                listed = list(listing)
+        except OSError as exc:
+            raise VPRInputError(unusable(here, exc)) from exc
+        for entry in listed:
+            if entry.name.startswith("."):
+                continue
+            path = here / entry.name
+            if entry.is_dir(follow_symlinks=False):
+                todo.append(path)
+            elif path.suffix.lower() in IMAGE_SUFFIXES and kind(path) == "file":
+                found.append(path)
     return sorted(found, key=lambda p: natural_key(p.relative_to(folder).as_posix()))
 
 
@@ -133,8 +169,9 @@ def _utm_from_name(path: Path) -> tuple[float, float, str]:
             f"{path}: the file name carries no position; database-queries layouts name images "
             "'@UTM_east@UTM_north@zone@letter@…' (VPR datasets downloader), or use a manifest CSV"
         ) from None
-    if not (np.isfinite(east) and np.isfinite(north)):
-        raise VPRInputError(f"{path}: the position in the file name is not finite")
+    problem = position_problem(east, north)
+    if problem is not None:
+        raise VPRInputError(f"{path}: in the file name, {problem}")
     zone = "".join(parts[3:5]) if len(parts) > 4 else ""
     return east, north, zone
 
@@ -195,19 +232,57 @@ def load_database_queries(root: Path, radius: float = DEFAULT_RADIUS) -> Retriev
     )
 
 
+def _is_vpr_bench_row(item) -> bool:
+    return isinstance(item, list | tuple) and len(item) == 2 and isinstance(item[1], list | tuple | np.ndarray)
+
+
 def _load_vpr_bench_rows(path: Path, n_q: int, n_db: int) -> list[np.ndarray]:
-    try:
-        rows = np.load(path, allow_pickle=True)
-    except (OSError, ValueError, EOFError) as exc:
-        raise VPRInputError(f"{path}: cannot read the ground truth ({exc}); it should be VPR-Bench's "
-                            "array of [query index, [reference indices]] rows") from exc
+    """Each query's right reference indices from ``ground_truth_new.npy``; nothing in the file is run.
+
+    ``safe_npy`` reads the file. Three forms: VPR-Bench's object array of rows ``[query
+    index, [reference indices]]`` (``(n, 2)``, or ``(n,)`` of such pairs); an object array
+    of ``n_q`` reference-index lists or arrays, the ``i``-th for query ``i``; a 2-D integer
+    array of ``n_q`` rows, row ``i`` the reference indices of query ``i`` (so an ``(n_q, 2)``
+    integer array is two references per query, not ``[query, reference]`` pairs). Every
+    index must be an integer: 0.9, 2.0 or NaN is refused as found, never rounded. A row
+    whose only reference is ``-1`` (``NO_REFERENCE``) is a query with no right reference, as
+    VPR-Bench marks the true negatives of its ``*_TN`` sets (its recall finds no retrieved
+    image in ``[-1]``); ``-1`` beside real references, or any other negative index, is refused.
+    """
+    data = read_npy(path)
+    expected = "VPR-Bench's array of [query index, [reference indices]] rows"
+    per_query = None
+    if data.ndim == 0:
+        raise VPRInputError(f"{path}: holds one {type(data.item()).__name__} (a 0-d array), not {expected}")
+    if data.dtype != object and data.ndim == 2:
+        if data.dtype.kind in "fc":  # refused below; name the first row with a fractional value or NaN, if any
+            first = int(np.argmin((np.isfinite(data) & (data == np.round(data))).all(axis=1)))
+            as_indices(data[first], path=path, where=f"row {first + 1}", what="reference")
+        per_query = list(data)
+    elif data.dtype != object:
+        raise VPRInputError(f"{path}: holds an array of {data.dtype}, shape {data.shape}, not {expected} "
+                            "nor a 2-D array of reference indices (row i for query i)")
+    elif data.ndim == 2 and data.shape[1] == 2:
+        rows = [(row[0], row[1]) for row in data]
+    elif data.ndim == 1 and len(data) and all(_is_vpr_bench_row(item) for item in data):
+        rows = [(item[0], item[1]) for item in data]
+    elif data.ndim == 1:
+        per_query = list(data)
+    else:
+        raise VPRInputError(f"{path}: holds an object array of shape {data.shape}, not {expected}")
+    if per_query is not None:
+        if len(per_query) != n_q:
+            raise VPRInputError(f"{path}: {len(per_query)} rows of reference indices, but query/ holds {n_q} images; "
+                                f"row i lists the references of query i (or write {expected})")
+        rows = list(enumerate(per_query))
     lists: list[np.ndarray | None] = [None] * n_q
-    for line, row in enumerate(rows, start=1):
-        try:
-            qi = int(row[0])
-            refs = np.asarray(row[1], dtype=np.int64).reshape(-1)
-        except (TypeError, ValueError, IndexError):
-            raise VPRInputError(f"{path}: row {line} is not [query index, [reference indices]]") from None
+    for line, (query, references) in enumerate(rows, start=1):
+        query_index = as_indices(query, path=path, where=f"row {line}", what="query index")
+        if query_index.size != 1:
+            raise VPRInputError(f"{path}: row {line} is not [query index, [reference indices]]")
+        qi, refs = int(query_index[0]), as_indices(references, path=path, where=f"row {line}", what="reference")
+        if refs.size and (refs == NO_REFERENCE).all():
+            refs = refs[:0]  # VPR-Bench's true-negative query: no reference is right
         if not 0 <= qi < n_q:
             raise VPRInputError(f"{path}: row {line} names query {qi}, but query/ holds {n_q} images (0..{n_q - 1})")
         if refs.size and (refs.min() < 0 or refs.max() >= n_db):
@@ -238,42 +313,93 @@ def load_vpr_bench(root: Path) -> RetrievalDataset:
     )
 
 
-def _read_xy_csv(path: Path) -> np.ndarray:
-    """``(n, 2)`` metres from a CSV with a header ``x,y`` (metres) or ``lat,lon`` (degrees → UTM)."""
-    with path.open(newline="") as fh:
-        rows = [r for r in csv.reader(fh) if r and not r[0].strip().startswith("#")]
+def _csv_rows(path: Path, wants: str) -> list[tuple[int, list[str]]]:
+    """The rows of a CSV (UTF-8, a byte-order mark allowed) with their line numbers; blank and ``#`` lines left out.
+
+    ``wants`` says what the file should hold, for the message when it is empty.
+    """
+    try:
+        with path.open(newline="", encoding="utf-8-sig") as fh:
+            reader = csv.reader(fh)
+            rows = [(reader.line_num, r) for r in reader if r and not r[0].strip().startswith("#")]
+    except UnicodeDecodeError as exc:
+        raise VPRInputError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start}); save it as UTF-8 "
+                            "CSV") from None
+    except csv.Error as exc:
+        raise VPRInputError(f"{path}: not a readable CSV ({exc})") from None
     if not rows:
-        raise VPRInputError(f"{path}: empty; it needs a header 'x,y' (metres) or 'lat,lon' and one row per frame")
-    header = [h.strip().lower() for h in rows[0]]
+        raise VPRInputError(f"{path}: empty; it needs {wants}")
+    return rows
+
+
+def _read_xy_csv(path: Path) -> tuple[np.ndarray, bool, np.ndarray]:
+    """Positions from a CSV with a header ``x,y`` (metres) or ``lat,lon`` (degrees).
+
+    Returns ``(n, 2)`` values as written, whether they are lat/lon, and the line of each.
+    """
+    rows = _csv_rows(path, "a header 'x,y' (metres) or 'lat,lon' and one row per frame")
+    header_line, header_row = rows[0]
+    header = [h.strip().lower() for h in header_row]
     if {"x", "y"} <= set(header):
         cols, latlon = (header.index("x"), header.index("y")), False
     elif {"lat", "lon"} <= set(header):
         cols, latlon = (header.index("lat"), header.index("lon")), True
     else:
-        raise VPRInputError(f"{path}: line 1 must name the columns: 'x,y' (metres) or 'lat,lon' (degrees)")
+        raise VPRInputError(f"{path}: line {header_line} must name the columns: 'x,y' (metres) or 'lat,lon' "
+                            f"(degrees), not {', '.join(header_row)}")
     values = np.empty((len(rows) - 1, 2))
-    for line, row in enumerate(rows[1:], start=2):
+    lines = np.array([line for line, _ in rows[1:]], dtype=np.int64)
+    for i, (line, row) in enumerate(rows[1:]):
         try:
-            values[line - 2] = float(row[cols[0]]), float(row[cols[1]])
+            values[i] = float(row[cols[0]]), float(row[cols[1]])
         except (ValueError, IndexError):
-            raise VPRInputError(f"{path}: line {line} has no numbers in columns {rows[0][cols[0]]}, "
-                                f"{rows[0][cols[1]]}") from None
-        if not np.isfinite(values[line - 2]).all():
+            raise VPRInputError(f"{path}: line {line} has no numbers in columns {header_row[cols[0]]}, "
+                                f"{header_row[cols[1]]}") from None
+        if not np.isfinite(values[i]).all():
             raise VPRInputError(f"{path}: line {line}: the position is not finite")
-    if latlon:
-        values = _latlon_to_utm(values, path)
-    return values
+        problem = None if latlon else position_problem(*values[i])
+        if problem is not None:
+            raise VPRInputError(f"{path}: line {line}: {problem}")
+    return values, latlon, lines
 
 
-def _latlon_to_utm(latlon: np.ndarray, path: Path) -> np.ndarray:
+def _latlon_to_utm(files: list[tuple[Path, np.ndarray, np.ndarray]]) -> tuple[list[np.ndarray], str]:
+    """Every file's lat/lon as metres of ONE UTM zone, and a note saying which.
+
+    ``files`` holds ``(path, (n, 2) lat/lon, line of each row)``. The zone (and hemisphere)
+    is the one most positions lie in, ties to the first file's: converted each in its own
+    zone, traversals on either side of a zone boundary would land hundreds of kilometres
+    apart. UTM is accurate to well under 1 % a zone or two beyond its own.
+    """
     import utm
 
-    try:
-        east, north, zone, letter = utm.from_latlon(latlon[:, 0], latlon[:, 1])
-    except Exception as exc:  # utm raises OutOfRangeError / ValueError for bad or mixed input
-        raise VPRInputError(f"{path}: cannot convert lat/lon to UTM ({exc}); positions must lie in one UTM "
-                            "zone, latitude −80…84") from exc
-    return np.column_stack([east, north])
+    for path, values, lines in files:
+        lat, lon = values[:, 0], values[:, 1]
+        bad = np.flatnonzero(~((lat >= -80) & (lat <= 84) & (lon >= -180) & (lon <= 180)))
+        if bad.size:
+            i = bad[0]
+            raise VPRInputError(f"{path}: line {lines[i]}: lat {lat[i]:g}, lon {lon[i]:g} is not a position UTM "
+                                "covers (latitude −80…84, longitude −180…180)")
+    everything = np.concatenate([values for _, values, _ in files])
+    zones = np.array([utm.latlon_to_zone_number(lat, lon) for lat, lon in everything.tolist()], dtype=np.int64)
+    numbers, first, counts = np.unique(zones, return_index=True, return_counts=True)
+    zone = int(numbers[max(range(len(numbers)), key=lambda i: (counts[i], -first[i]))])
+    north = everything[:, 0] >= 0
+    northern = bool(2 * north.sum() > len(north) or (2 * north.sum() == len(north) and north[0]))
+    converted = []
+    for _, values, _ in files:
+        east, northing, _, _ = utm.from_latlon(values[:, 0], values[:, 1], force_zone_number=zone,
+                                               force_northern=northern)
+        converted.append(np.column_stack([east, northing]))
+    note = (f"lat/lon converted to UTM zone {zone} ({'north' if northern else 'south'}), the zone of most "
+            "positions, for every traversal")
+    away = (zones != zone) | (north != northern)
+    if away.any():
+        where = [*(f"zone {z}" for z in sorted({int(z) for z in zones[zones != zone]})),
+                 *(["across the equator"] if (north != northern).any() else [])]
+        note += (f"; {int(away.sum()):,} of {len(zones):,} positions lie outside it ({', '.join(where)}) and are "
+                 "measured in it too")
+    return converted, note
 
 
 def load_traversal_positions(root: Path, radius: float = DEFAULT_RADIUS, database: list[str] | None = None,
@@ -282,26 +408,37 @@ def load_traversal_positions(root: Path, radius: float = DEFAULT_RADIUS, databas
 
     The query traversal and the database traversals are ``queries``/``database`` when given,
     else recognised from the names (``ref``/``query`` …), else the last against the others.
+    Every ``positions.csv`` gives ``x,y`` metres, or every one ``lat,lon``; lat/lon are
+    converted in one UTM zone for all traversals (``_latlon_to_utm``, stated in ``notes``).
     """
-    subs = sorted((p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")),
+    subs = sorted((p for p in entries(root) if not p.name.startswith(".") and kind(p) == "folder"),
                   key=lambda p: natural_key(p.name))
     listed = [(sub, images_in(sub)) for sub in subs]
     listed = [(sub, paths) for sub, paths in listed if paths]
     if len(listed) < 2:
         raise VPRInputError(f"{root}: traversal-positions needs at least 2 traversal folders of images")
     names = tuple(sub.name for sub, _ in listed)
-    frames, xy = [], []
+    frames, read = [], []
     for sub, paths in listed:
         pos_file = sub / POSITIONS_FILE
         if not pos_file.is_file():
             raise VPRInputError(f"{pos_file}: missing; every traversal folder needs its {POSITIONS_FILE} "
                                 "(header 'x,y' or 'lat,lon', one row per frame)")
-        pos = _read_xy_csv(pos_file)
+        pos, latlon, lines = _read_xy_csv(pos_file)
         if len(pos) != len(paths):
             raise VPRInputError(f"{pos_file}: {len(pos)} positions for {len(paths)} frames; one row per frame")
+        if read and latlon != read[0][3]:
+            first, kinds = read[0][0], {True: "lat,lon (degrees)", False: "x,y (metres)"}
+            raise VPRInputError(f"{pos_file}: gives {kinds[latlon]}, but {first} gives {kinds[not latlon]}; "
+                                f"give every traversal's {POSITIONS_FILE} the same columns")
         _check_nonempty(paths, sub)
         frames.append(paths)
-        xy.append(pos)
+        read.append((pos_file, pos, lines, latlon))
+    if read[0][3]:
+        xy, zone_note = _latlon_to_utm([(path, pos, lines) for path, pos, lines, _ in read])
+        extra: tuple[str, ...] = (zone_note,)
+    else:
+        xy, extra = [pos for _, pos, _, _ in read], ()
     if queries is not None or database:
         index = {n: i for i, n in enumerate(names)}
         for n in [*(database or []), *([queries] if queries else [])]:
@@ -326,7 +463,7 @@ def load_traversal_positions(root: Path, radius: float = DEFAULT_RADIUS, databas
         query_paths=tuple(frames[q]), database_xy=db_xy, query_xy=q_xy,
         ground_truth=GroundTruth.from_positions(q_xy, db_xy, radius), database_traversal=db_trav,
         query_traversal=np.full(len(frames[q]), q, dtype=np.int64), traversals=names, ordered=len(db) == 1,
-        notes=(f"queries {names[q]} against {', '.join(names[t] for t in db)} ({how})",),
+        notes=(f"queries {names[q]} against {', '.join(names[t] for t in db)} ({how})", *extra),
     )
 
 
@@ -345,37 +482,74 @@ def _missing_files(root: Path, names: list[str], threads: int = 4) -> set[int]:
         return {i for found in pool.map(part, range(0, len(names), 65_536)) for i in found}
 
 
-def load_manifest(path: Path, radius: float = DEFAULT_RADIUS) -> RetrievalDataset:
-    """A CSV ``path,role[,x,y][,place]``: image paths relative to the CSV's folder."""
+def _not_an_image_file(image: Path) -> str:
+    """Why a manifest row's ``image`` is not a file to read: missing, a folder, a broken link, unreadable."""
+    if not os.path.lexists(image):
+        return f"{image} does not exist"
+    try:
+        what = kind(image)
+    except VPRInputError as exc:  # a symbolic link to nothing, or no permission: the message names it
+        return str(exc)
+    if what == "folder":
+        return f"{image} is a folder, not an image file"
+    return f"{image} is not a regular file" if what == "other" else f"{image} cannot be read"
+
+
+def _outside(path: Path, line: int, image: str, within: Path) -> VPRInputError | None:
+    """The refusal of a manifest row whose image does not lie under ``within`` (by its path's text, nothing looked at)."""
+    if Path(os.path.normpath(image)).is_relative_to(within):
+        return None
+    return VPRInputError(f"{path}: line {line}: {image} is not under {within}, the only folder this reader may "
+                         "open; give the images' paths inside it")
+
+
+def load_manifest(path: Path, radius: float = DEFAULT_RADIUS, *, within: Path | None = None) -> RetrievalDataset:
+    """A CSV ``path,role[,x,y][,place]``; the ground truth is the same ``place`` id when that column is there,
+    else positions within ``radius`` metres.
+
+    An image path is relative to the CSV's folder, or absolute (used as given). The file is
+    UTF-8 (a byte-order mark allowed); blank lines and lines starting with ``#`` are left out.
+    With ``within`` (the app's data root), a row whose path, ``..`` taken out, does not lie
+    under that folder is refused before any image is looked at.
+    """
     root = path.parent
-    with path.open(newline="") as fh:
-        rows = [r for r in csv.reader(fh) if r and not r[0].strip().startswith("#")]
-    if not rows:
-        raise VPRInputError(f"{path}: empty; it needs a header 'path,role,x,y' or 'path,role,place'")
-    header = [h.strip().lower() for h in rows[0]]
+    rows = _csv_rows(path, "a header 'path,role,x,y' or 'path,role,place'")
+    header_line, header_row = rows[0]
+    header = [h.strip().lower() for h in header_row]
     if "path" not in header or "role" not in header:
-        raise VPRInputError(f"{path}: line 1 must name the columns path and role, and x,y or place")
+        raise VPRInputError(f"{path}: line {header_line} must name the columns path and role, and x,y or place, "
+                            f"not {', '.join(header_row)}")
     has_xy, has_place = {"x", "y"} <= set(header), "place" in header
     if not (has_xy or has_place):
-        raise VPRInputError(f"{path}: line 1 names neither x,y nor place: the ground truth needs one of them")
+        raise VPRInputError(f"{path}: line {header_line} names neither x,y nor place: the ground truth needs one "
+                            "of them")
     col = {h: i for i, h in enumerate(header)}
     sides: dict[str, list] = {"database": [], "query": []}
-    missing = _missing_files(root, [row[col["path"]].strip() if len(row) > col["path"] else "" for row in rows[1:]])
-    for line, row in enumerate(rows[1:], start=2):
+    relative = [row[col["path"]].strip() if len(row) > col["path"] else "" for _, row in rows[1:]]
+    if within is not None:
+        for (line, _), rel in zip(rows[1:], relative):
+            refusal = _outside(path, line, os.path.join(root, rel), Path(within))
+            if refusal is not None:
+                raise refusal
+    missing = _missing_files(root, relative)
+    for i, (line, row) in enumerate(rows[1:]):
         try:
             rel, role = row[col["path"]].strip(), row[col["role"]].strip().lower()
             role = {"db": "database", "ref": "database", "reference": "database", "queries": "query"}.get(role, role)
             xy = (float(row[col["x"]]), float(row[col["y"]])) if has_xy else (np.nan, np.nan)
             place = row[col["place"]].strip() if has_place else ""
         except (IndexError, ValueError):
-            raise VPRInputError(f"{path}: line {line} does not fill the columns {', '.join(rows[0])}") from None
+            raise VPRInputError(f"{path}: line {line} does not fill the columns {', '.join(header_row)}") from None
         if role not in sides:
             raise VPRInputError(f"{path}: line {line}: role {role!r} must be database or query")
         image = (root / rel)
-        if line - 2 in missing:
-            raise VPRInputError(f"{path}: line {line}: {image} does not exist")
-        if has_xy and not np.isfinite(xy).all():
-            raise VPRInputError(f"{path}: line {line}: the position is not finite")
+        if not rel:
+            raise VPRInputError(f"{path}: line {line}: the path column is empty; give the image's path")
+        if i in missing:
+            raise VPRInputError(f"{path}: line {line}: {_not_an_image_file(image)}")
+        problem = position_problem(*xy) if has_xy else None
+        if problem is not None:
+            raise VPRInputError(f"{path}: line {line}: {problem}")
         sides[role].append((image, xy, place))
     db, q = sides["database"], sides["query"]
     if not db or not q:
@@ -402,33 +576,65 @@ def load_manifest(path: Path, radius: float = DEFAULT_RADIUS) -> RetrievalDatase
 def detect_layout(path: Path) -> Layout:
     """The layout of a dataset path (module doc): a CSV file is a manifest; a folder is
     VPR-Bench with its ground-truth file, database-queries with those folders, traversal
-    positions when every traversal folder has a ``positions.csv``, else traversals/prepared."""
-    if path.is_file():
-        if path.suffix.lower() == ".csv":
+    positions when every traversal folder has a ``positions.csv``, else traversals/prepared.
+
+    Raises:
+        VPRInputError: naming an entry that cannot be read (no permission, a symbolic link to nothing).
+    """
+    with reading(path):
+        if path.is_file():
+            if path.suffix.lower() == ".csv":
+                return Layout.MANIFEST
+            raise VPRInputError(f"{path}: a dataset is a folder, or a manifest .csv file")
+        if any((path / m).is_file() for m in MANIFEST_NAMES):
             return Layout.MANIFEST
-        raise VPRInputError(f"{path}: a dataset is a folder, or a manifest .csv file")
-    if any((path / m).is_file() for m in MANIFEST_NAMES):
-        return Layout.MANIFEST
-    if (path / VPR_BENCH_GT).is_file():
-        return Layout.VPR_BENCH
-    if _database_queries_root(path) is not None:
-        return Layout.DATABASE_QUERIES
-    subs = [p for p in path.iterdir() if p.is_dir() and not p.name.startswith(".")]
-    if len(subs) >= 2 and all((p / POSITIONS_FILE).is_file() for p in subs):
-        return Layout.TRAVERSAL_POSITIONS
-    return Layout.TRAVERSALS
+        if (path / VPR_BENCH_GT).is_file():
+            return Layout.VPR_BENCH
+        if _database_queries_root(path) is not None:
+            return Layout.DATABASE_QUERIES
+        subs = [p for p in entries(path) if not p.name.startswith(".") and kind(p) == "folder"]
+        if len(subs) >= 2 and all((p / POSITIONS_FILE).is_file() for p in subs):
+            return Layout.TRAVERSAL_POSITIONS
+        return Layout.TRAVERSALS
 
 
 def load_retrieval(path: Path, layout: Layout, *, radius: float = DEFAULT_RADIUS, database: list[str] | None = None,
-                   queries: str | None = None) -> RetrievalDataset:
-    """Read one of ``RETRIEVAL_LAYOUTS``."""
-    if layout is Layout.DATABASE_QUERIES:
-        return load_database_queries(path, radius)
-    if layout is Layout.VPR_BENCH:
-        return load_vpr_bench(path)
-    if layout is Layout.TRAVERSAL_POSITIONS:
-        return load_traversal_positions(path, radius, database, queries)
-    if layout is Layout.MANIFEST:
-        manifest = path if path.is_file() else next(path / m for m in MANIFEST_NAMES if (path / m).is_file())
-        return load_manifest(manifest, radius)
+                   queries: str | None = None, within: Path | None = None) -> RetrievalDataset:
+    """Read one of ``RETRIEVAL_LAYOUTS``.
+
+    ``radius`` (metres, checked by ``groundtruth.check_radius`` whatever the layout) makes
+    the ground truth of position-tagged data; VPR-Bench and a manifest's place ids list
+    theirs, and do not read it (``radius_applies`` says which). ``within``: a manifest may
+    name images only under this folder (``load_manifest``); the other layouts list images
+    below the dataset's own folder.
+
+    Raises:
+        VPRInputError: naming the file, line or option at fault; a file or folder that
+            cannot be read is named, never a traceback.
+    """
+    radius = check_radius(radius, "radius")
+    with reading(path):
+        if layout is Layout.DATABASE_QUERIES:
+            return load_database_queries(path, radius)
+        if layout is Layout.VPR_BENCH:
+            return load_vpr_bench(path)
+        if layout is Layout.TRAVERSAL_POSITIONS:
+            return load_traversal_positions(path, radius, database, queries)
+        if layout is Layout.MANIFEST:
+            if path.is_file():
+                return load_manifest(path, radius, within=within)
+            manifest = next((path / m for m in MANIFEST_NAMES if (path / m).is_file()), None)
+            if manifest is None:
+                raise VPRInputError(f"{path}: --layout manifest needs a {' or '.join(MANIFEST_NAMES)} in the folder, "
+                                    "or the path of a manifest .csv file (header path,role and x,y or place)")
+            return load_manifest(manifest, radius, within=within)
     raise VPRInputError(f"layout {layout.value!r} is not a database/queries layout")
+
+
+def radius_applies(dataset: RetrievalDataset) -> bool:
+    """Whether ``dataset``'s ground truth is the database images within a radius of each query's position.
+
+    ``False`` for VPR-Bench (its ground-truth file lists them) and a manifest with a ``place``
+    column (the same place id), whose ground truth no radius changes.
+    """
+    return dataset.database_xy is not None and dataset.database_place is None

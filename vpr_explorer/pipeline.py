@@ -319,8 +319,9 @@ def evaluate_dataset(
 
     ``dtype`` and ``storage`` go to :func:`dataset_descriptors`, the other options to
     :func:`run_protocol`. With ``descriptors_file``, descriptors computed elsewhere are read
-    from it (:func:`imported_descriptors`) instead of ``descriptor``'s extraction, and the
-    file's stem names the descriptor.
+    from it (:func:`imported_descriptors`) instead of ``descriptor``'s extraction, the
+    file's stem names the descriptor, and the settings record the file's path and sha256
+    (``ImportedDescriptors.settings``).
     """
     if descriptors_file is None:
         check_cache_root(cache_root)  # an unusable cache folder fails before the dataset is read or the demo drawn
@@ -329,15 +330,16 @@ def evaluate_dataset(
         raise VPRInputError(f"{source} is a {dataset.layout.value} layout: evaluate it with evaluate_retrieval")
     places = make_places(dataset, spec)
     check_options(protocol, dataset, **options)
+    source: dict[str, str] = {}
     if descriptors_file is not None:
         imp = imported_descriptors(dataset, descriptors_file, names_file=names_file, dtype=dtype)
-        desc, descriptor = imp.descriptors, imp.name
+        desc, descriptor, source = imp.descriptors, imp.name, imp.settings()
     else:
         desc = dataset_descriptors(
             dataset, descriptor, cache_root=cache_root, progress=extract_progress, dtype=dtype, storage=storage
         )
-    return run_protocol(protocol, dataset, places, desc, settings={"descriptor": descriptor, "dtype": str(desc.dtype)},
-                        **options)
+    return run_protocol(protocol, dataset, places, desc,
+                        settings={"descriptor": descriptor, **source, "dtype": str(desc.dtype)}, **options)
 
 
 def imported_descriptors(dataset, path: Path, *, names_file: Path | None = None, dtype: str = "float32",
@@ -355,7 +357,7 @@ def imported_descriptors(dataset, path: Path, *, names_file: Path | None = None,
     ``store.mmap_min_bytes()`` (1 GiB): a million-image database is never copied into memory.
     Other files are read as before.
     """
-    from vpr_explorer.descriptors.imported import load_descriptor_file
+    from vpr_explorer.descriptors.imported import load_descriptor_file, npy_header
     from vpr_explorer.descriptors.store import check_mmap, open_npy, wants_mmap
     from vpr_explorer.layouts import RetrievalDataset
 
@@ -364,8 +366,8 @@ def imported_descriptors(dataset, path: Path, *, names_file: Path | None = None,
         mode = "off"
     if mode != "off" and Path(path).suffix.lower() == ".npy":
         try:
-            shape = np.load(Path(path).expanduser(), mmap_mode="r", allow_pickle=False).shape
-        except (OSError, ValueError, EOFError):
+            shape = npy_header(Path(path).expanduser())[0]  # the header alone, checked against the file's size
+        except VPRInputError:
             shape = ()  # load_descriptor_file names what is wrong with it
         if len(shape) == 2 and wants_mmap(mode, shape[0], shape[1]):
             found = open_npy(path, dataset.image_paths, dataset.root, names_file=names_file)
@@ -378,30 +380,44 @@ def imported_descriptors(dataset, path: Path, *, names_file: Path | None = None,
 
 
 def open_dataset(source: str | Path, layout: str = "auto", *, radius: float | None = None,
-                 database: Sequence[str] | None = None, queries: str | None = None):
+                 database: Sequence[str] | None = None, queries: str | None = None, within: Path | None = None):
     """A ``Dataset`` (aligned traversals, prepared places, ``"demo"``) or a ``layouts.RetrievalDataset``.
 
     ``layout`` is ``auto`` (detected, see ``layouts.detect_layout``) or one of ``layouts.Layout``.
+    ``radius`` (metres, default 25) is checked whatever the layout (``groundtruth.check_radius``);
+    aligned traversals refuse it, and VPR-Bench and a manifest's place ids do not read it
+    (``layouts.radius_applies``: the command line refuses it there). ``within`` (the app's
+    data root): a manifest may name images only under it (``layouts.load_manifest``).
+
+    Raises:
+        VPRInputError: naming the path, file, line or option at fault; an entry of the dataset
+            folder that cannot be read (no permission, a symbolic link to nothing) is named.
     """
-    from vpr_explorer.groundtruth import DEFAULT_RADIUS
+    from vpr_explorer.datasets import reading
+    from vpr_explorer.groundtruth import DEFAULT_RADIUS, check_radius
     from vpr_explorer.layouts import RETRIEVAL_LAYOUTS, Layout, detect_layout, load_retrieval
 
     try:
         layout = Layout(layout)
     except ValueError:
         raise VPRInputError(f"layout {layout!r}: choose one of {', '.join(x.value for x in Layout)}") from None
+    if radius is not None:
+        check_radius(radius, "radius")
     if str(source) == DEMO:
         if layout not in (Layout.AUTO, Layout.TRAVERSALS):
             raise VPRInputError(f"--layout {layout.value}: the demo route is traversal folders")
+        if radius is not None:
+            raise VPRInputError("--radius applies to position-tagged layouts; the demo route is traversal folders")
         return resolve_dataset(source)
     path = Path(source).expanduser()
-    if not path.exists():
-        raise VPRInputError(f"{path}: the dataset folder does not exist; check the path")
+    with reading(path):
+        if not path.exists():
+            raise VPRInputError(f"{path}: the dataset folder does not exist; check the path")
     if layout is Layout.AUTO:
         layout = detect_layout(path)
     if layout in RETRIEVAL_LAYOUTS:
         return load_retrieval(path, layout, radius=DEFAULT_RADIUS if radius is None else radius,
-                              database=list(database) if database else None, queries=queries)
+                              database=list(database) if database else None, queries=queries, within=within)
     if radius is not None:
         raise VPRInputError(f"--radius applies to position-tagged layouts; {path} is read as {layout.value}")
     dataset = load_dataset(path)

@@ -449,7 +449,11 @@ def _cache_key(descriptors_key: str, dataset: Dataset, spec: SweepSpec, places_k
 
 @dataclass(frozen=True, eq=False)
 class SweepResult:
-    """A sweep's cells, with its settings and the data it ran on."""
+    """A sweep's cells, with its settings and the data it ran on.
+
+    ``source`` is what the settings record of a descriptor file (its path and sha256,
+    ``ImportedDescriptors.settings``); empty for an extractor's descriptors.
+    """
 
     spec: SweepSpec
     cells: tuple[Cell, ...]
@@ -457,6 +461,7 @@ class SweepResult:
     descriptor: str
     n_images: int
     seconds: float
+    source: dict[str, str] = field(default_factory=dict)
 
     def cell(self, group: int, step: int, reading: Reading | str) -> Cell:
         want = (group, step, Reading(reading).value)
@@ -476,7 +481,7 @@ class SweepResult:
         return max(ok, key=lambda c: c.value(metric)) if ok else None
 
     def settings(self) -> dict:
-        return {"dataset": self.dataset, "descriptor": self.descriptor, **self.spec.settings()}
+        return {"dataset": self.dataset, "descriptor": self.descriptor, **self.source, **self.spec.settings()}
 
     def to_dict(self) -> dict:
         """JSON-ready: every setting, then one entry per cell (rates in [0, 1], ``None`` where empty)."""
@@ -517,12 +522,15 @@ def sweep(
     progress: Progress | None = None,
     cell_progress: Progress | None = None,
     shared: SharedScores | None = None,
+    source: dict[str, str] | None = None,
 ) -> SweepResult:
     """Evaluate every cell of ``spec``'s grid on ``dataset`` with ``descriptors`` (module doc).
 
     Args:
         descriptors: ``(n_images, D)`` L2-normalised, computed once by the caller.
         descriptor: its name, for the settings.
+        source: for descriptors read from a file, its path and sha256 for the settings
+            (``ImportedDescriptors.settings()``).
         descriptors_key: a content key of ``descriptors`` for ``cache`` (default their ``fingerprint``).
         cache: evaluations kept between sweeps; default a fresh one (within this sweep only).
         progress: ``progress(done, total, message)`` after each cell (``total`` = cells).
@@ -592,7 +600,8 @@ def sweep(
                                   cached=cached, seconds=seconds, cost=cost, evaluation=ev))
         if progress:
             progress(i + 1, len(plan), f"group {g}, step {s} ({r.value})")
-    return SweepResult(spec, tuple(cells), dataset.name, descriptor, dataset.n_images, time.perf_counter() - t0)
+    return SweepResult(spec, tuple(cells), dataset.name, descriptor, dataset.n_images, time.perf_counter() - t0,
+                       dict(source or {}))
 
 
 def table(result: SweepResult, metric: Metric | str, reading: Reading | str) -> str:

@@ -98,12 +98,13 @@ def _write(path: Path | None, text: str, option: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the sweep ``args`` describe; print the cost, the grids and why cells are empty; write CSV/JSON."""
-    from vpr_explorer.cli import _bar, _protocol_options
+    from vpr_explorer.cli import _bar, _protocol_options, check_radius_option
     from vpr_explorer.datasets import Dataset
     from vpr_explorer.pipeline import dataset_descriptors, imported_descriptors, open_dataset
     from vpr_explorer.settings import check_cache_root
     from vpr_explorer.sweep import SweepSpec, empty_reasons, missing_reasons, sweep, sweep_cost, table
 
+    check_radius_option(args)
     for option in ("radius", "geometry"):
         if getattr(args, option) is not None:
             raise VPRInputError(f"--{option} applies to database/queries layouts; a sweep reads aligned traversal "
@@ -126,15 +127,16 @@ def run(args: argparse.Namespace) -> int:
                             "folders (group/step over their frames); evaluate it with `vpr-explorer evaluate`")
     cost = sweep_cost(dataset, spec)  # also refuses a dataset whose file names fix the places, before extraction
     print(f"{dataset.name}: {cost.describe()}")
+    source: dict[str, str] = {}
     if args.descriptors is not None:
         imp = imported_descriptors(dataset, args.descriptors, names_file=args.names, dtype=args.dtype)
-        desc, descriptor = imp.descriptors, imp.name
+        desc, descriptor, source = imp.descriptors, imp.name, imp.settings()
     else:
         descriptor = args.descriptor or "efficientnet-lite0"
         desc = dataset_descriptors(dataset, descriptor, cache_root=args.cache_dir, progress=_bar("descriptors"),
                                    dtype=args.dtype)
     result = sweep(dataset, desc, spec, descriptor=descriptor, progress=_bar("sweep cells"),
-                   cell_progress=_bar(f"{spec.protocol.value} protocol"))
+                   cell_progress=_bar(f"{spec.protocol.value} protocol"), source=source)
     metrics = [Metric(m) for m in (args.metric or [m.value for m in Metric])]
     print(f"{spec.protocol.value} protocol, {descriptor}, method {spec.method}"
           + (f", rejection at k = {spec.k:g}" if spec.protocol is Protocol.OPEN_SET else "")

@@ -9,12 +9,22 @@ descriptor file reach the app through the environment (``DATASET_ENV``, ``LAYOUT
 ``RADIUS_ENV``, ``DESCRIPTORS_ENV``): every session opens them when its link names nothing
 else, the browser that Streamlit opens included.
 
+The data root (``DATA_ROOT_ENV``) travels the same way: a link or the Dataset page opens only
+folders and descriptor files under it. ``--data-root`` names it; by default it is the folder
+that holds ``--dataset`` (a dataset folder's parent, so that its neighbours open too; the
+folder of a manifest ``.csv``; the dataset folder itself where its parent is the file
+system's root), else ``VPR_EXPLORER_DATA``, else the current directory. A ``--dataset``
+outside an explicit ``--data-root`` is refused; the ``--descriptors`` file is the operator's
+and may lie anywhere (a link can only pick it by name). An ``--address`` other than loopback
+prints a warning naming the root: anyone who can reach the port can browse it.
+
 Imports no streamlit: the server is another program.
 """
 
 from __future__ import annotations
 
 import argparse
+import ipaddress
 import os
 import sys
 from collections.abc import Mapping
@@ -22,8 +32,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import urlencode
 
-from vpr_explorer.app import DATASET_ENV, DESCRIPTORS_ENV, ENTRY, LAYOUT_ENV, RADIUS_ENV, started_view
+from vpr_explorer.app import (
+    DATA_ROOT_ENV,
+    DATASET_ENV,
+    DESCRIPTORS_ENV,
+    ENTRY,
+    LAYOUT_ENV,
+    RADIUS_ENV,
+    started_view,
+)
 from vpr_explorer.errors import VPRInputError
+from vpr_explorer.settings import DATA_ENV
 
 DEFAULT_PORT = 8501
 DEFAULT_ADDRESS = "127.0.0.1"
@@ -46,11 +65,15 @@ class Launch:
         argv: the server's command line (``python -m streamlit run ENTRY --flag value …``).
         env: variables added to the caller's environment for the server.
         url: the address to open, with the dataset and descriptor in its query.
+        data_root: the folder the app serves (``DATA_ROOT_ENV``), resolved.
+        warning: printed before the server starts (an address other machines can reach), or ``None``.
     """
 
     argv: tuple[str, ...]
     env: Mapping[str, str]
     url: str
+    data_root: Path
+    warning: str | None = None
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -66,9 +89,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--descriptors", type=Path, default=None, metavar="FILE",
                    help="descriptors computed elsewhere (.npz, .npy, hloc .h5), offered beside the extractors and "
                         "opened first; named by the file's stem")
+    p.add_argument("--data-root", type=Path, default=None, metavar="DIR",
+                   help="the only folder whose datasets and descriptor files a link or the Dataset page may open "
+                        "(symbolic links and .. resolved; nothing outside it is read or listed); default: the folder "
+                        "holding --dataset (a dataset folder's parent, a manifest .csv's folder), else "
+                        f"${DATA_ENV}, else the current folder")
     p.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"port to serve on (default {DEFAULT_PORT})")
     p.add_argument("--address", default=DEFAULT_ADDRESS,
-                   help=f"address to bind (default {DEFAULT_ADDRESS}: this machine only; 0.0.0.0 for every interface)")
+                   help=f"address to bind (default {DEFAULT_ADDRESS}: this machine only; 0.0.0.0 for every interface, "
+                        "and then anyone who can reach the port can browse the data root)")
     p.add_argument("--headless", action="store_true",
                    help="do not open a browser (Streamlit's --server.headless true)")
 
@@ -96,6 +125,50 @@ def _descriptors(path: Path) -> Path:
     return path.expanduser().resolve()
 
 
+def _data_root(given: Path | None, dataset: str | None) -> Path:
+    """The folder the app serves: ``given``, else the one holding ``dataset`` (resolved), else the environment's."""
+    if given is not None:
+        root = Path(given).expanduser()
+        if not root.is_dir():
+            raise VPRInputError(f"--data-root {given}: no such folder; give the folder whose datasets and descriptor "
+                                "files the app may open")
+        root = root.resolve()
+        if dataset is not None and dataset != "demo" and not Path(dataset).is_relative_to(root):
+            raise VPRInputError(f"--dataset {dataset}: not under --data-root {root} (symbolic links and .. resolved); "
+                                "give a dataset under it, or a --data-root that holds it")
+        return root
+    if dataset is not None and dataset != "demo":
+        path = Path(dataset)
+        holder = path.parent
+        return path if path.is_dir() and holder == Path(holder.anchor) else holder
+    value = os.environ.get(DATA_ENV, "").strip()
+    root = Path(value).expanduser() if value else Path.cwd()
+    if not root.is_dir():
+        raise VPRInputError(f"{DATA_ENV}={value}: no such folder; point it at the folder holding the datasets, or "
+                            "give --data-root")
+    return root.resolve()
+
+
+def is_loopback(address: str) -> bool:
+    """True for an address only this machine reaches: 127.0.0.0/8, ``::1`` or ``localhost``."""
+    host = address.strip().strip("[]")
+    if host.lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:  # a host name, or "" (every interface)
+        return False
+
+
+def exposure_warning(address: str, port: int, root: Path) -> str | None:
+    """The line ``run`` prints when the server binds an address other machines may reach; ``None`` for loopback."""
+    if is_loopback(address):
+        return None
+    return (f"warning: --address {address or '(every interface)'} is not loopback: anyone who can reach port {port} "
+            f"can browse the data root {root} (every dataset and descriptor file under it); the default "
+            f"{DEFAULT_ADDRESS} serves this machine only")
+
+
 def _layout(text: str) -> str:
     from vpr_explorer.layouts import Layout
 
@@ -115,19 +188,21 @@ def _radius(value: float) -> str:
 
 def plan(*, dataset: str | None = None, descriptors: Path | None = None, port: int = DEFAULT_PORT,
          address: str = DEFAULT_ADDRESS, headless: bool = False, layout: str | None = None,
-         radius: float | None = None) -> Launch:
+         radius: float | None = None, data_root: Path | str | None = None) -> Launch:
     """The server ``vpr-explorer app`` starts for these options.
 
     Raises:
-        VPRInputError: a dataset folder or descriptor file that is not there, a layout that is not
-            one, a radius that is not a positive number of metres, a descriptor file, layout or
-            radius without its dataset, or a bad port.
+        VPRInputError: a dataset folder, data root or descriptor file that is not there, a dataset
+            outside the data root given, a layout that is not one, a radius that is not a positive
+            number of metres, a descriptor file, layout or radius without its dataset, or a bad port.
     """
     if not 1 <= port <= 65535:
         raise VPRInputError(f"--port {port}: choose a port from 1 to 65535")
     env = {}
     if dataset is not None:
         env[DATASET_ENV] = _dataset(dataset)
+    root = _data_root(None if data_root is None else Path(data_root), env.get(DATASET_ENV))
+    env[DATA_ROOT_ENV] = str(root)
     for option, value, variable, check in (("layout", layout, LAYOUT_ENV, _layout),
                                            ("radius", radius, RADIUS_ENV, _radius)):
         if value is not None:
@@ -146,14 +221,20 @@ def plan(*, dataset: str | None = None, descriptors: Path | None = None, port: i
     host = DEFAULT_ADDRESS if address in ("", "0.0.0.0", "::") else address
     host = f"[{host}]" if ":" in host else host
     query = urlencode(started_view(env))
-    return Launch(argv, env, f"http://{host}:{port}/" + (f"?{query}" if query else ""))
+    return Launch(argv, env, f"http://{host}:{port}/" + (f"?{query}" if query else ""), root,
+                  exposure_warning(address, port, root))
 
 
 def run(args: argparse.Namespace) -> int:
     """``vpr-explorer app``: print the URL, then become the Streamlit server (until Ctrl-C)."""
     launch = plan(dataset=args.dataset, descriptors=args.descriptors, port=args.port, address=args.address,
-                  headless=args.headless, layout=getattr(args, "layout", None), radius=getattr(args, "radius", None))
-    print(f"VPR Threshold Explorer: {launch.url}\n  (serving {ENTRY.parent})", flush=True)
+                  headless=args.headless, layout=getattr(args, "layout", None), radius=getattr(args, "radius", None),
+                  data_root=getattr(args, "data_root", None))
+    print(f"VPR Threshold Explorer: {launch.url}\n  (serving {ENTRY.parent})\n"
+          f"  data root: {launch.data_root} (a link opens only datasets and descriptor files under it; --data-root)",
+          flush=True)
+    if launch.warning is not None:
+        print(launch.warning, flush=True)
     # exec, not a child process: Ctrl-C and a supervisor's SIGTERM reach the server itself.
     os.execve(launch.argv[0], list(launch.argv), {**os.environ, **launch.env})
     return 0  # not reached

@@ -33,6 +33,7 @@ see it stops the job with an error naming the folder and the node.
 from __future__ import annotations
 
 import functools
+import logging
 import os
 import re
 import signal
@@ -65,6 +66,17 @@ PROBE = "ray-probe"
 # Seconds to wait for a cluster's address to accept a connection before saying it is
 # unreachable (ray.init itself retries for minutes).
 CONNECT_TIMEOUT_S = 5.0
+# Seconds to wait, once connected, for the address to answer as a Ray head does: its GCS is
+# a gRPC server, which answers the HTTP/2 client preface with a SETTINGS frame at once.
+PROBE_TIMEOUT_S = 3.0
+# Seconds ray.init may take to join a cluster whose address answered as HTTP/2 (a GCS that
+# does not take the join, another gRPC server, an SSH tunnel Ray does not go through: ray.init
+# retries for minutes, deaf to Ctrl-C meanwhile).
+JOIN_TIMEOUT_S = 10.0
+# What a client sends first on an HTTP/2 connection: the preface and an empty SETTINGS frame.
+_H2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
+_HEAD_WHAT = ("give the address that `ray start --head` prints (HOST:6379 by default; ray://HOST:10001 for Ray "
+              f"Client), or use --ray {LOCAL}")
 # Environment variables the workers need to build the same extractor as the driver
 # (users' models, weights); the cache and dataset are passed as absolute paths instead.
 _PASSED_ENV_PREFIX = "VPR_EXPLORER_"
@@ -129,7 +141,12 @@ def import_ray():
 
 
 def _check_reachable(address: str) -> None:
-    """Fail at once, naming ``address``, when nothing accepts a connection there."""
+    """Fail at once, naming ``address``, when nothing accepts a connection there or what answers is no Ray head.
+
+    A Ray head's GCS (and a Ray Client server) is a gRPC server: it answers the HTTP/2 client
+    preface with a SETTINGS frame. Anything else (an HTTP/1 server, silence, a closed
+    connection, other bytes) is named in the error; ray.init would retry it for minutes.
+    """
     target = address.removeprefix("ray://")
     host, sep, port = target.rpartition(":")
     if not sep or not port.isdigit() or not host:
@@ -138,15 +155,105 @@ def _check_reachable(address: str) -> None:
             f"`ray start --head` prints, e.g. 10.0.0.5:6379), 'auto' for the cluster this machine joined, "
             f"or '{LOCAL}'"
         )
+    host = host.strip("[]")
     try:
-        with socket.create_connection((host.strip("[]"), int(port)), timeout=CONNECT_TIMEOUT_S):
-            pass
+        with socket.create_connection((host, int(port)), timeout=CONNECT_TIMEOUT_S) as sock:
+            if _uses_tls():
+                return  # a TLS head answers a TLS handshake, not the plain preface
+            answer, ended = _answer_to_preface(sock)
     except OSError as exc:
         raise VPRInputError(
             f"--ray {address}: the Ray cluster is unreachable ({exc.strerror or type(exc).__name__} within "
             f"{CONNECT_TIMEOUT_S:g} s); check that `ray start --head` runs there and the port is open, "
             f"or use --ray {LOCAL}"
         ) from None
+    if _is_h2_settings(answer):
+        return
+    raise VPRInputError(f"--ray {address}: not a Ray cluster: {_what_answered(host, int(port), answer, ended)}; a "
+                        f"Ray head answers as a gRPC (HTTP/2) server: {_HEAD_WHAT}")
+
+
+def _uses_tls() -> bool:
+    """Whether Ray is told to speak TLS to the cluster (``RAY_USE_TLS``)."""
+    return os.environ.get("RAY_USE_TLS", "0").strip().lower() in ("1", "true", "yes")
+
+
+def _read_some(sock: socket.socket, seconds: float, enough: Callable[[bytes], bool]) -> tuple[bytes, bool]:
+    """Bytes read from ``sock`` until they are ``enough``, the peer closes, or ``seconds`` pass.
+
+    Returns the bytes and whether the peer closed the connection.
+    """
+    deadline = time.monotonic() + seconds
+    data = b""
+    while not enough(data):
+        left = deadline - time.monotonic()
+        if left <= 0:
+            return data, False
+        sock.settimeout(left)
+        try:
+            chunk = sock.recv(4096)
+        except TimeoutError:
+            return data, False
+        except ConnectionResetError:
+            return data, True
+        if not chunk:
+            return data, True
+        data += chunk
+    return data, False
+
+
+def _http_head_read(data: bytes) -> bool:
+    """Whether ``data`` holds an HTTP/1 response's whole head (or as much as is worth reading)."""
+    return b"\r\n\r\n" in data or len(data) >= 4096
+
+
+def _answer_to_preface(sock: socket.socket) -> tuple[bytes, bool]:
+    """What the peer sends back to the HTTP/2 client preface within ``PROBE_TIMEOUT_S``, and whether it closed.
+
+    A frame header's 9 bytes are enough, unless the answer is an HTTP/1 response: then its head.
+    """
+    try:
+        sock.sendall(_H2_PREFACE)
+    except OSError:
+        return b"", True
+    return _read_some(sock, PROBE_TIMEOUT_S,
+                      lambda data: _http_head_read(data) if data.startswith(b"HTTP/") else len(data) >= 9)
+
+
+def _is_h2_settings(data: bytes) -> bool:
+    """Whether ``data`` starts with an HTTP/2 SETTINGS frame's header (type 4, stream 0)."""
+    return len(data) >= 9 and data[3] == 0x4 and data[5:9] == bytes(4) and int.from_bytes(data[:3], "big") % 6 == 0
+
+
+def _http_status(data: bytes) -> str | None:
+    """``"HTTP/1.0 200 OK, Server: …"`` of an HTTP/1 response's head in ``data``; ``None`` if it is not one."""
+    if not data.startswith(b"HTTP/"):
+        return None
+    lines = data.split(b"\r\n\r\n", 1)[0].decode("latin-1").splitlines()
+    server = next((line.split(":", 1)[1].strip() for line in lines[1:] if line.lower().startswith("server:")), None)
+    return lines[0].strip()[:80] + (f", Server: {server[:80]}" if server else "")
+
+
+def _what_answered(host: str, port: int, answer: bytes, ended: bool) -> str:
+    """Says what answered the preface ``answer`` (``ended``: then closed), asking again as HTTP/1 if unclear."""
+    status = _http_status(answer)
+    if status is None and answer and answer[:1] in (b"\x15", b"\x16") and answer[1:2] == b"\x03":
+        return ("a TLS server answered there (for a Ray head started with TLS, set RAY_USE_TLS=1 and its "
+                "RAY_TLS_* certificate variables here)")
+    if status is None and answer:
+        # An HTTP/1 server may answer the preface with a bare error page: a plain request names it.
+        try:
+            with socket.create_connection((host, port), timeout=PROBE_TIMEOUT_S) as sock:
+                sock.sendall(f"HEAD / HTTP/1.0\r\nHost: {host}\r\n\r\n".encode())
+                status = _http_status(_read_some(sock, PROBE_TIMEOUT_S, _http_head_read)[0])
+        except OSError:
+            status = None
+    if status is not None:
+        return f"an HTTP server answered there ({status})"
+    if not answer:
+        return ("it accepted the connection and closed it without a word" if ended else
+                f"it accepted the connection but said nothing within {PROBE_TIMEOUT_S:g} s")
+    return f"it answered {answer[:40]!r}"
 
 
 def _job_env() -> dict[str, str]:
@@ -181,7 +288,9 @@ def connect(address: str | None, *, num_cpus: int | None = None) -> bool:
         num_cpus: with ``"local"``, the CPUs the instance may use (default: all).
 
     Raises:
-        VPRInputError: Ray not installed, or the address unreachable (named).
+        VPRInputError: Ray not installed, the address unreachable, answered by something
+            other than a Ray head, or not joined within ``JOIN_TIMEOUT_S`` (named).
+        KeyboardInterrupt: Ctrl-C while joining, at once.
     """
     if address not in (None, LOCAL, "auto"):
         _check_reachable(address)
@@ -198,12 +307,76 @@ def connect(address: str | None, *, num_cpus: int | None = None) -> bool:
     if address == LOCAL:
         ray.init(address=LOCAL, num_cpus=num_cpus, include_dashboard=False, **kwargs)
         return True
+    token = (f"check its token (copy the head's ~/.ray/auth_token here, or set RAY_AUTH_MODE as the cluster was "
+             f"started), or use --ray {LOCAL}")
     try:
-        ray.init(address=address, **kwargs)
+        joined = _init_within(ray, JOIN_TIMEOUT_S, address=address, **kwargs)
     except ConnectionError as exc:
-        raise VPRInputError(f"--ray {address}: cannot connect to a Ray cluster ({exc}); check its token (copy the "
-                            f"head's ~/.ray/auth_token here, or set RAY_AUTH_MODE as the cluster was started), "
-                            f"or use --ray {LOCAL}") from None
+        raise VPRInputError(f"--ray {address}: cannot connect to a Ray cluster ({exc}); {token}") from None
+    if not joined:
+        if address == "auto":
+            what, check = "", "check that `ray start` joined this machine to a running cluster"
+        else:
+            what = ": it answers as an HTTP/2 server, but Ray's join did not complete"
+            check = "check that it is the head's address that `ray start --head` prints"
+        raise VPRInputError(f"--ray {address}: no Ray cluster joined within {JOIN_TIMEOUT_S:g} s{what}; {check}, "
+                            f"and {token}")
+    return True
+
+
+class _DropRecord:
+    """A logging filter dropping the records whose message starts with ``prefix``."""
+
+    def __init__(self, prefix: str) -> None:
+        self.prefix = prefix
+
+    def filter(self, record) -> bool:
+        return not str(record.msg).startswith(self.prefix)
+
+
+def _init_within(ray, seconds: float, **init) -> bool:
+    """``ray.init(**init)``, waited for ``seconds`` at most and stopped by Ctrl-C; whether it returned in time.
+
+    ray.init retries a GCS that does not take the join for minutes, in C++ code that Python's
+    signal handler only reaches between tries (a Ctrl-C took 23 s), so it runs in a thread
+    of its own while this one waits. A join given up on (the time was up, or Ctrl-C) that
+    completes later is undone there, so that the process is never left joined after it
+    was told otherwise. What ray.init raises is raised here.
+    """
+    lock = threading.Lock()
+    finished = threading.Event()
+    state: dict = {"abandoned": False, "error": None}
+
+    def join() -> None:
+        try:
+            ray.init(**init)
+        except BaseException as exc:  # raised in the waiting thread below
+            state["error"] = exc
+        with lock:
+            finished.set()
+            late = state["abandoned"] and state["error"] is None
+        if late:
+            ray.shutdown()
+
+    # ray.init sets this SIGTERM handler (SystemExit, so that atexit disconnects) from the main thread only,
+    # and warns when it runs in another.
+    quiet = _DropRecord("SIGTERM handler is not set")
+    worker_log = logging.getLogger("ray._private.worker")
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(signum))
+    worker_log.addFilter(quiet)
+    try:
+        threading.Thread(target=join, name="vpr-ray-init", daemon=True).start()
+        finished.wait(seconds)
+    finally:
+        with lock:
+            state["abandoned"] = not finished.is_set()
+        if not state["abandoned"]:  # else ray.init goes on, and may yet warn
+            worker_log.removeFilter(quiet)
+    if state["abandoned"]:
+        return False
+    if state["error"] is not None:
+        raise state["error"]
     return True
 
 

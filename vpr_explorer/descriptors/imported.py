@@ -35,12 +35,17 @@ file name.
 
 Everything is checked before any descriptor is used, each fault as one
 :class:`~vpr_explorer.errors.VPRInputError` naming the file and the fix: an unknown
-extension, an unreadable or truncated file, arrays of the wrong kind or shape,
-descriptors of different lengths, a row count that does not fit, duplicate names,
-images the file lacks and names that are not images of the dataset (the first few of
-each, and how many), and rows that are NaN, infinite or zero (naming their images).
-Only then are rows L2-normalised; rows already within ``UNIT_TOLERANCE`` of unit length
-are kept as stored, so the project's own descriptors come back bit for bit.
+extension, an unreadable or truncated file, a shape claimed by a ``.npy`` header, a
+``.npz`` entry's header or an HDF5 dataset that the file does not hold or that exceeds
+this machine's memory (checked from the headers and the archive's or HDF5's own record
+of what is stored, before anything is allocated), HDF5 values kept in other files,
+arrays of the wrong kind or shape, descriptors of different lengths, a row count that
+does not fit, duplicate names, images the file lacks and names that are not images of
+the dataset (the first few of each, and how many), and rows that are NaN, infinite,
+zero or of a norm below ``MIN_NORM`` (naming their images). Only then are rows
+L2-normalised; rows already within ``UNIT_TOLERANCE`` of unit length are kept as
+stored, so the project's own descriptors come back bit for bit, and a finite row too
+large to square in float64 (entries near 1e300) is scaled by its largest entry first.
 
 :attr:`ImportedDescriptors.key` is a sha256 over the file's bytes (read in chunks; a
 ``.npy``'s names file too), the dtype and the dataset's image names, so caches keyed by
@@ -53,7 +58,9 @@ are exported for use elsewhere (e.g. hloc's ``pairs_from_retrieval`` reads the `
 
 from __future__ import annotations
 
+import functools
 import hashlib
+import math
 import os
 import tokenize
 import zipfile
@@ -120,6 +127,7 @@ class ImportedDescriptors:
         names_file: the names file a ``.npy``'s rows were matched by, else ``None``.
         notes: what the reader decided on the way (format details, fallback name
             matches, normalisation), one sentence each, for the UI and the CLI.
+        digests: sha256 hex of the file's bytes, then of the names file's when there is one.
     """
 
     descriptors: np.ndarray
@@ -129,9 +137,26 @@ class ImportedDescriptors:
     path: Path
     names_file: Path | None = None
     notes: tuple[str, ...] = field(default=())
+    digests: tuple[str, ...] = field(default=())
 
     def __post_init__(self) -> None:
         self.descriptors.setflags(write=False)
+
+    def settings(self) -> dict[str, str]:
+        """What an evaluation's settings record of the file: its absolute path and sha256, and its names file's.
+
+        Flat keys (``descriptors_file``, ``descriptors_sha256``, then ``names_file`` and
+        ``names_sha256``), so that a run on a file whose stem is a built-in extractor's name
+        (``pixels.npz``) is never mistaken for that extractor's run.
+        """
+        out = {"descriptors_file": os.path.abspath(self.path)}
+        if self.digests:
+            out["descriptors_sha256"] = self.digests[0]
+        if self.names_file is not None:
+            out["names_file"] = os.path.abspath(self.names_file)
+            if len(self.digests) > 1:
+                out["names_sha256"] = self.digests[1]
+        return out
 
     @property
     def n_images(self) -> int:
@@ -242,7 +267,8 @@ def load_descriptor_file(
     before = _stamp(path)
     read = _READERS[fmt](path, None if names_file is None else Path(names_file).expanduser())
     files = (path,) if read.names_file is None else (path, read.names_file)
-    key = _content_key(files, dtype, image_names)
+    digests = _file_digests(files)
+    key = _content_key(files, dtype, image_names, digests=digests)
     if _stamp(path) != before:
         raise VPRInputError(f"{path}: the file changed while it was read; open it again once it is fully written")
 
@@ -260,6 +286,9 @@ def load_descriptor_file(
         order, match_notes = _match_names(read.names, image_names, path, root)
         notes.extend(match_notes)
 
+    needed = _nbytes((len(order), read.rows.shape[1]), np.dtype(dtype))
+    _check_memory(path, f"its {len(order):,} descriptors of length {read.rows.shape[1]:,} take {_size_text(needed)} "
+                        f"as {dtype}", needed, "read them as float16 (dtype), or on a machine with more memory")
     descriptors, rescaled = _unit_rows(read.rows, order, image_names, path, dtype)
     notes.append(
         "L2-normalised after the checks: "
@@ -268,7 +297,7 @@ def load_descriptor_file(
     )
     return ImportedDescriptors(
         descriptors=descriptors, name=path.stem, key=key, source=fmt, path=path,
-        names_file=read.names_file, notes=tuple(notes),
+        names_file=read.names_file, notes=tuple(notes), digests=digests,
     )
 
 
@@ -351,6 +380,7 @@ def _read_npz(path: Path, names_file: Path | None) -> _Read:
     # Checked first: np.load takes a file without the zip signature for a pickle.
     if not _starts(path).startswith(ZIP_MAGIC) or not zipfile.is_zipfile(path):
         raise _unreadable(path, "not a zip archive: truncated, or not written by np.savez")
+    _check_npz_claims(path)
     try:
         archive = np.load(path, allow_pickle=False)
     except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
@@ -401,10 +431,11 @@ def _read_npy(path: Path, names_file: Path | None) -> _Read:
         raise VPRInputError(f"{path}: this is an .npz archive, not a single array: rename it {path.stem}.npz")
     if magic != NPY_MAGIC:
         raise _unreadable(path, "it does not start with NumPy's .npy header")
+    npy_header(path)  # the header's claim against the file's size, before anything is mapped
     try:
         # Memory-mapped: rows are copied once, straight into the result in the dataset's order.
         rows = np.load(path, mmap_mode="r", allow_pickle=False)
-    except (ValueError, OSError, EOFError, SyntaxError, tokenize.TokenError) as exc:
+    except (ValueError, OSError, EOFError, SyntaxError, tokenize.TokenError, OverflowError) as exc:
         raise _unreadable(path, exc) from None
     _check_matrix(rows, path, "the array")
     names_file = _find_names_file(path, names_file)
@@ -447,6 +478,8 @@ def _read_hloc(path: Path, names_file: Path | None) -> _Read:
 
     found: list[str] = []
     vectors: list[np.ndarray] = []
+    file_size = _stamp(path)[0]
+    claimed = 0
     try:
         with h5py.File(path, "r") as fd:
             fd.visit(lambda name: found.append(name) if name.rsplit("/", 1)[-1] == HLOC_KEY else None)
@@ -457,6 +490,9 @@ def _read_hloc(path: Path, names_file: Path | None) -> _Read:
                     raise VPRInputError(
                         f"{path}: {name} holds {dataset.dtype} values; descriptors must be real numbers"
                     )
+                claimed += _hloc_claim(path, name, dataset, file_size, h5py)
+                _check_memory(path, f"its {HLOC_KEY!r} datasets claim {_size_text(claimed)} up to {name}", claimed,
+                              "the file is damaged or not one dataset's global descriptors: write it again")
                 vector = np.empty(dataset.shape, dtype=dataset.dtype)
                 dataset.read(h5py.h5s.ALL, h5py.h5s.ALL, vector)
                 vectors.append(vector)
@@ -494,6 +530,46 @@ def _read_hloc(path: Path, names_file: Path | None) -> _Read:
     rows = np.stack(vectors)
     _check_matrix(rows, path, f"the {HLOC_KEY!r} datasets")
     return _Read(rows=rows, names=names, notes=(f"{path.name}: hloc global features, {_shape_note(rows)}",))
+
+
+def _hloc_claim(path: Path, name: str, dataset, file_size: int, h5py) -> int:
+    """The bytes an HDF5 dataset claims, refused at once when its storage says the file does not hold them.
+
+    A contiguous dataset must have all of its bytes stored in the file; a chunked one
+    (compressed or not) must have every chunk written, or HDF5 would make up fill values
+    for the rest. Values kept in other files (external or virtual datasets) are not read.
+    """
+    shape = dataset.shape or ()
+    nbytes = _nbytes(shape, dataset.dtype)
+    offset = dataset.get_offset()  # an address in this file only for contiguous values stored in it (hloc's)
+    if offset is not None and dataset.get_storage_size() == nbytes and offset + nbytes <= file_size:
+        return nbytes
+    dcpl = dataset.get_create_plist()
+    layout = dcpl.get_layout()
+    if layout == h5py.h5d.VIRTUAL or dcpl.get_external_count():
+        kind = "virtual" if layout == h5py.h5d.VIRTUAL else "external"
+        raise VPRInputError(
+            f"{path}: {name} keeps its values in other files (an HDF5 {kind} dataset), which are not read; write "
+            "the descriptors into the file itself, as hloc does"
+        )
+    claim = f"{name} claims shape {shape} of {dataset.dtype} ({_size_text(nbytes)})"
+    if layout == h5py.h5d.CONTIGUOUS:
+        stored = dataset.get_storage_size()
+        if stored != nbytes or nbytes > file_size:
+            raise VPRInputError(
+                f"{path}: {claim}, but the file stores {_size_text(stored)} for it ({_size_text(file_size)} in "
+                "all); the dataset was never written or the file is damaged: write the descriptors again"
+            )
+    elif layout == h5py.h5d.CHUNKED:
+        needed = math.prod(-(-n // c) for n, c in zip(shape, dcpl.get_chunk()))
+        written = dataset.get_num_chunks()
+        if written < needed:
+            raise VPRInputError(
+                f"{path}: {claim}, but only {written:,} of its {needed:,} chunks are written (HDF5 would fill the "
+                "rest with a constant); the dataset was never fully written or the file is damaged: write the "
+                "descriptors again"
+            )
+    return nbytes
 
 
 def _dataset_leaves(fd, h5py) -> set[str]:
@@ -634,16 +710,20 @@ def _unit_rows(
 
     Norms are float64 (float32 squares overflow above ~1e19). Rows within
     ``UNIT_TOLERANCE`` of unit length are cast, not divided, so float32 unit rows come
-    back bit-exact; the others are divided in float64, as extraction does.
+    back bit-exact; the others are divided in float64, as extraction does. A finite row
+    whose float64 norm overflows (entries near 1e300) is divided by its largest
+    magnitude first: it has a direction like any other row.
 
     Raises:
-        VPRInputError: naming the images whose row is NaN/infinite or zero.
+        VPRInputError: naming the images whose row is NaN/infinite, all zero, or of a norm
+            below ``MIN_NORM``.
     """
     n, d = len(order), rows.shape[1]
     out = np.empty((n, d), dtype=dtype)
     step = max(1, CHUNK_BYTES // (8 * d))
     not_finite: list[int] = []
     zero: list[int] = []
+    tiny: list[int] = []
     rescaled = 0
     for lo in range(0, n, step):
         block = np.asarray(rows[order[lo : lo + step]])
@@ -653,27 +733,156 @@ def _unit_rows(
             norms = np.linalg.norm(np.where(finite[:, None], wide, 0.0), axis=1)
         small = finite & ~(norms >= MIN_NORM)
         if not finite.all() or small.any():
+            all_zero = small & ~np.any(wide != 0, axis=1)
             not_finite.extend((lo + np.flatnonzero(~finite)).tolist())
-            zero.extend((lo + np.flatnonzero(small)).tolist())
+            zero.extend((lo + np.flatnonzero(all_zero)).tolist())
+            tiny.extend((lo + np.flatnonzero(small & ~all_zero)).tolist())
             continue
-        if not_finite or zero:
+        if not_finite or zero or tiny:
             continue  # an error is coming: only collect the culprits
         off = np.flatnonzero(np.abs(norms - 1.0) > UNIT_TOLERANCE)
-        out[lo : lo + len(block)] = block
+        with np.errstate(over="ignore"):  # rows too large for ``dtype`` are off unit length: replaced below
+            out[lo : lo + len(block)] = block
         if len(off):
+            huge = off[np.isinf(norms[off])]
             out[lo + off] = wide[off] / norms[off, None]
+            if len(huge):
+                scaled = wide[huge] / np.abs(wide[huge]).max(axis=1, keepdims=True)
+                out[lo + huge] = scaled / np.linalg.norm(scaled, axis=1, keepdims=True)
             rescaled += len(off)
-    if not_finite or zero:
+    if not_finite or zero or tiny:
         faults = []
         if not_finite:
             faults.append(f"{len(not_finite):,} are NaN or infinite ({_listing([image_names[i] for i in not_finite])})")
         if zero:
             faults.append(f"{len(zero):,} are all zero ({_listing([image_names[i] for i in zero])})")
+        if tiny:
+            faults.append(f"{len(tiny):,} have a norm below {MIN_NORM:g}, too close to zero to trust their direction "
+                          f"({_listing([image_names[i] for i in tiny])})")
         raise VPRInputError(
             f"{path}: of the descriptors, {' and '.join(faults)}; such a row has no direction to compare: "
             "recompute those images' descriptors, or remove the images from the dataset"
         )
     return out, rescaled
+
+
+# --- claimed sizes, checked before anything is allocated ---------------------------------
+
+
+def npy_header(path: Path) -> tuple[tuple[int, ...], np.dtype]:
+    """The shape and dtype a ``.npy`` file's header declares, once the file holds exactly that array.
+
+    Only the header is read: a header whose shape and dtype do not come to the bytes
+    after it (a truncated file, or a few bytes claiming ``(10**15, 10**6)``) is refused
+    before anything is mapped or allocated.
+
+    Raises:
+        VPRInputError: naming the file, the claimed shape and what to do.
+    """
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as fh:
+            shape, dtype, offset = _array_header(fh, path, "the file")
+    except OSError as exc:
+        raise VPRInputError(f"{path}: cannot read the file ({exc}); check that it is readable") from None
+    if not dtype.hasobject:  # an object array is refused by np.load (allow_pickle=False) with its own message
+        nbytes = _nbytes(shape, dtype)
+        if nbytes != size - offset:
+            raise _unreadable(
+                path, f"its header claims shape {shape} of {dtype}, {_size_text(nbytes)}, but "
+                      f"{_size_text(size - offset)} follow the header"
+            )
+    return shape, dtype
+
+
+def _array_header(fh, path: Path, where: str) -> tuple[tuple[int, ...], np.dtype, int]:
+    """``(shape, dtype, header length)`` of the ``.npy`` at ``fh``'s start; nothing after the header is read."""
+    from numpy.lib import format as npy_format
+
+    try:
+        version = npy_format.read_magic(fh)
+        if version == (1, 0):
+            shape, _, dtype = npy_format.read_array_header_1_0(fh)
+        elif version == (2, 0):
+            shape, _, dtype = npy_format.read_array_header_2_0(fh)
+        else:
+            raise ValueError(f".npy format version {version[0]}.{version[1]} is not read")
+        offset = fh.tell()
+    except (ValueError, EOFError, SyntaxError, tokenize.TokenError) as exc:
+        raise _unreadable(path, f"{where}: {exc}") from None
+    if any(n < 0 for n in shape):
+        raise _unreadable(path, f"{where}: its header claims shape {shape}")
+    return tuple(shape), dtype, offset
+
+
+def _check_npz_claims(path: Path) -> None:
+    """Each array the reader takes from a ``.npz`` is a ``.npy`` entry whose header fits the entry and memory.
+
+    The archive's directory gives each entry's uncompressed size: a header claiming
+    another size, or more than this machine's memory, is refused before ``np.load``
+    allocates the array or inflates more than the header.
+    """
+    try:
+        with zipfile.ZipFile(path) as archive:
+            entries = set(archive.namelist())
+            for key in (NPZ_NAMES, NPZ_DESCRIPTORS):
+                if key in entries:  # np.load would return such an entry's raw bytes
+                    raise _unreadable(path, f"the archive's entry {key!r} is not a .npy array (np.savez writes "
+                                            f"{key}.npy)")
+                if f"{key}.npy" not in entries:
+                    continue  # the missing array is named once the archive is open
+                info = archive.getinfo(f"{key}.npy")
+                where = f"{info.filename} in the archive"
+                with archive.open(info) as fh:  # the header alone is inflated
+                    shape, dtype, offset = _array_header(fh, path, where)
+                if dtype.hasobject:
+                    continue  # np.load (allow_pickle=False) refuses it with its own message
+                nbytes = _nbytes(shape, dtype)
+                if offset + nbytes != info.file_size:
+                    raise _unreadable(
+                        path, f"{where} claims shape {shape} of {dtype}, {_size_text(nbytes)}, but the entry "
+                              f"holds {_size_text(max(info.file_size - offset, 0))} after its header"
+                    )
+                _check_memory(path, f"{where} claims shape {shape} of {dtype}, {_size_text(nbytes)}", nbytes,
+                              "the file is damaged or holds more than one dataset's descriptors: write this "
+                              "dataset's descriptors again with np.savez")
+    except (OSError, EOFError, zipfile.BadZipFile, zlib.error, RuntimeError, NotImplementedError) as exc:
+        # RuntimeError, NotImplementedError: an encrypted entry, or a compression zipfile does not read
+        raise _unreadable(path, exc) from None
+
+
+def _check_memory(path: Path, claim: str, nbytes: int, fix: str) -> None:
+    """Refuse ``nbytes`` (what ``claim`` says the file needs) when it exceeds this machine's memory."""
+    memory = _memory_bytes()
+    if memory is not None and nbytes > memory:
+        raise VPRInputError(f"{path}: {claim}, more than this machine's memory ({_size_text(memory)}); {fix}")
+
+
+@functools.cache
+def _memory_bytes() -> int | None:
+    """This machine's physical memory in bytes, or ``None`` where the system does not say."""
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def _nbytes(shape: Sequence[int], dtype: np.dtype) -> int:
+    """Bytes of an array of ``shape`` and ``dtype``, in Python integers (never overflows)."""
+    return math.prod(int(n) for n in shape) * np.dtype(dtype).itemsize
+
+
+def _size_text(nbytes: int) -> str:
+    """``nbytes`` for a reader: ``64 bytes``, ``3.4 KiB`` … ``3.4 ZiB``."""
+    if nbytes < 1024:
+        return f"{nbytes:,} bytes"
+    value, unit = float(nbytes), "bytes"
+    for unit in ("KiB", "MiB", "GiB", "TiB", "PiB", "EiB", "ZiB", "YiB"):
+        value /= 1024
+        if value < 1024:
+            break
+    return f"{value:,.1f} {unit}"
 
 
 # --- small helpers ----------------------------------------------------------------------
@@ -722,15 +931,23 @@ def _stamp(path: Path) -> tuple[int, int]:
     return st.st_size, st.st_mtime_ns
 
 
-def _content_key(files: Sequence[Path], dtype: str, image_names: Sequence[str]) -> str:
-    """sha256 over the files' bytes (read in chunks), the dtype and the image order."""
-    digest = hashlib.sha256(KEY_VERSION.encode())
+def _file_digests(files: Sequence[Path]) -> tuple[str, ...]:
+    """sha256 hex of each file's bytes, read in chunks."""
+    out = []
     for f in files:
         try:
             with open(f, "rb") as fh:
-                file_hash = hashlib.file_digest(fh, "sha256").hexdigest()
+                out.append(hashlib.file_digest(fh, "sha256").hexdigest())
         except OSError as exc:
             raise VPRInputError(f"{f}: cannot read the file ({exc}); check that it exists and is readable") from None
+    return tuple(out)
+
+
+def _content_key(files: Sequence[Path], dtype: str, image_names: Sequence[str], *,
+                 digests: Sequence[str] | None = None) -> str:
+    """sha256 over the files' bytes (their ``digests`` when already computed), the dtype and the image order."""
+    digest = hashlib.sha256(KEY_VERSION.encode())
+    for f, file_hash in zip(files, _file_digests(files) if digests is None else digests):
         digest.update(f"|{f.suffix}:{file_hash}".encode())
     digest.update(f"|{dtype}|".encode())
     digest.update(hashlib.sha256("\n".join(image_names).encode()).digest())

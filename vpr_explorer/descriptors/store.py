@@ -154,10 +154,11 @@ def open_npy(path: Path, image_paths: Sequence[Path], root: Path, *, names_file:
         return None  # load_descriptor_file names the count mismatch
     check_rows(rows, image_names, str(path))
     files = (path,) if read.names_file is None else (path, read.names_file)
-    key = imp._content_key(files, f"mmap-{rows.dtype}", image_names)
+    digests = imp._file_digests(files)
+    key = imp._content_key(files, f"mmap-{rows.dtype}", image_names, digests=digests)
     if imp._stamp(path) != before:
         raise VPRInputError(f"{path}: the file changed while it was read; open it again once it is fully written")
     notes = (*read.notes, f"memory-mapped as stored ({rows.dtype}, {rows.nbytes / 2**30:.2f} GiB): read a block of "
              "rows at a time, never copied whole; every row checked finite and of unit length")
     return imp.ImportedDescriptors(descriptors=rows, name=path.stem, key=key, source=imp.DescriptorFormat.NPY,
-                                   path=path, names_file=read.names_file, notes=notes)
+                                   path=path, names_file=read.names_file, notes=notes, digests=digests)

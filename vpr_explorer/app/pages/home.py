@@ -7,7 +7,15 @@ import numpy as np
 import streamlit as st
 
 from vpr_explorer import settings
-from vpr_explorer.app import DESCRIPTORS_ENV, descriptor_files
+from vpr_explorer.app import (
+    DATA_ROOT_ENV,
+    DATA_ROOT_HINT,
+    DESCRIPTORS_ENV,
+    OutsideDataRoot,
+    data_root,
+    descriptor_files,
+    under_data_root,
+)
 from vpr_explorer.descriptors import available_extractors
 from vpr_explorer.descriptors.custom import MODELS_ENV
 from vpr_explorer.errors import VPRInputError
@@ -43,15 +51,41 @@ st.markdown(
     "thresholds, single queries and the evaluation protocols."
 )
 show_rejected()
+outside = st.session_state.pop("outside_root", None)  # a typed path the data root refused: nothing of it read
+if outside:
+    st.warning(f"{outside}\n\nThe previous value is kept.", icon=":material/warning:")
 v = state.view()
+root = data_root()
 
 
 def found_datasets() -> list[str]:
-    """Dataset folders under ``VPR_EXPLORER_DATA`` (its direct sub-folders)."""
-    root = settings.data_root()
-    if root is None or not root.is_dir():
+    """The data root's sub-folders (not hidden ones, nor links that lead out of it), resolved."""
+    try:
+        entries = sorted(root.iterdir())
+    except OSError:
         return []
-    return [str(p) for p in sorted(root.iterdir()) if p.is_dir() and not p.name.startswith(".")]
+    found = []
+    for entry in entries:
+        if entry.name.startswith("."):
+            continue
+        try:
+            path = under_data_root(entry, root)  # before is_dir: a link out of the root is not even stat'ed
+        except VPRInputError:
+            continue
+        if path.is_dir() and str(path) not in found:
+            found.append(str(path))
+    return found
+
+
+def confined(path: str, what: str) -> str | None:
+    """A typed path under the data root, resolved; ``None`` (and a warning kept for the next run) outside it."""
+    if not path or (what == "folder" and path == DEMO):
+        return path
+    try:
+        return str(under_data_root(path, root, what=what))
+    except OutsideDataRoot as exc:
+        st.session_state["outside_root"] = str(exc)
+        return None
 
 
 def check_folder(path: object) -> None:
@@ -95,22 +129,25 @@ with col_data:
 
     st.selectbox(
         "Dataset", options, key="w_source", on_change=pick_source,
-        format_func=lambda o: labels.get(o, f"{Path(o).name}  (under {settings.DATA_ENV})"),
-        help=f"Datasets found under {settings.DATA_ENV}={settings.data_root() or '(unset)'}, the demo route, "
-             "or any folder: one sub-folder per traversal (frame i = same spot), or Place####_Cond##_G## images.",
+        format_func=lambda o: labels.get(o, f"{Path(o).name}  (under the data root)"),
+        help=f"The folders in the app's data root {root} ({DATA_ROOT_ENV}), the demo route, or a folder path under "
+             "that root: one sub-folder per traversal (frame i = same spot), or Place####_Cond##_G## images. "
+             f"Nothing outside the data root is opened: {DATA_ROOT_HINT}.",
     )
     if folder_mode:
         # Not bound to the view: a path that fails to open stays in the box, to be corrected.
         st.session_state.setdefault("w_folder", v.source if v.source not in options else "")
 
         def open_folder() -> None:
-            path = st.session_state["w_folder"].strip()
-            if state.commit(source=path, validate=lambda: check_folder(path)):
+            path = confined(st.session_state["w_folder"].strip(), "folder")
+            if path is not None and state.commit(source=path, validate=lambda: check_folder(path)):
                 st.session_state["file_mode"] = False
 
-        st.text_input("Folder path", key="w_folder", on_change=open_folder, placeholder="/data/GardensPointWalking",
+        st.text_input("Folder path", key="w_folder", on_change=open_folder,
+                      placeholder=str(root / "GardensPointWalking"),
                       help="Press Enter to open it. The folder is checked before it replaces the current route. "
-                           "A manifest is a .csv file: type its path.")
+                           "A manifest is a .csv file: type its path. Absolute, or relative to the data root "
+                           f"{root}; nothing outside that root is opened.")
 
     try:
         detected = cache.layout_of(v.source).value
@@ -153,11 +190,12 @@ with col_desc:
         st.session_state.setdefault("w_descriptor_file", v.descriptors or "")
 
         def open_file() -> None:
-            path = st.session_state["w_descriptor_file"].strip()
-            state.commit(descriptors=path, validate=lambda: cache.check_descriptor_file(path))
+            path = confined(st.session_state["w_descriptor_file"].strip(), "descriptor file")
+            if path is not None:
+                state.commit(descriptors=path, validate=lambda: cache.check_descriptor_file(path))
 
         st.text_input("Descriptor file path", key="w_descriptor_file", on_change=open_file,
-                      placeholder="/data/netvlad.npz",
+                      placeholder=str(root / "netvlad.npz"),
                       help="Press Enter to read it. .npz: arrays `names` (paths relative to the dataset folder) and "
                            "`descriptors`; .npy: rows in the order `vpr-explorer list --dataset PATH` prints (names "
                            "in <stem>.txt beside it, optional); .h5: hloc's `<image name>/global_descriptor`. Its "

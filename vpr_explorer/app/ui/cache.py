@@ -20,6 +20,11 @@ which holds the descriptors' content ``fingerprint()``. Models and big matrices 
 through ``_memo`` instead: a cached function replays the ``st.*`` calls made inside it,
 which must not happen to a progress bar.
 
+Every dataset and typed descriptor file is looked up under the app's data root
+(``app.under_data_root``) before anything of it is read: ``dataset``, ``layout_of`` and
+``check_descriptor_file`` refuse a path outside it (the files the app was started with,
+``descriptor_files``, are the operator's and read where they are).
+
 When the cache folder cannot be written (``disk_cache_problem``), the explorer still
 runs: descriptors are kept in memory only and the demo route is drawn into the
 temporary folder; the Dataset page says so.
@@ -44,7 +49,7 @@ import streamlit as st
 from PIL import Image
 
 from vpr_explorer import settings
-from vpr_explorer.app import descriptor_files
+from vpr_explorer.app import data_root, descriptor_files, under_data_root
 from vpr_explorer.database import QueryDecision, explain_query
 from vpr_explorer.datasets import Dataset, load_dataset
 from vpr_explorer.descriptors import extract_descriptors, fingerprint, get_extractor
@@ -231,7 +236,7 @@ def layout_of(source: str, layout: str = Layout.AUTO.value) -> Layout:
         return named
     if source == DEMO:
         return Layout.TRAVERSALS
-    path = Path(source).expanduser()
+    path = under_data_root(source, what="dataset")
     if not path.exists():
         raise VPRInputError(f"{path}: the dataset folder does not exist; check the path")
     return detect_layout(path)
@@ -246,15 +251,18 @@ def _dataset(source: str, layout: str, radius: float | None, stamp: str) -> Data
     if source == DEMO:
         return open_dataset(source, layout)  # refuses, naming the layout
     positions = layout_of(source, layout) in RETRIEVAL_LAYOUTS
-    return open_dataset(source, layout, radius=radius if positions else None)
+    return open_dataset(source, layout, radius=radius if positions else None, within=data_root())
 
 
 def dataset(source: str, layout: str = Layout.AUTO.value, radius: float | None = None) -> Dataset | RetrievalDataset:
     """The dataset at ``source`` (a folder, a manifest ``.csv`` or ``"demo"``) read in ``layout``.
 
     ``radius`` (metres; default the field's 25) applies to position-tagged layouts and is
-    ignored for the others. Raises ``VPRInputError`` for bad folders and files.
+    ignored for the others. Raises ``VPRInputError`` for bad folders and files, and
+    ``app.OutsideDataRoot`` for a path outside the app's data root (nothing of it read).
     """
+    if source != DEMO:
+        source = str(under_data_root(source, what="dataset"))
     return _dataset(source, layout, None if radius is None else float(radius), _folder_stamp(source))
 
 
@@ -294,14 +302,14 @@ def _images_key(ds: Dataset | RetrievalDataset, path: Path | None) -> str:
 
 
 def check_descriptor_file(text: str) -> Path:
-    """A typed descriptor file path, checked before it is read: it exists, its extension is one the
-    library reads, and its stem (the descriptor's name) names no extractor."""
+    """A typed descriptor file path, checked before it is read: it lies under the app's data root, it
+    exists, its extension is one the library reads, and its stem (the descriptor's name) names no extractor."""
     from vpr_explorer.descriptors.imported import descriptor_format
     from vpr_explorer.descriptors.registry import EXTRACTOR_NAMES
 
-    path = Path(str(text).strip()).expanduser()
     if not str(text).strip():
         raise VPRInputError("descriptor file: type the path of a .npz, .npy or hloc .h5 file")
+    path = under_data_root(str(text).strip(), what="descriptor file")
     descriptor_format(path)  # an unknown extension, named
     if not path.is_file():
         raise VPRInputError(f"descriptor file {path}: no such file; give the path of a .npz, .npy or hloc .h5 file "

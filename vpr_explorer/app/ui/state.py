@@ -7,7 +7,10 @@ metres along a route or over a lattice), the query traversal, the selected place
 (a query traversal's frame, or a query image of a database/queries dataset). It lives in
 ``st.session_state["view"]``; ``sync_url`` writes it into ``st.query_params`` on every run,
 so the address bar always holds a link that reopens the same view, and a fresh session
-starts from the URL it was opened with.
+starts from the URL it was opened with. A link's dataset (``source=``) and descriptor file
+(``descriptors=``) are resolved against the app's data root (``app.under_data_root``) and
+kept resolved; outside it they are ignored with the other refused parameters (one warning),
+and nothing of them is read.
 
 Widgets edit it through ``bind``: the widget's own state is set from the view before it
 is drawn and copied back in its ``on_change`` callback, so the view is the one source
@@ -24,9 +27,9 @@ from pathlib import Path
 
 import streamlit as st
 
-from vpr_explorer.app import started_view
+from vpr_explorer.app import OutsideDataRoot, outside_reason, started_view, under_data_root
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.groundtruth import DEFAULT_RADIUS
+from vpr_explorer.groundtruth import DEFAULT_RADIUS, check_radius
 from vpr_explorer.layouts import Layout
 from vpr_explorer.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec, Reading
 from vpr_explorer.pipeline import DEMO
@@ -119,10 +122,13 @@ class View:
                 del values["step_m"]
         if "descriptors" in values:  # a descriptor file is named by its stem, everywhere
             values["descriptor"] = Path(values["descriptors"]).expanduser().stem
+        elif "descriptors" in params and values.get("descriptor") == Path(params["descriptors"]).stem:
+            del values["descriptor"]  # the refused file's stem names no descriptor of this server
         return cls(**values), ignored
 
 
 _INSTEAD = {
+    "source": "the demo route",
     "group": f"the default ({DEFAULT_GROUP})",
     "step": "the dataset's default step",
     "reading": f"the {Reading.STRIDE.value} reading",
@@ -135,7 +141,7 @@ _INSTEAD = {
     "geometry": "the dataset's default geometry",
     "group_m": "the default group in metres",
     "step_m": "the default step in metres",
-    "descriptors": "the descriptor named by descriptor",
+    "descriptors": f"the descriptor named by descriptor, else {DEFAULT_DESCRIPTOR}",
 }
 """What the app uses when a link's parameter is refused."""
 
@@ -173,7 +179,12 @@ def _parse(name: str, text: str) -> object:
             raise ValueError("not a distance in metres") from None
         if not math.isfinite(value) or value <= 0:
             raise ValueError("must be a positive distance in metres, e.g. 25")
-        if name != "radius":
+        if name == "radius":
+            try:  # the library's own limit and message
+                check_radius(value)
+            except VPRInputError as exc:
+                raise ValueError(str(exc).split(": ", 1)[-1]) from None
+        else:
             try:  # the library's own limits and message
                 MetricPlaceSpec(value, value, Reading.SKIP)
             except VPRInputError as exc:
@@ -187,6 +198,15 @@ def _parse(name: str, text: str) -> object:
         raise ValueError(f"choose {' or '.join(g.value for g in PlaceGeometry)}")
     if name == "descriptors" and not text.strip():
         raise ValueError("empty: give the path of a .npz, .npy or hloc .h5 file")
+    if name == "source" and not text.strip():
+        raise ValueError("empty: give a dataset folder under the app's data root")
+    if name == "descriptors" or (name == "source" and text != DEMO):  # the first look at a session's path
+        try:
+            return str(under_data_root(text, what=name))
+        except OutsideDataRoot as exc:
+            raise ValueError(outside_reason(exc.root)) from None
+        except VPRInputError as exc:
+            raise ValueError(str(exc).split(": ", 1)[-1]) from None
     return text
 
 
