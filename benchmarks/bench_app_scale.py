@@ -102,9 +102,9 @@ def main(argv: list[str] | None = None) -> None:
     import streamlit as st
     from streamlit.testing.v1 import AppTest
 
-    from vpr_explorer.database import decide_traversal
+    from vpr_explorer.method.database import decide_traversal
     from vpr_explorer.pipeline import dataset_descriptors, resolve_dataset
-    from vpr_explorer.views import fit
+    from vpr_explorer.views.traversal import fit
 
     sys.path.insert(0, str(ROOT))
     sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -172,9 +172,9 @@ def time_move(descriptors, dataset, group: int = 4, step: int = 10) -> None:
     """One group/step move (``views.regroup``), its fit and decisions, against the GEMM floor."""
     from gemm_peak import decision_flops, fit_flops, measure_peak, share
 
-    from vpr_explorer.database import decide_traversal
-    from vpr_explorer.places import PlaceSpec
-    from vpr_explorer.views import fit, regroup
+    from vpr_explorer.method.database import decide_traversal
+    from vpr_explorer.method.places import PlaceSpec
+    from vpr_explorer.views.traversal import fit, regroup
 
     dim = descriptors.shape[1]
     regroup(descriptors, dataset, PlaceSpec(3, step))  # warm-up: imports, thread pools, page cache

@@ -44,8 +44,8 @@ import numpy as np
 
 from bench_nordland_scale import FRAMES, TRAVERSALS, nordland_like
 from gemm_peak import load_average, measure_peak, share
-from vpr_explorer.evaluation import draw_splits
-from vpr_explorer.thresholds import (
+from vpr_explorer.protocols.evaluation import draw_splits
+from vpr_explorer.method.thresholds import (
     AUTO_MAX_PAIRS,
     AUTO_TILE_IMAGES,
     auto_global_threshold,

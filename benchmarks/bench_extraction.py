@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from vpr_explorer import settings
-from vpr_explorer.datasets import natural_key
+from vpr_explorer.data.traversals import natural_key
 from vpr_explorer.descriptors import DescriptorCache, available_extractors, extract_descriptors, get_extractor
 
 DEFAULT_EXTRACTORS = ("pixels", "efficientnet-lite0", "alexnet-conv3")

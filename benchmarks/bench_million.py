@@ -1,7 +1,7 @@
 """The explorer on a synthetic 1,000,000-image position-tagged database (issue 14 §2).
 
 Writes (once, into ``--out``) a route of ``--database`` images one metre apart and
-``--queries`` queries (``vpr_explorer.example_million``: a manifest ``path,role,x,y``,
+``--queries`` queries (``vpr_explorer.data.example_million``: a manifest ``path,role,x,y``,
 symbolic links to one small PNG as the images, and the descriptors as a float16 ``.npy``
 in the manifest's order). The descriptors come as a float16 descriptor file, not through
 the cache: the cache is keyed by each image's content, and a million distinct images would
@@ -110,11 +110,11 @@ def main(argv: list[str] | None = None) -> None:
 
     from gemm_peak import blas_kernel, load_average
 
-    from vpr_explorer import retrieval_views as rv
-    from vpr_explorer.example_million import write_route_database
+    from vpr_explorer.views import database_queries as rv
+    from vpr_explorer.data.example_million import write_route_database
     from vpr_explorer.pipeline import evaluate_retrieval, imported_descriptors, open_dataset
-    from vpr_explorer.places import MetricPlaceSpec, PlaceGeometry
-    from vpr_explorer.stats import prepare_float16_reads
+    from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry
+    from vpr_explorer.method.stats import prepare_float16_reads
 
     folder = args.out / f"db{args.database}_q{args.queries}_d{args.dim}"
     manifest, npy = folder / "manifest.csv", folder / "descriptors.npy"
@@ -209,7 +209,7 @@ def main(argv: list[str] | None = None) -> None:
         except ImportError:
             print("faiss: not installed (pip install faiss-cpu)")
         else:
-            from vpr_explorer.retrieval import TIE_TOLERANCE
+            from vpr_explorer.method.retrieval import TIE_TOLERANCE
 
             same_top = np.mean(np.abs(f_s[:, 0] - np_s[:, 0]) <= TIE_TOLERANCE)
             print(f"top-{k} of every query: numpy blocked pass {numpy_s:.2f} s, faiss.IndexFlatIP {faiss_s:.2f} s "

@@ -25,7 +25,7 @@ import time
 import numpy as np
 
 from gemm_peak import load_average, measure_peak, share
-from vpr_explorer.stats import BLOCK, negative_stats
+from vpr_explorer.method.stats import BLOCK, negative_stats
 
 FLOAT64_BLOCK = 8192  # the float64 code's block before issue 13
 
@@ -79,7 +79,7 @@ def step_flops(n: int, dim: int, labels: np.ndarray) -> dict[str, float]:
     k = k[k > 0].astype(float)
     places = 2 * float((k * (k + 2)).sum()) * dim
     gram = float(n) * dim * (dim + 1)
-    from vpr_explorer.stats import _TRI_BLOCKS
+    from vpr_explorer.method.stats import _TRI_BLOCKS
 
     edges = np.linspace(0, dim, min(_TRI_BLOCKS, dim) + 1).round().astype(int)
     tri = 2.0 * n * sum(float(hi - lo) * hi for lo, hi in zip(edges[:-1], edges[1:])) + 2.0 * n * dim

@@ -21,9 +21,9 @@ import time
 
 
 from vpr_explorer.pipeline import dataset_descriptors, run_protocol
-from vpr_explorer.places import PlaceSpec, make_places
-from vpr_explorer.report import render
-from vpr_explorer.scale import fast_paper_protocol
+from vpr_explorer.method.places import PlaceSpec, make_places
+from vpr_explorer.views.report import render
+from vpr_explorer.protocols.scale import fast_paper_protocol
 from vpr_explorer.settings import data_root
 
 
@@ -38,7 +38,7 @@ def main() -> None:
     if root is None:
         sys.exit("set VPR_EXPLORER_DATA to the shared datasets folder (e.g. ../shared/datasets)")
 
-    from vpr_explorer.datasets import load_dataset
+    from vpr_explorer.data.traversals import load_dataset
 
     t0 = time.perf_counter()
     dataset = load_dataset(root / "Nordland_64x32")
@@ -55,7 +55,7 @@ def main() -> None:
     print(render(ev))
 
     if args.reference:
-        from vpr_explorer.evaluation import paper_protocol
+        from vpr_explorer.protocols.evaluation import paper_protocol
 
         t0 = time.perf_counter()
         ref = paper_protocol(desc, places.image_place, dataset.image_traversal, places.n_places, runs=args.runs,

@@ -53,11 +53,11 @@ from pathlib import Path
 
 import numpy as np
 
-import vpr_explorer.scale as scale
+import vpr_explorer.protocols.scale as scale
 from gemm_peak import load_average, measure_peak, share
-from vpr_explorer.report import render
-from vpr_explorer.scale import fast_paper_protocol
-from vpr_explorer.thresholds import auto_global_threshold, training_pair_scores
+from vpr_explorer.views.report import render
+from vpr_explorer.protocols.scale import fast_paper_protocol
+from vpr_explorer.method.thresholds import auto_global_threshold, training_pair_scores
 
 FRAMES, TRAVERSALS = 3, 4
 
@@ -277,7 +277,7 @@ def main() -> None:
     print(render(ev))
 
     if args.check:
-        from vpr_explorer.evaluation import paper_protocol
+        from vpr_explorer.protocols.evaluation import paper_protocol
 
         ref, w_ref, _ = timed(lambda: paper_protocol(d, labels, trav, places, runs=args.runs, seed=args.seed,
                                                      cross_condition=args.cross_condition))

@@ -29,9 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from vpr_explorer.example_layouts import utm_name
+from vpr_explorer.data.example_layouts import utm_name
 from vpr_explorer.pipeline import open_dataset, retrieval_places
-from vpr_explorer.places import MetricPlaceSpec
+from vpr_explorer.method.places import MetricPlaceSpec
 
 
 def write(root: Path, png: Path, n: int, seed: int = 0) -> None:

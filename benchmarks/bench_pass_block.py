@@ -37,8 +37,8 @@ import numpy as np
 
 from bench_nordland_scale import nordland_like
 from gemm_peak import blas_kernel, gemm_rate, load_average
-from vpr_explorer import scale
-from vpr_explorer.stats import one_blas_thread
+from vpr_explorer.protocols import scale
+from vpr_explorer.method.stats import one_blas_thread
 
 
 def cpu_best(fn, repeats: int) -> float:

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vpr_explorer.datasets import load_dataset
+from vpr_explorer.data.traversals import load_dataset
 from vpr_explorer.descriptors import DescriptorCache, extract_descriptors, get_extractor
 from vpr_explorer.descriptors.distributed import SHARD_IMAGES, connect, disconnect, extract_on_ray
 

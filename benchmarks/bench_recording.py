@@ -29,10 +29,10 @@ import numpy as np
 
 from gemm_peak import decision_flops, measure_peak, share
 from vpr_explorer import settings
-from vpr_explorer.database import decide_traversal, fit_database
-from vpr_explorer.datasets import load_dataset
+from vpr_explorer.method.database import decide_traversal, fit_database
+from vpr_explorer.data.traversals import load_dataset
 from vpr_explorer.pipeline import dataset_descriptors
-from vpr_explorer.places import PlaceSpec, make_places
+from vpr_explorer.method.places import PlaceSpec, make_places
 from vpr_explorer.recording import RECORDED, log_traversal, new_recording
 
 MB = 1024 * 1024

@@ -29,10 +29,10 @@ import numpy as np
 
 from gemm_peak import decision_flops, fit_flops, measure_peak
 from vpr_explorer import settings
-from vpr_explorer.datasets import load_dataset
+from vpr_explorer.data.traversals import load_dataset
 from vpr_explorer.pipeline import dataset_descriptors
-from vpr_explorer.places import PlaceSpec
-from vpr_explorer.views import regroup
+from vpr_explorer.method.places import PlaceSpec
+from vpr_explorer.views.traversal import regroup
 
 MOVES = ((3, 10), (4, 10), (4, 8), (2, 5), (5, 20), (3, 3))
 

@@ -1,9 +1,9 @@
 """The 50-split protocol's pass and whole run, an earlier ``scale.py`` against today's, side by side (issue 13 §4).
 
-    git show 8ebd70a:vpr_explorer/scale.py > /tmp/scale_before.py
+    git show 8ebd70a:vpr_explorer/protocols/scale.py > /tmp/scale_before.py
     python benchmarks/bench_scale_before_after.py /tmp/scale_before.py [--places 2250] [--repeats 2]
 
-Loads the earlier module from the given file beside ``vpr_explorer.scale``, and on the same
+Loads the earlier module from the given file beside ``vpr_explorer.protocols.scale``, and on the same
 Nordland-like data (``bench_nordland_scale.nordland_like``, places of 12 images, 50 splits)
 times, alternating before/now ``--repeats`` times in this one process:
 
@@ -27,10 +27,10 @@ import time
 
 import numpy as np
 
-import vpr_explorer.scale as now
+import vpr_explorer.protocols.scale as now
 from bench_nordland_scale import nordland_like
 from gemm_peak import blas_kernel, gemm_rate, load_average
-from vpr_explorer.evaluation import draw_splits
+from vpr_explorer.protocols.evaluation import draw_splits
 
 
 def load_before(path: str):
@@ -59,7 +59,7 @@ def cpu(fn):
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("before", help="path of the earlier scale.py (e.g. from git show COMMIT:vpr_explorer/scale.py)")
+    ap.add_argument("before", help="path of the earlier scale.py (e.g. from git show COMMIT:vpr_explorer/protocols/scale.py)")
     ap.add_argument("--places", type=int, default=2250, help="places of 12 images (default 2,250: 27,000 images)")
     ap.add_argument("--dim", type=int, default=1280)
     ap.add_argument("--runs", type=int, default=50)

@@ -29,11 +29,11 @@ import time
 from pathlib import Path
 
 from vpr_explorer import settings
-from vpr_explorer.datasets import load_dataset
+from vpr_explorer.data.traversals import load_dataset
 from vpr_explorer.pipeline import dataset_descriptors, evaluate_dataset, run_protocol
-from vpr_explorer.places import PlaceSpec, make_places
-from vpr_explorer.shared_scores import SHARED_LIMIT, SharedScores
-from vpr_explorer.sweep import SweepSpec, sweep
+from vpr_explorer.method.places import PlaceSpec, make_places
+from vpr_explorer.protocols.shared_scores import SHARED_LIMIT, SharedScores
+from vpr_explorer.protocols.sweep import SweepSpec, sweep
 
 GROUPS = (1, 2, 3, 4, 5, 6)
 STEPS = (5, 10, 15, 20, 25, 30)

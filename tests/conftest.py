@@ -86,7 +86,7 @@ def data_root(request) -> Path:
 
 @pytest.fixture(scope="session")
 def gardens_point(data_root):
-    from vpr_explorer.datasets import load_dataset
+    from vpr_explorer.data.traversals import load_dataset
 
     return load_dataset(data_root / "GardensPointWalking")
 

@@ -21,12 +21,12 @@ from streamlit.testing.v1 import AppTest
 
 from images import write_noisy_route
 from vpr_explorer.app import ENTRY, PAGES as PAGE_FILES
-from vpr_explorer.database import explain_query
-from vpr_explorer.evaluation import Protocol
+from vpr_explorer.method.database import explain_query
+from vpr_explorer.protocols.evaluation import Protocol
 from vpr_explorer.pipeline import run_protocol
-from vpr_explorer.places import PlaceSpec, make_places
-from vpr_explorer.report import method_csv
-from vpr_explorer.views import place_detail, regroup, top_candidates
+from vpr_explorer.method.places import PlaceSpec, make_places
+from vpr_explorer.views.report import method_csv
+from vpr_explorer.views.traversal import place_detail, regroup, top_candidates
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -271,7 +271,7 @@ def test_thresholds_figure_lines_are_the_computed_thresholds(app, demo, demo_pix
     assert trace(spec, "global θ, automatic")["x"][0] == pytest.approx(r.model.auto)
     d = place_detail(r.model, demo_pixels, demo, r.places, p, "snow")
     mix = trace(spec, "mixture")
-    from vpr_explorer.stats import mixture_pdf
+    from vpr_explorer.method.stats import mixture_pdf
 
     np.testing.assert_allclose(mix["y"], mixture_pdf(mix["x"], d.mu, d.sigma, d.weight))
     overview = trace(figure(at, "overview"), "theta")
@@ -421,7 +421,7 @@ def test_evaluation_bad_protocol_setting_shows_an_error(app):
 
 
 def test_evaluation_similarity_matrix_is_the_library_grid(app, demo, demo_pixels):
-    from vpr_explorer.views import similarity_grid
+    from vpr_explorer.views.traversal import similarity_grid
 
     at = page(app.run(), "evaluation")
     grid = similarity_grid(demo_pixels, demo, ("day", "night"), "snow")
@@ -438,7 +438,7 @@ def test_evaluation_similarity_matrix_is_the_library_grid(app, demo, demo_pixels
 
 
 def test_places_over_the_pair_budget_decides_a_sample_and_says_so(app, demo, demo_pixels, monkeypatch):
-    from vpr_explorer import views
+    from vpr_explorer.views import traversal as views
 
     monkeypatch.setattr(views, "PAIR_BUDGET", 1000)
     at = page(app.run(), "places")
@@ -452,7 +452,7 @@ def test_places_over_the_pair_budget_decides_a_sample_and_says_so(app, demo, dem
 
 
 def test_inspector_search_over_the_budget_moves_on_and_says_to_press_again(app, monkeypatch):
-    from vpr_explorer import views
+    from vpr_explorer.views import traversal as views
 
     at = page(app.run(), "inspector")
     at.selectbox(key="w_find_method").set_value("place-baseline").run()  # never rejects: searches everything
@@ -466,7 +466,7 @@ def test_inspector_search_over_the_budget_moves_on_and_says_to_press_again(app, 
 
 
 def test_evaluation_over_the_auto_run_size_waits_for_run(app, demo, demo_pixels, monkeypatch):
-    from vpr_explorer import views
+    from vpr_explorer.views import traversal as views
 
     monkeypatch.setattr(views, "AUTO_RUN_PAIRS", 100)
     monkeypatch.setattr(views, "PAIR_BUDGET", 1000)

@@ -27,7 +27,7 @@ from test_app import TIMEOUT, assert_clean
 from test_app import fresh_caches, navigation_mode  # noqa: F401  (autouse fixtures: every AppTest here needs them)
 
 from vpr_explorer.app import ENTRY
-from vpr_explorer.datasets import load_dataset
+from vpr_explorer.data.traversals import load_dataset
 from vpr_explorer.descriptors.imported import write_descriptor_file
 
 ROOT_ENV = "VPR_EXPLORER_DATA_ROOT"  # spelled out: the app reads this variable (checked against the package below)

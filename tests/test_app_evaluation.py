@@ -16,11 +16,11 @@ import streamlit as st
 from streamlit.testing.v1 import AppTest
 
 from test_app import DEMO_SPEC, assert_clean, downloads, figure, navigation_mode, page, trace  # noqa: F401  (fixtures)
-from vpr_explorer import compare
+from vpr_explorer.protocols import compare
 from vpr_explorer.app import ENTRY
-from vpr_explorer.evaluation import Protocol
+from vpr_explorer.protocols.evaluation import Protocol
 from vpr_explorer.pipeline import run_protocol
-from vpr_explorer.places import PlaceSpec, make_places
+from vpr_explorer.method.places import PlaceSpec, make_places
 
 
 @pytest.fixture(autouse=True)
@@ -217,7 +217,7 @@ def test_the_widest_table_keeps_its_last_column_narrow(app):
 
 @pytest.mark.realdata
 def test_an_automatic_theta_above_one_says_why_it_rejects_everything(app, data_root, gardens_point, gp_effnet):
-    from vpr_explorer.auto_theta import auto_parts
+    from vpr_explorer.method.auto_theta import auto_parts
 
     app.query_params.update({"source": str(data_root / "GardensPointWalking"), "descriptor": "efficientnet-lite0",
                              "eval_protocol": "traversal", "eval_database": "day_left", "eval_query": "night_right"})

@@ -23,10 +23,10 @@ from test_app import fresh_caches, navigation_mode  # noqa: F401  (autouse fixtu
 
 from vpr_explorer.app import DATA_ROOT_ENV, DATASET_ENV, DESCRIPTORS_ENV, ENTRY, PAGES, started_view
 from vpr_explorer.app.launch import SETTINGS, plan
-from vpr_explorer.datasets import load_dataset
+from vpr_explorer.data.traversals import load_dataset
 from vpr_explorer.descriptors.imported import write_descriptor_file
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.places import make_places
+from vpr_explorer.method.places import make_places
 
 FRAMES = 24
 
@@ -136,7 +136,7 @@ def test_the_app_opens_the_dataset_and_descriptor_file_it_was_started_on(route, 
 
 
 def _spec(at: AppTest):
-    from vpr_explorer.places import PlaceSpec
+    from vpr_explorer.method.places import PlaceSpec
 
     return PlaceSpec(at.slider(key="w_group").value, at.slider(key="w_step").value)
 

@@ -21,10 +21,10 @@ from streamlit.testing.v1 import AppTest
 from test_app import assert_clean, figure, fresh_caches, metric, navigation_mode, page, trace  # noqa: F401
 from vpr_explorer.app import ENTRY
 from vpr_explorer.descriptors.imported import write_descriptor_file
-from vpr_explorer.example_layouts import utm_name, write_gardens_point_layouts
+from vpr_explorer.data.example_layouts import utm_name, write_gardens_point_layouts
 from vpr_explorer.pipeline import dataset_descriptors, evaluate_retrieval, open_dataset
-from vpr_explorer.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec
-from vpr_explorer.retrieval_views import (
+from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec
+from vpr_explorer.views.database_queries import (
     DEFAULT_GROUP_M,
     DEFAULT_STEP_M,
     RetrievalPlaces,
@@ -34,7 +34,7 @@ from vpr_explorer.retrieval_views import (
     overview,
     query_label,
 )
-from vpr_explorer.views import evaluation_rows
+from vpr_explorer.views.traversal import evaluation_rows
 
 pytestmark = pytest.mark.realdata
 
@@ -117,7 +117,7 @@ def test_a_descriptor_file_typed_in_the_box_opens_and_picking_an_extractor_leave
 
 
 def test_a_descriptor_file_typed_for_aligned_traversals_names_every_page(demo, demo_pixels, tmp_path):
-    from vpr_explorer.views import regroup
+    from vpr_explorer.views.traversal import regroup
 
     path = tmp_path / "demo-export.h5"  # hloc's layout
     write_descriptor_file(path, demo_pixels, demo.image_paths, demo.root)

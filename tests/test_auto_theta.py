@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vpr_explorer.auto_theta import AutoParts, auto_parts, rejects_all_note
-from vpr_explorer.thresholds import AUTO_Z
+from vpr_explorer.method.auto_theta import AutoParts, auto_parts, rejects_all_note
+from vpr_explorer.method.thresholds import AUTO_Z
 
 
 def _unit(rows: np.ndarray) -> np.ndarray:

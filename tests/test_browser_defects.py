@@ -18,10 +18,10 @@ import pytest
 from streamlit_server import streamlit_server
 from test_browser import assert_no_exception, browser, settle  # noqa: F401  (browser: the fixture)
 
-from vpr_explorer.database import explain_query
-from vpr_explorer.places import PlaceSpec
-from vpr_explorer.retrieval import METHODS_BY_KEY
-from vpr_explorer.views import LIVE_METHODS, fit
+from vpr_explorer.method.database import explain_query
+from vpr_explorer.method.places import PlaceSpec
+from vpr_explorer.method.retrieval import METHODS_BY_KEY
+from vpr_explorer.views.traversal import LIVE_METHODS, fit
 
 pytestmark = [pytest.mark.browser, pytest.mark.realdata]
 sync_api = pytest.importorskip("playwright.sync_api")
@@ -32,7 +32,7 @@ TIMEOUT_MS = 180_000
 @pytest.fixture(scope="module")
 def nordland_pixels(data_root):
     """Nordland's pixel descriptors, into the session cache the server shares (so it does not extract them)."""
-    from vpr_explorer.datasets import load_dataset
+    from vpr_explorer.data.traversals import load_dataset
     from vpr_explorer.pipeline import dataset_descriptors
 
     ds = load_dataset(data_root / "Nordland_64x32")

@@ -21,7 +21,7 @@ from test_app import ROOT, TIMEOUT, assert_clean, page
 from test_app import fresh_caches, navigation_mode  # noqa: F401  (autouse fixtures: every AppTest here needs them)
 
 from vpr_explorer import settings
-from vpr_explorer.datasets import load_dataset
+from vpr_explorer.data.traversals import load_dataset
 from vpr_explorer.descriptors import DescriptorCache, extract_descriptors
 from vpr_explorer.descriptors.pixels import PixelsExtractor
 from vpr_explorer.errors import VPRInputError

@@ -78,7 +78,7 @@ def test_shards_are_written_while_the_run_goes(tmp_path, monkeypatch):
 
 EXTRACT_AND_REPORT = """
     import sys
-    from vpr_explorer.datasets import load_dataset
+    from vpr_explorer.data.traversals import load_dataset
     from vpr_explorer.descriptors import DescriptorCache, ExtractionInterrupted, extract_descriptors, get_extractor
 
     dataset = load_dataset(sys.argv[1])

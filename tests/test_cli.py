@@ -226,9 +226,9 @@ def record(tmp_path, capsys, name: str, *args: str):
 
 @pytest.fixture(scope="module")
 def demo_day_model():
-    from vpr_explorer.database import fit_database
+    from vpr_explorer.method.database import fit_database
     from vpr_explorer.pipeline import dataset_descriptors, resolve_dataset
-    from vpr_explorer.places import PlaceSpec, make_places
+    from vpr_explorer.method.places import PlaceSpec, make_places
 
     dataset = resolve_dataset("demo")
     places = make_places(dataset, PlaceSpec(2, 2))

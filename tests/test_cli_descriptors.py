@@ -41,7 +41,7 @@ def test_evaluate_with_a_descriptor_file_equals_extraction(tmp_path, data_root, 
 
 
 def test_record_and_benchmark_layouts_take_a_descriptor_file(tmp_path, data_root, gardens_point, gp_pixels, capsys):
-    from vpr_explorer.example_layouts import write_gardens_point_layouts
+    from vpr_explorer.data.example_layouts import write_gardens_point_layouts
     from vpr_explorer.pipeline import open_dataset
 
     path = tmp_path / "gp.npy"

@@ -11,10 +11,11 @@ import re
 import numpy as np
 import pytest
 
-from vpr_explorer import compare, compare_plots
+from vpr_explorer.protocols import compare
+from vpr_explorer.views import compare_plots
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.evaluation import Evaluation, MethodRow, Protocol, TradeoffRow
-from vpr_explorer.precision_recall import PRPoint, PRRow, curve_from_counts
+from vpr_explorer.protocols.evaluation import Evaluation, MethodRow, Protocol, TradeoffRow
+from vpr_explorer.protocols.precision_recall import PRPoint, PRRow, curve_from_counts
 
 
 def _row(key: str, label: str, r1: float, precision: float, rejection: float | None = None) -> MethodRow:

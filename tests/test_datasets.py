@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from vpr_explorer.datasets import load_dataset, traversal_roles
+from vpr_explorer.data.traversals import load_dataset, traversal_roles
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.places import PlaceSpec, make_places
+from vpr_explorer.method.places import PlaceSpec, make_places
 
 
 def _img(path, value=0):

@@ -30,10 +30,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vpr_explorer import database
-from vpr_explorer.database import decide_traversal, fit_database
-from vpr_explorer.places import PlaceSpec, make_places
-from vpr_explorer.retrieval import (
+from vpr_explorer.method import database
+from vpr_explorer.method.database import decide_traversal, fit_database
+from vpr_explorer.method.places import PlaceSpec, make_places
+from vpr_explorer.method.retrieval import (
     TIE_TOLERANCE,
     PlaceLayout,
     layout_place_scores,
@@ -242,7 +242,7 @@ def test_a_nan_query_takes_the_straightforward_path(gardens_point, gp_pixels, gp
 
 def test_nordland_tunnels_fused_equals_straightforward(data_root):
     # Nordland's tunnels are runs of byte-identical frames: ties at 1.0 and within 1e-5
-    from vpr_explorer.datasets import load_dataset
+    from vpr_explorer.data.traversals import load_dataset
     from vpr_explorer.pipeline import dataset_descriptors
 
     dataset = load_dataset(data_root / "Nordland_64x32")

@@ -25,9 +25,9 @@ import pytest
 import streamlit as st
 from streamlit.testing.v1 import AppTest
 
-from vpr_explorer import plots
+from vpr_explorer.views import plots
 from vpr_explorer.app import ENTRY, PAGES as PAGE_FILES
-from vpr_explorer.database import (
+from vpr_explorer.method.database import (
     Verdict,
     between_note,
     decide_traversal,
@@ -35,11 +35,11 @@ from vpr_explorer.database import (
     explain_query,
     query_verdict,
 )
-from vpr_explorer.evaluation import traversal_protocol
+from vpr_explorer.protocols.evaluation import traversal_protocol
 from vpr_explorer.pipeline import dataset_descriptors
-from vpr_explorer.places import BETWEEN_PLACES_RULE, PlaceSpec, between_places, right_places
+from vpr_explorer.method.places import BETWEEN_PLACES_RULE, PlaceSpec, between_places, right_places
 from vpr_explorer.recording import TITLE_CHARS, _summary, frame_verdicts, playback_blueprint
-from vpr_explorer.views import LIVE_METHODS, fit, place_detail, regroup, similarity_grid, top_candidates
+from vpr_explorer.views.traversal import LIVE_METHODS, fit, place_detail, regroup, similarity_grid, top_candidates
 
 GP_SPEC = PlaceSpec(3, 10)  # the app's default on GardensPoint (and Nordland): frame 85 lies between places
 DEMO_SPEC = PlaceSpec(3, 5)
@@ -47,7 +47,7 @@ DEMO_SPEC = PlaceSpec(3, 5)
 
 @pytest.fixture(scope="module")
 def nordland(data_root):
-    from vpr_explorer.datasets import load_dataset
+    from vpr_explorer.data.traversals import load_dataset
 
     ds = load_dataset(data_root / "Nordland_64x32")
     return ds, dataset_descriptors(ds, "pixels")
@@ -294,8 +294,8 @@ def test_playback_views_fit_and_plots_name_their_series(demo, demo_pixels):
     walk(bp.root_container)
     assert len(names) == 11 and all(len(n) <= TITLE_CHARS for n in names), names
     assert len(legends) == 3 and all(leg.visible.as_arrow_array().to_pylist() == [True] for leg in legends)
-    from vpr_explorer.database import fit_database
-    from vpr_explorer.places import make_places
+    from vpr_explorer.method.database import fit_database
+    from vpr_explorer.method.places import make_places
 
     places = make_places(demo, DEMO_SPEC)
     model = fit_database(demo_pixels, demo, places, ["day", "night"])

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from vpr_explorer import demo
-from vpr_explorer.datasets import load_dataset
-from vpr_explorer.demo import (
+from vpr_explorer.data import demo
+from vpr_explorer.data.traversals import load_dataset
+from vpr_explorer.data.demo import (
     DEMO_FRAMES,
     DEMO_SEED,
     DEMO_TRAVERSALS,

@@ -31,7 +31,7 @@ from images import write_noisy_route, write_random_png
 from vpr_explorer.cli import main
 from vpr_explorer.descriptors.imported import HLOC_KEY, load_descriptor_file, relative_names, write_descriptor_file
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.example_layouts import utm_name
+from vpr_explorer.data.example_layouts import utm_name
 from vpr_explorer.pipeline import dataset_descriptors, open_dataset
 
 D = 8

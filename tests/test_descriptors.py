@@ -14,7 +14,7 @@ import torch
 from PIL import Image
 
 from vpr_explorer import settings
-from vpr_explorer.datasets import load_dataset
+from vpr_explorer.data.traversals import load_dataset
 from vpr_explorer.descriptors import (
     EXTRACTOR_NAMES,
     Extractor,

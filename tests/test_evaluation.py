@@ -5,7 +5,7 @@ import pytest
 
 from reference import loop_protocol, loop_rank, loop_thresholds, pairwise_negative_stats, synthetic_places
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.evaluation import (
+from vpr_explorer.protocols.evaluation import (
     draw_splits,
     oracle_global_threshold,
     open_set_protocol,
@@ -13,8 +13,8 @@ from vpr_explorer.evaluation import (
     run_split,
     traversal_protocol,
 )
-from vpr_explorer.places import PlaceSpec, make_places
-from vpr_explorer.retrieval import similarity
+from vpr_explorer.method.places import PlaceSpec, make_places
+from vpr_explorer.method.retrieval import similarity
 
 
 def _synthetic(seed=0, n_places=12, per_place=6, dim=32, noise=0.9, n_trav=3):
@@ -220,7 +220,7 @@ def test_same_numbers_compares_every_row_exactly_with_nan_equal_to_nan():
 
 
 def test_pooled_truth_hand_case_is_symmetric():
-    from vpr_explorer.evaluation import pooled_truth
+    from vpr_explorer.protocols.evaluation import pooled_truth
 
     # 9 frames, group 3 step 3: places [0,1,2] [3,4,5] [6,7,8]; one traversal, image i = frame i
     frame_place = np.repeat(np.arange(3), 3)
@@ -242,7 +242,7 @@ def test_pooled_truth_hand_case_is_symmetric():
 
 
 def test_tolerance_counts_neighbouring_places_as_right(demo, demo_pixels):
-    from vpr_explorer.scale import fast_paper_protocol
+    from vpr_explorer.protocols.scale import fast_paper_protocol
 
     places = make_places(demo, PlaceSpec(3, 3))
     args = (demo_pixels, places.image_place, demo.image_traversal, places.n_places)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.groundtruth import GroundTruth
+from vpr_explorer.data.groundtruth import GroundTruth
 
 
 def test_from_frames_hand_case():
@@ -46,8 +46,8 @@ def test_bad_relations_are_named():
 
 @pytest.mark.parametrize("tolerance", [0, 1, 2, 5])
 def test_the_frame_rule_of_aligned_traversals_is_this_relation(tolerance):
-    from vpr_explorer.evaluation import query_truth
-    from vpr_explorer.places import PlaceSpec, frame_places
+    from vpr_explorer.protocols.evaluation import query_truth
+    from vpr_explorer.method.places import PlaceSpec, frame_places
 
     frame_place = frame_places(60, PlaceSpec(3, 7))
     queries = np.arange(60)

@@ -21,8 +21,8 @@ from vpr_explorer.descriptors.imported import (
     write_descriptor_file,
 )
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.evaluation import paper_protocol
-from vpr_explorer.places import PlaceSpec, make_places
+from vpr_explorer.protocols.evaluation import paper_protocol
+from vpr_explorer.method.places import PlaceSpec, make_places
 
 pytestmark = pytest.mark.realdata
 

@@ -18,8 +18,8 @@ import pytest
 from cli_run import assert_one_error_line, refused, run
 from images import write_random_png
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.groundtruth import GroundTruth
-from vpr_explorer.layouts import Layout, load_database_queries, load_manifest
+from vpr_explorer.data.groundtruth import GroundTruth
+from vpr_explorer.data.layouts import Layout, load_database_queries, load_manifest
 from vpr_explorer.pipeline import open_dataset
 
 ZONE = "55@H"

@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.example_layouts import utm_name, write_gardens_point_layouts
-from vpr_explorer.evaluation import retrieval_protocol, traversal_protocol
-from vpr_explorer.groundtruth import GroundTruth
-from vpr_explorer.layouts import Layout, detect_layout, load_manifest
+from vpr_explorer.data.example_layouts import utm_name, write_gardens_point_layouts
+from vpr_explorer.protocols.evaluation import retrieval_protocol, traversal_protocol
+from vpr_explorer.data.groundtruth import GroundTruth
+from vpr_explorer.data.layouts import Layout, detect_layout, load_manifest
 from vpr_explorer.pipeline import dataset_descriptors, evaluate_retrieval, open_dataset, retrieval_places
-from vpr_explorer.places import MetricPlaceSpec, PlaceSpec, make_places
+from vpr_explorer.method.places import MetricPlaceSpec, PlaceSpec, make_places
 
 pytestmark = pytest.mark.realdata
 

@@ -20,24 +20,24 @@ from streamlit.testing.v1 import AppTest
 
 # the autouse fixtures of test_app (fresh caches, navigation mode) apply here too
 from test_app import assert_clean, fresh_caches, metric, navigation_mode, page  # noqa: F401
-from vpr_explorer import retrieval_views as rv
+from vpr_explorer.views import database_queries as rv
 from vpr_explorer.app import ENTRY
 from vpr_explorer.descriptors import DescriptorCache, DescriptorCacheWarning
 from vpr_explorer.descriptors import cache as cache_module
 from vpr_explorer.descriptors.store import MMAP_ENV
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.evaluation import retrieval_protocol
-from vpr_explorer.example_million import write_route_database
-from vpr_explorer.groundtruth import GroundTruth
-from vpr_explorer.layouts import Layout, RetrievalDataset
+from vpr_explorer.protocols.evaluation import retrieval_protocol
+from vpr_explorer.data.example_million import write_route_database
+from vpr_explorer.data.groundtruth import GroundTruth
+from vpr_explorer.data.layouts import Layout, RetrievalDataset
 from vpr_explorer.pipeline import dataset_descriptors, evaluate_retrieval, imported_descriptors, open_dataset, \
     resolve_dataset, retrieval_places
-from vpr_explorer.places import MetricPlaceSpec, PlaceGeometry
-from vpr_explorer import stats as stats_module
-from vpr_explorer.retrieval import pessimistic_rank, place_scores, score_queries, similarity, top_answer
-from vpr_explorer.stats import negative_stats, negative_stats_rows, positive_means, stats_rows, validate_descriptors, \
+from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry
+from vpr_explorer.method import stats as stats_module
+from vpr_explorer.method.retrieval import pessimistic_rank, place_scores, score_queries, similarity, top_answer
+from vpr_explorer.method.stats import negative_stats, negative_stats_rows, positive_means, stats_rows, validate_descriptors, \
     validate_rows, RowsOf
-from vpr_explorer.views import evaluation_rows
+from vpr_explorer.views.traversal import evaluation_rows
 
 ROUTE = rv.RetrievalPlaces(PlaceGeometry.ROUTE, metric=MetricPlaceSpec(25.0, 100.0))
 

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from vpr_explorer.datasets import Dataset
+from vpr_explorer.data.traversals import Dataset
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.places import PlaceSpec, Reading, frame_places, make_places
+from vpr_explorer.method.places import PlaceSpec, Reading, frame_places, make_places
 
 
 def _fake_dataset(tmp_path, n_frames, n_trav=2):

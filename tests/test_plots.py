@@ -1,6 +1,6 @@
 """Figures draw the library's numbers: each figure's data is checked against the value it stands for.
 
-Mirrors ``vpr_explorer/plots.py`` and ``vpr_explorer/views.py``. Most tests use the
+Mirrors ``vpr_explorer/views/plots.py`` and ``vpr_explorer/views/traversal.py``. Most tests use the
 built-in demo route with pixel descriptors (seconds); the ``realdata`` ones use
 GardensPoint through ``VPR_EXPLORER_DATA``.
 """
@@ -12,14 +12,14 @@ import math
 import numpy as np
 import pytest
 
-from vpr_explorer import plots
-from vpr_explorer.database import explain_query, fit_database
-from vpr_explorer.evaluation import Protocol
+from vpr_explorer.views import plots
+from vpr_explorer.method.database import explain_query, fit_database
+from vpr_explorer.protocols.evaluation import Protocol
 from vpr_explorer.pipeline import run_protocol
-from vpr_explorer.places import PlaceSpec, make_places
-from vpr_explorer.retrieval import similarity
-from vpr_explorer.stats import mixture_pdf
-from vpr_explorer.views import (
+from vpr_explorer.method.places import PlaceSpec, make_places
+from vpr_explorer.method.retrieval import similarity
+from vpr_explorer.method.stats import mixture_pdf
+from vpr_explorer.views.traversal import (
     LIVE_METHODS,
     place_detail,
     regroup,
@@ -275,7 +275,7 @@ def open_set(demo, demo_pixels):
 def test_evaluation_rows_and_strict_json(open_set):
     import json
 
-    from vpr_explorer.views import evaluation_json, evaluation_rows
+    from vpr_explorer.views.traversal import evaluation_json, evaluation_rows
 
     rows = evaluation_rows(open_set)
     assert [r["method"] for r in rows] == [r.label for r in open_set.rows]
@@ -361,7 +361,7 @@ def test_plots_module_never_imports_streamlit():
     import ast
     from pathlib import Path
 
-    for module in ("plots.py", "views.py"):
+    for module in ("plots.py", "traversal.py"):
         tree = ast.parse((Path(plots.__file__).parent / module).read_text())
         names = {a.name for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom)) for a in n.names}
         names |= {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}

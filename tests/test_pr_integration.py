@@ -4,13 +4,13 @@ import json
 import numpy as np
 
 from reference import synthetic_places, unit_rows
-from vpr_explorer import scale
+from vpr_explorer.protocols import scale
 from vpr_explorer.cli import main
-from vpr_explorer.evaluation import open_set_protocol, paper_protocol, retrieval_protocol, traversal_protocol
-from vpr_explorer.groundtruth import GroundTruth
-from vpr_explorer.plots import evaluation_pr_figure
-from vpr_explorer.precision_recall import GLOBAL_CURVE
-from vpr_explorer.report import render
+from vpr_explorer.protocols.evaluation import open_set_protocol, paper_protocol, retrieval_protocol, traversal_protocol
+from vpr_explorer.data.groundtruth import GroundTruth
+from vpr_explorer.views.plots import evaluation_pr_figure
+from vpr_explorer.protocols.precision_recall import GLOBAL_CURVE
+from vpr_explorer.views.report import render
 
 
 def _synthetic(seed=0, n_places=12, per_place=6, dim=32, noise=0.9, n_trav=3):
@@ -97,7 +97,7 @@ def test_retrieval_protocol(monkeypatch):
     assert keys[0] == "image-baseline" and "margin-weighted" in keys
     img = ev.pr[0]
     assert img.n_known + img.n_unknown == 25
-    import vpr_explorer.evaluation as evm
+    import vpr_explorer.protocols.evaluation as evm
     monkeypatch.setattr(evm, "PR_RAW_CELLS", 0)
     ev2 = evm.retrieval_protocol(db, q, place, 10, gt, pr=True, block=7)
     assert "margin-weighted" not in [r.key for r in ev2.pr] and any("left out" in n for n in ev2.notes)

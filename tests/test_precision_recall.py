@@ -9,8 +9,8 @@ from sklearn.metrics import auc, precision_recall_curve
 
 from reference import unit_rows
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.evaluation import draw_splits, run_split
-from vpr_explorer.precision_recall import (
+from vpr_explorer.protocols.evaluation import draw_splits, run_split
+from vpr_explorer.protocols.precision_recall import (
     GLOBAL_CURVE,
     IMAGE_CURVE,
     PRSplit,
@@ -26,8 +26,8 @@ from vpr_explorer.precision_recall import (
     pr_curve,
     pr_rows,
 )
-from vpr_explorer.retrieval import TIE_TOLERANCE, Method, Rule, score_queries, similarity
-from vpr_explorer.thresholds import threshold_family
+from vpr_explorer.method.retrieval import TIE_TOLERANCE, Method, Rule, score_queries, similarity
+from vpr_explorer.method.thresholds import threshold_family
 
 # Six queries; C and D tie at 0.7 (accepted together).
 #      A     B     C     D     E     F
@@ -329,7 +329,7 @@ def test_float32_raw_counts_as_float64():
 def _family_counts_by_methods(raw, theta, spread, correct, rule, ks):
     """The counts as ``family_counts`` computed them before (issue 12 §2): ``retrieval``'s own
     ``ranking_scores``, ``top_answer`` and ``pessimistic_rank`` at every k, on the whole matrix."""
-    from vpr_explorer.retrieval import pessimistic_rank, ranking_scores, top_answer
+    from vpr_explorer.method.retrieval import pessimistic_rank, ranking_scores, top_answer
 
     r = np.asarray(raw, dtype=np.float64)
     tp, acc = [], []
@@ -375,7 +375,7 @@ def test_family_counts_equal_the_previous_loop(monkeypatch, seed, rule, mode):
     # default: a dense pass at the low k where many places are kept, the kept pairs above; "dense":
     # dense passes at every k; "kept pairs": the kept pairs at every k; "blocks": blocks of 25
     # queries, each with more kept pairs than _BLOCK_CELLS = 1000, so dense passes throughout
-    import vpr_explorer.precision_recall as precision_recall
+    import vpr_explorer.protocols.precision_recall as precision_recall
 
     calls = []
     dense_counts = precision_recall._dense_counts
@@ -400,8 +400,8 @@ def test_family_counts_equal_the_previous_loop(monkeypatch, seed, rule, mode):
 @pytest.mark.realdata
 def test_family_counts_equal_the_previous_loop_on_gardens_point(monkeypatch, gardens_point, gp_pixels):
     # real raw_p, θ_p and s_p: an open-set run with a frame tolerance of 1 (two right places)
-    import vpr_explorer.evaluation as evaluation
-    from vpr_explorer.places import PlaceSpec, make_places
+    import vpr_explorer.protocols.evaluation as evaluation
+    from vpr_explorer.method.places import PlaceSpec, make_places
 
     captured = []
     pooled = evaluation._pooled_splits

@@ -78,7 +78,7 @@ def subset(data_root, tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def paths(subset) -> list[Path]:
-    from vpr_explorer.datasets import load_dataset
+    from vpr_explorer.data.traversals import load_dataset
 
     return list(load_dataset(subset).image_paths)
 

@@ -20,11 +20,11 @@ from rerun.chunk import RrdReader
 from images import write_random_png
 
 from vpr_explorer.cli import main
-from vpr_explorer.database import decide_traversal, fit_database
-from vpr_explorer.datasets import load_dataset
+from vpr_explorer.method.database import decide_traversal, fit_database
+from vpr_explorer.data.traversals import load_dataset
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.pipeline import dataset_descriptors, resolve_dataset
-from vpr_explorer.places import PlaceSpec, make_places
+from vpr_explorer.method.places import PlaceSpec, make_places
 from vpr_explorer.recording import (
     check_output,
     new_recording,

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from reference import loop_rank
-from vpr_explorer.retrieval import (
+from vpr_explorer.method.retrieval import (
     TIE_TOLERANCE,
     Rule,
     decide,
@@ -159,7 +159,7 @@ def test_decision_record_ranks_and_wording():
 def test_similarity_orientation():
     """Row i is query i against every database image, column j database image j: ``(n_queries, n_database)``."""
     from vpr_explorer.errors import VPRInputError
-    from vpr_explorer.retrieval import similarity
+    from vpr_explorer.method.retrieval import similarity
 
     q = np.array([[1.0, 0.0, 0.0], [0.0, 0.6, 0.8]])  # 2 queries
     db = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.6, 0.8, 0.0]])  # 4 database images

@@ -14,14 +14,14 @@ import numpy as np
 import pytest
 
 from reference import loop_rank, unit_rows
-from vpr_explorer import maps
+from vpr_explorer.views import maps
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.groundtruth import GroundTruth
-from vpr_explorer.layouts import Layout, RetrievalDataset
+from vpr_explorer.data.groundtruth import GroundTruth
+from vpr_explorer.data.layouts import Layout, RetrievalDataset
 from vpr_explorer.pipeline import evaluate_retrieval
-from vpr_explorer.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec
-from vpr_explorer.retrieval import METHODS_BY_KEY
-from vpr_explorer.retrieval_views import (
+from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec
+from vpr_explorer.method.retrieval import METHODS_BY_KEY
+from vpr_explorer.views.database_queries import (
     BETWEEN,
     KNOWN,
     UNKNOWN,

@@ -36,9 +36,9 @@ from images import write_random_png
 from test_app import fresh_caches, navigation_mode  # noqa: F401
 from vpr_explorer.app import ENTRY
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.layouts import VPR_BENCH_GT, Layout
+from vpr_explorer.data.layouts import VPR_BENCH_GT, Layout
 from vpr_explorer.pipeline import open_dataset
-from vpr_explorer.safe_npy import as_indices, read_npy
+from vpr_explorer.data.safe_npy import as_indices, read_npy
 
 N_REF, N_QUERY = 10, 10
 TIMEOUT = 60
@@ -342,7 +342,7 @@ def test_indices_are_never_rounded_or_wrapped():
 
 PACKAGE = Path(vpr_explorer.__file__).parent
 #: The one module that unpickles.
-UNPICKLES = {"safe_npy.py"}
+UNPICKLES = {"data/safe_npy.py"}
 #: Imports pickle only to catch the error torch.load(weights_only=True) raises.
 NAMES_PICKLES_ERROR = {"descriptors/runtime.py"}
 PICKLE_MODULES = {"pickle", "_pickle", "cPickle", "dill", "cloudpickle", "joblib", "shelve", "marshal"}
@@ -386,7 +386,7 @@ def test_the_scan_finds_each_way_to_unpickle():
 
 def test_no_reader_in_the_package_unpickles():
     files = sorted(PACKAGE.rglob("*.py"))
-    assert len(files) > 20 and PACKAGE / "safe_npy.py" in files
+    assert len(files) > 20 and PACKAGE / "data" / "safe_npy.py" in files
     faults = [f for path in files for f in pickle_faults(path.relative_to(PACKAGE).as_posix(),
                                                           path.read_text(encoding="utf-8"))]
     assert not faults, faults

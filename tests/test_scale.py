@@ -3,7 +3,7 @@
 Every comparison is exact (recall, accepted, precision and own-traversal share: mean and
 std; per split: ranks, answered places and images, the automatic and oracle θ) except the
 per-place thresholds, which agree to float rounding (the fast path downdates float32
-scores; see the module doc of ``vpr_explorer.scale``), and image-level ranks, which the
+scores; see the module doc of ``vpr_explorer.protocols.scale``), and image-level ranks, which the
 fast path resolves up to max(ks) (beyond: max(ks) + 1; Recall@K needs no more).
 """
 
@@ -14,12 +14,12 @@ import threading
 import numpy as np
 import pytest
 
-import vpr_explorer.evaluation as evaluation
-import vpr_explorer.scale as scale
+import vpr_explorer.protocols.evaluation as evaluation
+import vpr_explorer.protocols.scale as scale
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.evaluation import draw_splits, paper_protocol
-from vpr_explorer.scale import fast_paper_protocol, make_layout, scale_splits
-from vpr_explorer.thresholds import pooled_pair_sample
+from vpr_explorer.protocols.evaluation import draw_splits, paper_protocol
+from vpr_explorer.protocols.scale import fast_paper_protocol, make_layout, scale_splits
+from vpr_explorer.method.thresholds import pooled_pair_sample
 
 THETA_TOL = 1e-8  # per-place θ: float32 rounding in the downdated σ (typically 1e-11 here)
 
@@ -259,7 +259,7 @@ def test_near_tie_repair_recomputes_exactly(monkeypatch):
     # with every weighted θ declared unreliable, every query is a near tie: the repair path
     # recomputes its places in float64, which must then agree with the closed form to the
     # last digits, and every outcome with the reference
-    import vpr_explorer.scale as scale
+    import vpr_explorer.protocols.scale as scale
 
     def unreliable(sd, lay, kappa):
         return np.full(len(lay.places), np.inf)
@@ -323,9 +323,9 @@ def test_bad_input_raises_like_the_reference():
 
 @pytest.mark.realdata
 def test_nordland_g3s3_pixels_equals_paper_protocol(monkeypatch, data_root):
-    from vpr_explorer.datasets import load_dataset
+    from vpr_explorer.data.traversals import load_dataset
     from vpr_explorer.pipeline import dataset_descriptors
-    from vpr_explorer.places import PlaceSpec, make_places
+    from vpr_explorer.method.places import PlaceSpec, make_places
 
     dataset = load_dataset(data_root / "Nordland_64x32")
     places = make_places(dataset, PlaceSpec(3, 3))
@@ -353,7 +353,7 @@ def places_that_matter(raw, b, own, th_s, th_w):
 def test_candidate_cutoff_holds_for_every_weighted_threshold_within_its_bound():
     # The scoring reads only table entries at or above the cutoff, and the near-tie check only
     # sees those: a place below it must not matter under any weighted θ within the bounds.
-    from vpr_explorer.scale import _candidate_cutoff
+    from vpr_explorer.protocols.scale import _candidate_cutoff
 
     # place 0's margin 0.2995 − 0.10 is just under the own place's 0.5 − 0.30; with θ_0 lower
     # by its bound 1e-3 it ranks above the own place
@@ -384,11 +384,11 @@ def test_candidate_cutoff_holds_for_every_weighted_threshold_within_its_bound():
 
 _TABLE_SCRIPT = """
 import json, sys
-from vpr_explorer.datasets import load_dataset
-from vpr_explorer.evaluation import paper_protocol
+from vpr_explorer.data.traversals import load_dataset
+from vpr_explorer.protocols.evaluation import paper_protocol
 from vpr_explorer.pipeline import dataset_descriptors
-from vpr_explorer.places import PlaceSpec, make_places
-from vpr_explorer.scale import fast_paper_protocol
+from vpr_explorer.method.places import PlaceSpec, make_places
+from vpr_explorer.protocols.scale import fast_paper_protocol
 
 ds = load_dataset(sys.argv[1])
 pl = make_places(ds, PlaceSpec(3, 3))
@@ -412,7 +412,7 @@ def test_nordland_tables_do_not_depend_on_blas_kernel_block_size_or_threads(data
     import subprocess
     import sys
 
-    from vpr_explorer.datasets import load_dataset
+    from vpr_explorer.data.traversals import load_dataset
     from vpr_explorer.pipeline import dataset_descriptors
 
     dataset = load_dataset(data_root / "Nordland_64x32")

@@ -15,12 +15,12 @@ import pytest
 from reference import pairwise_negative_stats
 from test_scale import awkward, structured
 
-import vpr_explorer.shared_scores as shared_scores
+import vpr_explorer.protocols.shared_scores as shared_scores
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.evaluation import draw_splits, open_set_protocol, paper_protocol, traversal_protocol
-from vpr_explorer.shared_scores import Negatives, SharedScores, resolve
-from vpr_explorer.stats import negative_stats
-from vpr_explorer.thresholds import place_thresholds
+from vpr_explorer.protocols.evaluation import draw_splits, open_set_protocol, paper_protocol, traversal_protocol
+from vpr_explorer.protocols.shared_scores import Negatives, SharedScores, resolve
+from vpr_explorer.method.stats import negative_stats
+from vpr_explorer.method.thresholds import place_thresholds
 
 TOL = 1e-12  # |Δμ|, |Δσ| against both references (measured: 1e-16 to 7e-15)
 

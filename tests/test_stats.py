@@ -9,8 +9,8 @@ import pytest
 
 from reference import pairwise_negative_stats, unit_rows
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.places import PlaceSpec, make_places
-from vpr_explorer.stats import (
+from vpr_explorer.method.places import PlaceSpec, make_places
+from vpr_explorer.method.stats import (
     Precision,
     mixture_moments,
     mixture_pdf,
@@ -96,7 +96,7 @@ import sys
 import numpy as np
 sys.path.insert(0, sys.argv[1])
 from test_stats import shared_component
-from vpr_explorer.stats import negative_stats
+from vpr_explorer.method.stats import negative_stats
 d, labels = shared_component(np.random.default_rng(9), 6000, 384, 700)
 st = negative_stats(d, labels, threads=int(sys.argv[2]))
 np.save(sys.argv[3], np.stack([st.mu, st.sigma]))
@@ -170,7 +170,7 @@ def test_centred_gram_in_lanes_is_one_syrk_per_block_within_its_bound(dim):
     # kernel the numbers of one syrk per block summed lane by lane, bit for bit
     from concurrent.futures import ThreadPoolExecutor
 
-    from vpr_explorer.stats import _GRAM_LANES, _centre, _centred_gram
+    from vpr_explorer.method.stats import _GRAM_LANES, _centre, _centred_gram
 
     block = 1000
     rng = np.random.default_rng(4)
@@ -200,7 +200,7 @@ def test_centred_gram_in_lanes_is_one_syrk_per_block_within_its_bound(dim):
 def _quadratic_forms_by_block(d, gram, block):
     """``_quadratic_forms`` as it was before its row tasks: per block of rows, every column block
     of W, then the row sums."""
-    from vpr_explorer.stats import _TRI_BLOCKS
+    from vpr_explorer.method.stats import _TRI_BLOCKS
 
     edges = np.linspace(0, d.shape[1], _TRI_BLOCKS + 1).round().astype(int)
     w = [np.asarray(gram[:hi, lo:hi], dtype=np.float32) for lo, hi in zip(edges[:-1], edges[1:])]
@@ -223,8 +223,8 @@ def test_quadratic_forms_in_row_tasks_are_the_block_products(monkeypatch, dtype)
     # rows bit for bit (a GEMM's rows are cut between calls as between threads, never a sum)
     from concurrent.futures import ThreadPoolExecutor
 
-    from vpr_explorer import stats
-    from vpr_explorer.stats import BLOCK, _centre, _centred_gram, _quadratic_forms
+    from vpr_explorer.method import stats
+    from vpr_explorer.method.stats import BLOCK, _centre, _centred_gram, _quadratic_forms
 
     rng = np.random.default_rng(11)
     # 260 columns: W's 8 column blocks 32 or 33 wide (uneven); narrower ones (16 at D = 130) send
@@ -351,7 +351,7 @@ def test_positive_means_against_pairs():
 def test_the_fits_positive_means_from_the_place_terms_against_pairs(monkeypatch, dtype):
     # stats_rows takes them from the place terms' float64 same-place scores: places of 1 (NaN),
     # 2, 7 and one past _BIG_PLACE (scored a band of rows at a time), in shuffled row order
-    from vpr_explorer import stats
+    from vpr_explorer.method import stats
 
     monkeypatch.setattr(stats, "_BIG_PLACE", 16)
     rng = np.random.default_rng(12)
@@ -391,7 +391,7 @@ def _positive_means_one_product(d, labels, n_places, rows):
 @pytest.mark.parametrize("dtype", [np.float64, np.float32, np.float16])
 def test_positive_means_are_the_same_sums_whatever_the_threads(monkeypatch, dtype):
     # float64 rows make the order of the sums visible in the last bits (float32 sums are exact)
-    from vpr_explorer import stats
+    from vpr_explorer.method import stats
 
     monkeypatch.setattr(stats, "_MEAN_ROWS", 97)  # several blocks, places split across them
     rng = np.random.default_rng(3)
@@ -509,7 +509,7 @@ def test_one_blas_thread_holds_in_any_thread():
 
     from threadpoolctl import threadpool_info
 
-    from vpr_explorer.stats import one_blas_thread
+    from vpr_explorer.method.stats import one_blas_thread
 
     def blas_threads():
         return [i["num_threads"] for i in threadpool_info() if i.get("user_api") == "blas"]

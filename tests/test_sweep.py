@@ -1,4 +1,4 @@
-"""Group/step sweeps (``vpr_explorer.sweep``, ``vpr-explorer sweep``) on GardensPoint's pixel descriptors.
+"""Group/step sweeps (``vpr_explorer.protocols.sweep``, ``vpr-explorer sweep``) on GardensPoint's pixel descriptors.
 
 Every cell of a small real sweep is checked against a separate evaluation of the same
 settings (``pipeline.evaluate_dataset``, what ``vpr-explorer evaluate`` runs): the numbers
@@ -20,9 +20,9 @@ import pytest
 from vpr_explorer.cli import main
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.pipeline import evaluate_dataset
-from vpr_explorer.places import PlaceSpec
-from vpr_explorer.shared_scores import SharedScores
-from vpr_explorer.sweep import (
+from vpr_explorer.method.places import PlaceSpec
+from vpr_explorer.protocols.shared_scores import SharedScores
+from vpr_explorer.protocols.sweep import (
     Metric,
     SweepCache,
     SweepSpec,

@@ -6,8 +6,8 @@ from scipy.stats import norm
 
 from reference import loop_auto_threshold, loop_thresholds, unit_rows
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.stats import NegativeStats, mixture_moments, negative_stats
-from vpr_explorer.thresholds import (
+from vpr_explorer.method.stats import NegativeStats, mixture_moments, negative_stats
+from vpr_explorer.method.thresholds import (
     AUTO_Z,
     adaptive_k,
     auto_global_threshold,
@@ -128,7 +128,7 @@ def test_unknown_method():
 
 
 def test_tile_sample_pairs_are_distinct_balanced_and_exact(monkeypatch):
-    import vpr_explorer.thresholds as thresholds
+    import vpr_explorer.method.thresholds as thresholds
 
     rng = np.random.default_rng(5)
     n, dim = 1_000, 24
@@ -164,7 +164,7 @@ def test_tile_sample_pairs_are_distinct_balanced_and_exact(monkeypatch):
 
 
 def test_tile_sample_above_its_image_limit_reads_a_seeded_subset():
-    import vpr_explorer.thresholds as thresholds
+    import vpr_explorer.method.thresholds as thresholds
 
     # today's largest training sets (the app's 110k route, the protocols) keep their sample
     assert thresholds.AUTO_TILE_IMAGES > 110_364
@@ -239,7 +239,7 @@ def _kept(sample, r):
 
 @pytest.mark.parametrize("unknown_share", [None, 0.3])
 def test_pooled_sample_keeps_exactly_each_splits_training_pairs(unknown_share):
-    from vpr_explorer.evaluation import draw_splits
+    from vpr_explorer.protocols.evaluation import draw_splits
 
     rng = np.random.default_rng(2)
     n_places, per_place, dim = 200, 6, 24
@@ -282,7 +282,7 @@ def test_pooled_sample_keeps_exactly_each_splits_training_pairs(unknown_share):
 
 
 def test_theta_from_sorted_scores_is_np_median_bit_for_bit():
-    from vpr_explorer.thresholds import _sorted_auto_threshold
+    from vpr_explorer.method.thresholds import _sorted_auto_threshold
 
     rng = np.random.default_rng(0)
     for t in range(2_000):
@@ -302,7 +302,7 @@ def test_pooled_threshold_agrees_with_a_per_split_sample_within_sampling_error()
     # One run's splits share one pooled sample; over seeds, a split's θ from it must centre on
     # the θ of its own tile sample (``training_pair_scores`` per split) within their sampling
     # error, spread no wider, and sit near the θ of all its training pairs.
-    from vpr_explorer.evaluation import draw_splits
+    from vpr_explorer.protocols.evaluation import draw_splits
 
     d = hub_descriptors(n=2_750)
     labels = np.arange(len(d)) % 250  # 250 places of 11: 2,500 training images, 3.1·10⁶ pairs

@@ -9,11 +9,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vpr_explorer import database, plots, views
-from vpr_explorer.database import decide_traversal, explain_query
+from vpr_explorer.method import database
+from vpr_explorer.views import plots
+from vpr_explorer.views import traversal as views
+from vpr_explorer.method.database import decide_traversal, explain_query
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.places import PlaceSpec
-from vpr_explorer.views import FIND_KINDS, find_frame, fit, overview_frames, place_detail, regroup
+from vpr_explorer.method.places import PlaceSpec
+from vpr_explorer.views.traversal import FIND_KINDS, find_frame, fit, overview_frames, place_detail, regroup
 
 SPEC = PlaceSpec(3, 5)
 BUDGET = 1000  # query x database similarities; the demo's 60 frames x 72 database images are 4,320
@@ -165,8 +167,8 @@ def test_route_figure_of_a_long_route_shows_its_start_and_says_so():
 
 
 def test_protocol_pairs_is_each_protocols_scored_pairs(demo):
-    from vpr_explorer.places import make_places
-    from vpr_explorer.views import protocol_pairs
+    from vpr_explorer.method.places import make_places
+    from vpr_explorer.views.traversal import protocol_pairs
 
     places = make_places(demo, SPEC)  # 12 places x 9 images
     n = 12 * 9

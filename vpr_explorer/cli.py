@@ -20,9 +20,9 @@ import json
 from pathlib import Path
 
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.evaluation import K_GRID, Protocol
+from vpr_explorer.protocols.evaluation import K_GRID, Protocol
 from vpr_explorer.pipeline import MAX_RUNS
-from vpr_explorer.places import PlaceSpec, Reading
+from vpr_explorer.method.places import PlaceSpec, Reading
 
 INTERRUPTED = "interrupted; run the same command again to resume (descriptors computed so far are cached)"
 
@@ -86,8 +86,8 @@ def _number(text: str) -> int | float:
 
 def add_dataset_args(p: argparse.ArgumentParser) -> None:
     """Arguments shared by every sub-command that reads a dataset."""
-    from vpr_explorer.layouts import Layout
-    from vpr_explorer.places import PlaceGeometry
+    from vpr_explorer.data.layouts import Layout
+    from vpr_explorer.method.places import PlaceGeometry
 
     p.add_argument("--dataset", required=True,
                    help="dataset folder (or a manifest .csv), or 'demo' for the built-in route")
@@ -154,14 +154,14 @@ def _protocol_options(args: argparse.Namespace, options: dict | None = None) -> 
 
 def check_radius_option(args: argparse.Namespace) -> float | None:
     """``--radius`` when given: a positive number of metres (``groundtruth.check_radius``), else ``None``."""
-    from vpr_explorer.groundtruth import check_radius
+    from vpr_explorer.data.groundtruth import check_radius
 
     return None if args.radius is None else check_radius(args.radius, "radius")
 
 
 def check_radius_applies(args: argparse.Namespace, dataset) -> None:
     """Refuse ``--radius`` for a dataset whose ground truth no radius makes (VPR-Bench, a manifest's place ids)."""
-    from vpr_explorer.layouts import VPR_BENCH_GT, Layout, RetrievalDataset, radius_applies
+    from vpr_explorer.data.layouts import VPR_BENCH_GT, Layout, RetrievalDataset, radius_applies
 
     if args.radius is None or (isinstance(dataset, RetrievalDataset) and radius_applies(dataset)):
         return
@@ -180,7 +180,7 @@ def check_radius_applies(args: argparse.Namespace, dataset) -> None:
 
 def _benchmark(args: argparse.Namespace):
     """The dataset when ``--dataset``/``--layout`` name a database/queries layout, else ``None``."""
-    from vpr_explorer.layouts import RETRIEVAL_LAYOUTS, Layout, detect_layout
+    from vpr_explorer.data.layouts import RETRIEVAL_LAYOUTS, Layout, detect_layout
 
     check_radius_option(args)
     if args.dataset == "demo":
@@ -204,7 +204,7 @@ def _benchmark(args: argparse.Namespace):
 
 def _places_spec(args: argparse.Namespace, dataset):
     """``(PlaceSpec, MetricPlaceSpec)`` for a database/queries dataset: one of them, from --geometry."""
-    from vpr_explorer.places import MetricPlaceSpec, PlaceGeometry
+    from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry
 
     geometry = args.geometry
     if geometry is None:
@@ -216,7 +216,7 @@ def _places_spec(args: argparse.Namespace, dataset):
 
 def _evaluate_benchmark(args: argparse.Namespace, dataset) -> int:
     from vpr_explorer.pipeline import dataset_descriptors, evaluate_retrieval, imported_descriptors
-    from vpr_explorer.report import render
+    from vpr_explorer.views.report import render
     from vpr_explorer.settings import check_cache_root
 
     protocol = Protocol(args.protocol or Protocol.DATABASE.value)
@@ -274,7 +274,7 @@ def _write_json(args: argparse.Namespace, ev) -> None:
 
 def _evaluate(args: argparse.Namespace) -> int:
     from vpr_explorer.pipeline import evaluate_dataset
-    from vpr_explorer.report import render
+    from vpr_explorer.views.report import render
 
     dataset = _benchmark(args)
     if dataset is not None:
@@ -316,7 +316,7 @@ def _list(args: argparse.Namespace) -> int:
 def _record(args: argparse.Namespace) -> int:
     from vpr_explorer.recording import record_dataset
 
-    from vpr_explorer.layouts import Layout
+    from vpr_explorer.data.layouts import Layout
 
     check_radius_option(args)
     for option in ("radius", "geometry"):

@@ -23,7 +23,7 @@ DEFAULT_DESCRIPTOR = "efficientnet-lite0"
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The ``extract`` sub-command's options."""
     from vpr_explorer.descriptors.distributed import LOCAL, SHARD_IMAGES
-    from vpr_explorer.layouts import Layout
+    from vpr_explorer.data.layouts import Layout
 
     p.add_argument("--dataset", required=True, help="dataset folder (or a manifest .csv), or 'demo'")
     p.add_argument("--layout", choices=[x.value for x in Layout], default=Layout.AUTO.value,

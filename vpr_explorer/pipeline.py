@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from vpr_explorer.datasets import Dataset, load_dataset
+from vpr_explorer.data.traversals import Dataset, load_dataset
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.evaluation import (
+from vpr_explorer.protocols.evaluation import (
     K_GRID,
     Evaluation,
     Progress,
@@ -21,9 +21,9 @@ from vpr_explorer.evaluation import (
     open_set_protocol,
     traversal_protocol,
 )
-from vpr_explorer.places import Places, PlaceSpec, make_places
-from vpr_explorer.scale import fast_paper_protocol
-from vpr_explorer.shared_scores import SharedScores
+from vpr_explorer.method.places import Places, PlaceSpec, make_places
+from vpr_explorer.protocols.scale import fast_paper_protocol
+from vpr_explorer.protocols.shared_scores import SharedScores
 from vpr_explorer.settings import check_cache_root
 
 DEMO = "demo"
@@ -32,7 +32,7 @@ DEMO = "demo"
 def resolve_dataset(source: str | Path) -> Dataset:
     """``"demo"`` (the built-in procedural route) or a dataset folder in either layout."""
     if str(source) == DEMO:
-        from vpr_explorer.demo import demo_dataset
+        from vpr_explorer.data.demo import demo_dataset
 
         return demo_dataset()
     return load_dataset(source)
@@ -359,7 +359,7 @@ def imported_descriptors(dataset, path: Path, *, names_file: Path | None = None,
     """
     from vpr_explorer.descriptors.imported import load_descriptor_file, npy_header
     from vpr_explorer.descriptors.store import check_mmap, open_npy, wants_mmap
-    from vpr_explorer.layouts import RetrievalDataset
+    from vpr_explorer.data.layouts import RetrievalDataset
 
     mode = check_mmap(mmap)
     if mode == "auto" and not isinstance(dataset, RetrievalDataset):
@@ -393,9 +393,9 @@ def open_dataset(source: str | Path, layout: str = "auto", *, radius: float | No
         VPRInputError: naming the path, file, line or option at fault; an entry of the dataset
             folder that cannot be read (no permission, a symbolic link to nothing) is named.
     """
-    from vpr_explorer.datasets import reading
-    from vpr_explorer.groundtruth import DEFAULT_RADIUS, check_radius
-    from vpr_explorer.layouts import RETRIEVAL_LAYOUTS, Layout, detect_layout, load_retrieval
+    from vpr_explorer.data.traversals import reading
+    from vpr_explorer.data.groundtruth import DEFAULT_RADIUS, check_radius
+    from vpr_explorer.data.layouts import RETRIEVAL_LAYOUTS, Layout, detect_layout, load_retrieval
 
     try:
         layout = Layout(layout)
@@ -433,7 +433,7 @@ def retrieval_places(dataset, spec: PlaceSpec | None = None, metric=None):
     ``metric`` (a ``MetricPlaceSpec``: metres along the route or a lattice) when the layout
     has positions; else ``spec`` (group/step counting database images in listed order).
     """
-    from vpr_explorer.places import frame_places, metric_places
+    from vpr_explorer.method.places import frame_places, metric_places
 
     if dataset.database_place is not None:
         return dataset.database_place, int(dataset.database_place.max()) + 1
@@ -472,7 +472,7 @@ def evaluate_retrieval(
     ``retrieval_views.evaluate_fitted``: the same table, the database read a block at a time
     and never converted whole, with the thresholds of the explorer's (kept) fit of these places.
     """
-    from vpr_explorer.evaluation import retrieval_protocol
+    from vpr_explorer.protocols.evaluation import retrieval_protocol
 
     if len(descriptors) != dataset.n_images:
         raise VPRInputError(f"{len(descriptors)} descriptors for {dataset.n_images} images of {dataset.name!r}: "
@@ -484,7 +484,7 @@ def evaluate_retrieval(
            else metric.describe() if metric is not None else spec.describe())
     settings = {"dataset": dataset.name, "layout": dataset.layout.value, "places": f"{n_places} places ({how})",
                 **({"theta": user_theta} if user_theta is not None else {}), **(settings or {})}
-    from vpr_explorer import retrieval_views as rv
+    from vpr_explorer.views import database_queries as rv
 
     if not rv.dense(descriptors):
         geometry = None if dataset.database_place is not None else (

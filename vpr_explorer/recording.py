@@ -50,12 +50,12 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from vpr_explorer.database import DatabaseModel, TraversalDecisions, Verdict, decide_traversal, fit_database
-from vpr_explorer.datasets import Dataset, load_dataset
+from vpr_explorer.method.database import DatabaseModel, TraversalDecisions, Verdict, decide_traversal, fit_database
+from vpr_explorer.data.traversals import Dataset, load_dataset
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.places import BETWEEN_PLACES_RULE, Places, PlaceSpec, between_places, make_places
+from vpr_explorer.method.places import BETWEEN_PLACES_RULE, Places, PlaceSpec, between_places, make_places
 from vpr_explorer.settings import check_cache_root
-from vpr_explorer.retrieval import METHODS_BY_KEY
+from vpr_explorer.method.retrieval import METHODS_BY_KEY
 
 APPLICATION_ID = "vpr_explorer"
 TIMELINE = "frame"

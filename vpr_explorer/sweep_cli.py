@@ -15,10 +15,10 @@ import argparse
 from pathlib import Path
 
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.evaluation import K_GRID, Protocol
+from vpr_explorer.protocols.evaluation import K_GRID, Protocol
 from vpr_explorer.pipeline import MAX_RUNS
-from vpr_explorer.places import Reading
-from vpr_explorer.sweep import METRIC_LABELS, SWEEP_METHODS, SWEEP_PROTOCOLS, Metric
+from vpr_explorer.method.places import Reading
+from vpr_explorer.protocols.sweep import METRIC_LABELS, SWEEP_METHODS, SWEEP_PROTOCOLS, Metric
 
 #: sweep's options that only some protocols read, with those protocols and the value when not given
 PROTOCOL_OPTIONS = {
@@ -99,10 +99,10 @@ def _write(path: Path | None, text: str, option: str) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run the sweep ``args`` describe; print the cost, the grids and why cells are empty; write CSV/JSON."""
     from vpr_explorer.cli import _bar, _protocol_options, check_radius_option
-    from vpr_explorer.datasets import Dataset
+    from vpr_explorer.data.traversals import Dataset
     from vpr_explorer.pipeline import dataset_descriptors, imported_descriptors, open_dataset
     from vpr_explorer.settings import check_cache_root
-    from vpr_explorer.sweep import SweepSpec, empty_reasons, missing_reasons, sweep, sweep_cost, table
+    from vpr_explorer.protocols.sweep import SweepSpec, empty_reasons, missing_reasons, sweep, sweep_cost, table
 
     check_radius_option(args)
     for option in ("radius", "geometry"):

@@ -170,7 +170,7 @@ def exposure_warning(address: str, port: int, root: Path) -> str | None:
 
 
 def _layout(text: str) -> str:
-    from vpr_explorer.layouts import Layout
+    from vpr_explorer.data.layouts import Layout
 
     try:
         return Layout(text).value

@@ -20,13 +20,13 @@ from dataclasses import dataclass, replace
 import pandas as pd  # before plotly: plotly.py#2433
 import streamlit as st
 
-from vpr_explorer import plots
-from vpr_explorer.auto_theta import auto_parts, rejects_all_note
+from vpr_explorer.views import plots
+from vpr_explorer.method.auto_theta import auto_parts, rejects_all_note
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.evaluation import PROTOCOL_LABELS, Protocol
-from vpr_explorer.places import make_places
-from vpr_explorer.report import method_csv
-from vpr_explorer.views import AUTO_RUN_PAIRS, evaluation_json, evaluation_rows, protocol_pairs
+from vpr_explorer.protocols.evaluation import PROTOCOL_LABELS, Protocol
+from vpr_explorer.method.places import make_places
+from vpr_explorer.views.report import method_csv
+from vpr_explorer.views.traversal import AUTO_RUN_PAIRS, evaluation_json, evaluation_rows, protocol_pairs
 
 from vpr_explorer.app.ui import cache, runs as runs_ui, state
 from vpr_explorer.app.ui.current import current

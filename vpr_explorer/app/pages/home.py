@@ -19,10 +19,10 @@ from vpr_explorer.app import (
 from vpr_explorer.descriptors import available_extractors
 from vpr_explorer.descriptors.custom import MODELS_ENV
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.groundtruth import DEFAULT_RADIUS
-from vpr_explorer.layouts import Layout, RetrievalDataset
+from vpr_explorer.data.groundtruth import DEFAULT_RADIUS
+from vpr_explorer.data.layouts import Layout, RetrievalDataset
 from vpr_explorer.pipeline import DEMO
-from vpr_explorer.retrieval_views import radius_of
+from vpr_explorer.views.database_queries import radius_of
 
 from vpr_explorer.app.ui import cache, state
 from vpr_explorer.app.ui.current import current

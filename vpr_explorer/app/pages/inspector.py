@@ -7,9 +7,9 @@ A database/queries dataset (``layouts.RetrievalDataset``) gets its own page body
 import pandas  # noqa: F401  # before plotly: plotly.py#2433
 import streamlit as st
 
-from vpr_explorer.database import Verdict, between_note, describe_query, query_verdict
-from vpr_explorer.retrieval import METHODS_BY_KEY
-from vpr_explorer.views import FIND_KINDS, LIVE_METHODS, top_candidates
+from vpr_explorer.method.database import Verdict, between_note, describe_query, query_verdict
+from vpr_explorer.method.retrieval import METHODS_BY_KEY
+from vpr_explorer.views.traversal import FIND_KINDS, LIVE_METHODS, top_candidates
 
 from vpr_explorer.app.ui import cache, retrieval_inspector, state
 from vpr_explorer.app.ui.candidates import show_candidates

@@ -8,10 +8,10 @@ import pandas  # noqa: F401  # before plotly: plotly.py#2433
 
 import streamlit as st
 
-from vpr_explorer import plots
+from vpr_explorer.views import plots
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.places import READING_LABELS, PlaceSpec, Reading, make_places
-from vpr_explorer.views import LIVE_METHODS
+from vpr_explorer.method.places import READING_LABELS, PlaceSpec, Reading, make_places
+from vpr_explorer.views.traversal import LIVE_METHODS
 
 from vpr_explorer.app.ui import cache, group_step, retrieval_places, state
 from vpr_explorer.app.ui.current import current

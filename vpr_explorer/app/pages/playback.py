@@ -7,9 +7,9 @@ and group/step), where each method's decision is explained and drawn.
 import numpy as np
 import streamlit as st
 
-from vpr_explorer.places import BETWEEN_PLACES_RULE
+from vpr_explorer.method.places import BETWEEN_PLACES_RULE
 from vpr_explorer.recording import RECORDED, Verdict, frame_verdicts, record_playback
-from vpr_explorer.retrieval import METHODS_BY_KEY
+from vpr_explorer.method.retrieval import METHODS_BY_KEY
 
 from vpr_explorer.app.ui import state
 from vpr_explorer.app.ui.current import current

@@ -10,9 +10,9 @@ import pandas as pd  # before plotly: plotly.py#2433
 import streamlit as st
 
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.evaluation import PROTOCOL_LABELS, Protocol
-from vpr_explorer.places import READING_LABELS, Reading
-from vpr_explorer.sweep import (
+from vpr_explorer.protocols.evaluation import PROTOCOL_LABELS, Protocol
+from vpr_explorer.method.places import READING_LABELS, Reading
+from vpr_explorer.protocols.sweep import (
     METRIC_HELP,
     METRIC_LABELS,
     SWEEP_METHODS,

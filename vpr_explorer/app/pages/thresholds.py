@@ -4,8 +4,8 @@ import pandas  # noqa: F401  # before plotly: plotly.py#2433
 import numpy as np
 import streamlit as st
 
-from vpr_explorer import plots
-from vpr_explorer.thresholds import THRESHOLD_LABELS, ThresholdMethod
+from vpr_explorer.views import plots
+from vpr_explorer.method.thresholds import THRESHOLD_LABELS, ThresholdMethod
 
 from vpr_explorer.app.ui import cache, state
 from vpr_explorer.app.ui.controls import threshold_controls

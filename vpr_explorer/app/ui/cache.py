@@ -50,13 +50,13 @@ from PIL import Image
 
 from vpr_explorer import settings
 from vpr_explorer.app import data_root, descriptor_files, under_data_root
-from vpr_explorer.database import QueryDecision, explain_query
-from vpr_explorer.datasets import Dataset, load_dataset
+from vpr_explorer.method.database import QueryDecision, explain_query
+from vpr_explorer.data.traversals import Dataset, load_dataset
 from vpr_explorer.descriptors import extract_descriptors, fingerprint, get_extractor
 from vpr_explorer.descriptors.base import open_image
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.evaluation import Evaluation
-from vpr_explorer.layouts import RETRIEVAL_LAYOUTS, Layout, RetrievalDataset, detect_layout
+from vpr_explorer.protocols.evaluation import Evaluation
+from vpr_explorer.data.layouts import RETRIEVAL_LAYOUTS, Layout, RetrievalDataset, detect_layout
 from vpr_explorer.pipeline import (
     DEMO,
     dataset_descriptors,
@@ -66,11 +66,12 @@ from vpr_explorer.pipeline import (
     resolve_dataset,
     run_protocol,
 )
-from vpr_explorer.places import PlaceSpec
-from vpr_explorer.shared_scores import SHARED_LIMIT, SharedScores
-from vpr_explorer import retrieval_views, stats
-from vpr_explorer.retrieval_views import RetrievalFitted, RetrievalOverview, RetrievalPlaces
-from vpr_explorer.views import (
+from vpr_explorer.method.places import PlaceSpec
+from vpr_explorer.protocols.shared_scores import SHARED_LIMIT, SharedScores
+from vpr_explorer.views import database_queries as retrieval_views
+from vpr_explorer.method import stats
+from vpr_explorer.views.database_queries import RetrievalFitted, RetrievalOverview, RetrievalPlaces
+from vpr_explorer.views.traversal import (
     Fitted,
     PlaceDetail,
     Regrouped,
@@ -213,7 +214,7 @@ def disk_cache_problem() -> str | None:
 
 def _demo_in_temporary_folder() -> Dataset:
     """The demo route drawn under the temporary folder, for when the cache folder cannot hold it."""
-    from vpr_explorer import demo
+    from vpr_explorer.data import demo
 
     uid = os.getuid() if hasattr(os, "getuid") else "user"
     root = Path(tempfile.gettempdir()) / f"vpr_explorer-{uid}" / demo.demo_root().relative_to(settings.cache_root())
@@ -510,7 +511,7 @@ def evaluation(data: Loaded, spec: PlaceSpec | None, protocol: str, *, peek: boo
     ``peek``: only a run already in this server's memory, ``None`` when it has not been
     computed (nothing is run): how a page decides whether showing it costs anything.
     """
-    from vpr_explorer.places import make_places
+    from vpr_explorer.method.places import make_places
 
     places = make_places(data.dataset, spec)
     key = ("evaluation", data.key, None if spec is None else (spec.group, spec.step, spec.reading.value), protocol,
@@ -535,7 +536,7 @@ def _places_key(places: RetrievalPlaces) -> tuple:
 
 
 def _places(key: tuple) -> RetrievalPlaces:
-    from vpr_explorer.places import MetricPlaceSpec, PlaceGeometry
+    from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry
 
     geometry, spec, metric = key
     return RetrievalPlaces(None if geometry is None else PlaceGeometry(geometry),

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import streamlit as st
 
-from vpr_explorer import plots
-from vpr_explorer.retrieval import QueryDecision
+from vpr_explorer.views import plots
+from vpr_explorer.method.retrieval import QueryDecision
 
 from vpr_explorer.app.ui import cache
 

@@ -10,10 +10,10 @@ import streamlit as st
 from streamlit.runtime.scriptrunner import get_script_run_ctx
 
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.layouts import RetrievalDataset
-from vpr_explorer.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec
-from vpr_explorer.retrieval_views import DEFAULT_GROUP_M, DEFAULT_STEP_M, RetrievalPlaces, check_geometry
-from vpr_explorer.views import default_step, split_traversals
+from vpr_explorer.data.layouts import RetrievalDataset
+from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec
+from vpr_explorer.views.database_queries import DEFAULT_GROUP_M, DEFAULT_STEP_M, RetrievalPlaces, check_geometry
+from vpr_explorer.views.traversal import default_step, split_traversals
 
 from vpr_explorer.app.ui import cache, state
 from vpr_explorer.app.ui.feedback import DATASET_HINT, PLACES_HINT, FixOn, fixed_on

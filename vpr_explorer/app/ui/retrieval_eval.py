@@ -12,9 +12,9 @@ from __future__ import annotations
 import pandas as pd  # before plotly: plotly.py#2433
 import streamlit as st
 
-from vpr_explorer import plots
-from vpr_explorer.report import method_csv
-from vpr_explorer.views import AUTO_RUN_PAIRS, evaluation_json, evaluation_rows
+from vpr_explorer.views import plots
+from vpr_explorer.views.report import method_csv
+from vpr_explorer.views.traversal import AUTO_RUN_PAIRS, evaluation_json, evaluation_rows
 
 from vpr_explorer.app.ui import cache, state
 from vpr_explorer.app.ui.current import Current

@@ -15,9 +15,9 @@ from pathlib import Path
 import streamlit as st
 
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.retrieval import METHODS_BY_KEY
-from vpr_explorer.retrieval_views import BETWEEN, UNKNOWN, database_label, find_query_by_name, query_label
-from vpr_explorer.views import FIND_KINDS, LIVE_METHODS, top_candidates
+from vpr_explorer.method.retrieval import METHODS_BY_KEY
+from vpr_explorer.views.database_queries import BETWEEN, UNKNOWN, database_label, find_query_by_name, query_label
+from vpr_explorer.views.traversal import FIND_KINDS, LIVE_METHODS, top_candidates
 
 from vpr_explorer.app.ui import cache, state
 from vpr_explorer.app.ui.candidates import show_candidates

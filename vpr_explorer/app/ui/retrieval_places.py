@@ -15,11 +15,13 @@ import dataclasses
 import numpy as np
 import streamlit as st
 
-from vpr_explorer import maps, plots, retrieval_views
+from vpr_explorer.views import maps
+from vpr_explorer.views import plots
+from vpr_explorer.views import database_queries as retrieval_views
 from vpr_explorer.pipeline import retrieval_places
-from vpr_explorer.places import READING_LABELS, PlaceGeometry, Reading
-from vpr_explorer.retrieval_views import geometries, geometry_label, query_label, radius_of
-from vpr_explorer.views import LIVE_METHODS, top_candidates
+from vpr_explorer.method.places import READING_LABELS, PlaceGeometry, Reading
+from vpr_explorer.views.database_queries import geometries, geometry_label, query_label, radius_of
+from vpr_explorer.views.traversal import LIVE_METHODS, top_candidates
 
 from vpr_explorer.app.ui import cache, group_step, state
 from vpr_explorer.app.ui.current import Current, effective_places

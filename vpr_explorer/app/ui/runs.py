@@ -1,7 +1,7 @@
 """Runs side by side on the Evaluation page: every run kept while the app is open, pinned, renamed, compared.
 
 The list lives in ``st.session_state`` (one browser session's runs; a reload starts a new
-list) as ``compare.RunRecord`` s; everything numeric is ``vpr_explorer.compare`` and
+list) as ``compare.RunRecord`` s; everything numeric is ``vpr_explorer.protocols.compare`` and
 ``compare_plots``: this module only draws widgets around them.
 """
 
@@ -12,10 +12,11 @@ from collections.abc import Mapping
 import pandas as pd  # before plotly: plotly.py#2433
 import streamlit as st
 
-from vpr_explorer import compare, compare_plots
+from vpr_explorer.protocols import compare
+from vpr_explorer.views import compare_plots
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.evaluation import Evaluation
-from vpr_explorer.retrieval import METHODS_BY_KEY
+from vpr_explorer.protocols.evaluation import Evaluation
+from vpr_explorer.method.retrieval import METHODS_BY_KEY
 
 _KEY = "eval_kept_runs"
 _ISSUED = "eval_runs_issued"

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import streamlit as st
 
-from vpr_explorer.groundtruth import DEFAULT_RADIUS
-from vpr_explorer.layouts import Layout
+from vpr_explorer.data.groundtruth import DEFAULT_RADIUS
+from vpr_explorer.data.layouts import Layout
 
 from vpr_explorer.app.ui import state
 

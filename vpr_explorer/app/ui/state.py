@@ -29,11 +29,11 @@ import streamlit as st
 
 from vpr_explorer.app import OutsideDataRoot, outside_reason, started_view, under_data_root
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.groundtruth import DEFAULT_RADIUS, check_radius
-from vpr_explorer.layouts import Layout
-from vpr_explorer.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec, Reading
+from vpr_explorer.data.groundtruth import DEFAULT_RADIUS, check_radius
+from vpr_explorer.data.layouts import Layout
+from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec, Reading
 from vpr_explorer.pipeline import DEMO
-from vpr_explorer.retrieval_views import DEFAULT_GROUP_M
+from vpr_explorer.views.database_queries import DEFAULT_GROUP_M
 
 DEFAULT_DESCRIPTOR = "pixels"
 """Always available and instant; efficientnet-lite0 is the learned choice, one click away."""

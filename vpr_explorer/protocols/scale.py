@@ -118,7 +118,7 @@ import numpy as np
 from scipy import sparse
 
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.evaluation import (
+from vpr_explorer.protocols.evaluation import (
     KS,
     Evaluation,
     Progress,
@@ -134,9 +134,9 @@ from vpr_explorer.evaluation import (
     pooled_truth,
     split_pr,
 )
-from vpr_explorer.retrieval import METHODS_BY_KEY, TIE_TOLERANCE, Outcome
-from vpr_explorer.shared_scores import SharedScores
-from vpr_explorer.stats import (
+from vpr_explorer.method.retrieval import METHODS_BY_KEY, TIE_TOLERANCE, Outcome
+from vpr_explorer.protocols.shared_scores import SharedScores
+from vpr_explorer.method.stats import (
     SIGMA_FLOOR,
     NegativeStats,
     mixture_moments,
@@ -145,7 +145,7 @@ from vpr_explorer.stats import (
     triangular_blocks,
     triangular_quadratic_forms,
 )
-from vpr_explorer.thresholds import (
+from vpr_explorer.method.thresholds import (
     ThresholdMethod,
     adaptive_k,
     place_thresholds,
@@ -624,7 +624,7 @@ class _BlockProducts:
         if device is not None:
             import torch
 
-            from vpr_explorer.stats import torch_device
+            from vpr_explorer.method.stats import torch_device
 
             self.device = torch_device(device)
             self.xt = torch.from_numpy(x).to(self.device)
@@ -635,7 +635,7 @@ class _BlockProducts:
             return
         import torch
 
-        from vpr_explorer.stats import ieee_float32
+        from vpr_explorer.method.stats import ieee_float32
 
         idx = torch.from_numpy(rows).to(self.device)
         cdx = cols if isinstance(cols, slice) else torch.from_numpy(cols).to(self.device)
@@ -1534,7 +1534,7 @@ def scale_splits(
         raise VPRInputError("scale_splits: splits with unknown places (the open set) are not supported; "
                             "use evaluation.open_set_protocol")
     if device is not None:  # a bad device fails before any work
-        from vpr_explorer.stats import torch_device
+        from vpr_explorer.method.stats import torch_device
 
         device = torch_device(device)
     lay = make_layout(image_place, n_places, block)

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vpr_explorer.thresholds import AUTO_Z, auto_global_threshold, training_pair_scores
+from vpr_explorer.method.thresholds import AUTO_Z, auto_global_threshold, training_pair_scores
 
 #: The largest similarity two L2-normalised descriptors can have (cosine).
 MAX_SIMILARITY = 1.0

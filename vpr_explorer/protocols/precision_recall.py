@@ -65,7 +65,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.retrieval import (
+from vpr_explorer.method.retrieval import (
     METHODS_BY_KEY,
     TIE_TOLERANCE,
     Outcome,

@@ -22,11 +22,11 @@ import pandas  # noqa: F401  # imported before plotly: plotly.py#2433 (lazy-impo
 import plotly.graph_objects as go
 from plotly.subplots import make_subplots
 
-from vpr_explorer.evaluation import Evaluation
-from vpr_explorer.precision_recall import PRCurve, PRPoint
-from vpr_explorer.retrieval import METHODS_BY_KEY, QueryDecision
-from vpr_explorer.stats import mixture_pdf
-from vpr_explorer.views import PlaceDetail, SimilarityGrid
+from vpr_explorer.protocols.evaluation import Evaluation
+from vpr_explorer.protocols.precision_recall import PRCurve, PRPoint
+from vpr_explorer.method.retrieval import METHODS_BY_KEY, QueryDecision
+from vpr_explorer.method.stats import mixture_pdf
+from vpr_explorer.views.traversal import PlaceDetail, SimilarityGrid
 
 KEPT = "#2e8b57"
 DROPPED = "#c4c4c4"

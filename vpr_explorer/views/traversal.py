@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vpr_explorer.database import (
+from vpr_explorer.method.database import (
     PAIRS_PER_BLOCK,
     DatabaseModel,
     TraversalDecisions,
@@ -27,12 +27,12 @@ from vpr_explorer.database import (
     decide_traversal,
     fit_database,
 )
-from vpr_explorer.datasets import Dataset
+from vpr_explorer.data.traversals import Dataset
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.evaluation import Evaluation
-from vpr_explorer.places import Places, PlaceSpec, make_places
-from vpr_explorer.report import strict
-from vpr_explorer.retrieval import QueryDecision, similarity
+from vpr_explorer.protocols.evaluation import Evaluation
+from vpr_explorer.method.places import Places, PlaceSpec, make_places
+from vpr_explorer.views.report import strict
+from vpr_explorer.method.retrieval import QueryDecision, similarity
 
 #: Methods the live pages summarise, in display order (place level; the image-level
 #: baseline is left out because it ranks images, not places).

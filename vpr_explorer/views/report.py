@@ -7,7 +7,7 @@ import io
 import math
 from collections.abc import Mapping
 
-from vpr_explorer.evaluation import Evaluation, Protocol
+from vpr_explorer.protocols.evaluation import Evaluation, Protocol
 
 
 def _pct(stat, with_std: bool = True) -> str:

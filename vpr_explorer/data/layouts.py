@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vpr_explorer.datasets import (
+from vpr_explorer.data.traversals import (
     IMAGE_SUFFIXES,
     entries,
     images_in,
@@ -43,8 +43,8 @@ from vpr_explorer.datasets import (
     unusable,
 )
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.groundtruth import DEFAULT_RADIUS, GroundTruth, check_radius, position_problem
-from vpr_explorer.safe_npy import as_indices, read_npy
+from vpr_explorer.data.groundtruth import DEFAULT_RADIUS, GroundTruth, check_radius, position_problem
+from vpr_explorer.data.safe_npy import as_indices, read_npy
 
 
 class Layout(StrEnum):

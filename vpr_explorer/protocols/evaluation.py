@@ -30,10 +30,10 @@ from enum import StrEnum
 import numpy as np
 
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.groundtruth import GroundTruth
-from vpr_explorer.places import between_places, right_places
-from vpr_explorer.precision_recall import PRCurve, PRRow, PRSplit, pr_rows
-from vpr_explorer.retrieval import (
+from vpr_explorer.data.groundtruth import GroundTruth
+from vpr_explorer.method.places import between_places, right_places
+from vpr_explorer.protocols.precision_recall import PRCurve, PRRow, PRSplit, pr_rows
+from vpr_explorer.method.retrieval import (
     METHODS_BY_KEY,
     Method,
     Outcome,
@@ -45,8 +45,8 @@ from vpr_explorer.retrieval import (
     similarity,
     top_answer,
 )
-from vpr_explorer.shared_scores import Negatives, SharedScores, resolve
-from vpr_explorer.stats import (
+from vpr_explorer.protocols.shared_scores import Negatives, SharedScores, resolve
+from vpr_explorer.method.stats import (
     NegativeStats,
     Precision,
     mixture_moments,
@@ -54,7 +54,7 @@ from vpr_explorer.stats import (
     positive_means,
     validate_descriptors,
 )
-from vpr_explorer.thresholds import (
+from vpr_explorer.method.thresholds import (
     ThresholdMethod,
     adaptive_k,
     auto_global_threshold,

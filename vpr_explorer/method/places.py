@@ -20,7 +20,7 @@ from enum import StrEnum
 
 import numpy as np
 
-from vpr_explorer.datasets import Dataset
+from vpr_explorer.data.traversals import Dataset
 from vpr_explorer.errors import VPRInputError
 
 

@@ -33,9 +33,9 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.evaluation import Evaluation
-from vpr_explorer.report import strict
-from vpr_explorer.retrieval import METHODS_BY_KEY
+from vpr_explorer.protocols.evaluation import Evaluation
+from vpr_explorer.views.report import strict
+from vpr_explorer.method.retrieval import METHODS_BY_KEY
 
 #: Unpinned runs kept; the oldest unpinned one goes when another arrives.
 MAX_RUNS = 12
@@ -379,5 +379,5 @@ def read_runs_json(text: str) -> dict:
     except json.JSONDecodeError as exc:
         raise VPRInputError(f"not a runs export (invalid JSON: {exc})") from None
     if not isinstance(data, dict) or not isinstance(data.get("runs"), list):
-        raise VPRInputError("not a runs export: expected an object with a 'runs' list (vpr_explorer.compare.runs_json)")
+        raise VPRInputError("not a runs export: expected an object with a 'runs' list (vpr_explorer.protocols.compare.runs_json)")
     return data

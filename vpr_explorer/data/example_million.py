@@ -14,7 +14,7 @@ plus noise, L2-normalised, so nearby images score high and places separate. Quer
 taken at random positions along the route (0.5 m across it) with stronger noise; a share
 ``unknown`` lies 1 km off the route: no database image within the radius (the open set).
 
-``python -m vpr_explorer.example_million --out DIR --database 1000000 --queries 10000 --dim 512``
+``python -m vpr_explorer.data.example_million --out DIR --database 1000000 --queries 10000 --dim 512``
 """
 
 from __future__ import annotations

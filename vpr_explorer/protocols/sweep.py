@@ -58,14 +58,14 @@ from enum import StrEnum
 
 import numpy as np
 
-from vpr_explorer.datasets import Dataset
+from vpr_explorer.data.traversals import Dataset
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.evaluation import K_GRID, Evaluation, Progress, Protocol
+from vpr_explorer.protocols.evaluation import K_GRID, Evaluation, Progress, Protocol
 from vpr_explorer.pipeline import check_finite, check_options, check_whole, run_protocol
-from vpr_explorer.places import MAX_FRAMES, PlaceSpec, Reading, make_places
-from vpr_explorer.precision_recall import GLOBAL_CURVE
-from vpr_explorer.retrieval import METHODS_BY_KEY
-from vpr_explorer.shared_scores import SharedScores
+from vpr_explorer.method.places import MAX_FRAMES, PlaceSpec, Reading, make_places
+from vpr_explorer.protocols.precision_recall import GLOBAL_CURVE
+from vpr_explorer.method.retrieval import METHODS_BY_KEY
+from vpr_explorer.protocols.shared_scores import SharedScores
 
 MAX_CELLS = 400
 """Most cells one sweep may hold (all readings together): each is a full protocol run."""
@@ -415,7 +415,7 @@ def sweep_cost(dataset: Dataset, spec: SweepSpec, *, cache: SweepCache | None = 
 
     With ``cache`` and ``descriptors_key``, cells already in the cache are not counted.
     """
-    from vpr_explorer.views import protocol_pairs
+    from vpr_explorer.views.traversal import protocol_pairs
 
     plan = _plan(dataset, spec)
     o = spec.options()
@@ -548,7 +548,7 @@ def sweep(
     if len(descriptors) != dataset.n_images:
         raise VPRInputError(f"{len(descriptors)} descriptors for {dataset.n_images} images of {dataset.name!r}: "
                             "recompute them")
-    from vpr_explorer.views import protocol_pairs
+    from vpr_explorer.views.traversal import protocol_pairs
 
     if descriptors_key is None:
         from vpr_explorer.descriptors import fingerprint

@@ -14,9 +14,9 @@ import numpy as np
 import pandas  # noqa: F401  # imported before plotly: plotly.py#2433
 import plotly.graph_objects as go
 
-from vpr_explorer.compare import RunRecord
-from vpr_explorer.plots import PALETTE
-from vpr_explorer.retrieval import METHODS_BY_KEY
+from vpr_explorer.protocols.compare import RunRecord
+from vpr_explorer.views.plots import PALETTE
+from vpr_explorer.method.retrieval import METHODS_BY_KEY
 
 _MARGIN = dict(l=10, r=40, t=40, b=10)
 #: Trade-off series a comparison can overlay (``Evaluation.tradeoff``'s series names).

@@ -49,8 +49,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.retrieval import similarity
-from vpr_explorer.stats import NegativeStats, validate_descriptors
+from vpr_explorer.method.retrieval import similarity
+from vpr_explorer.method.stats import NegativeStats, validate_descriptors
 
 #: the most images whose n × n float32 similarity and float64 Gram are kept (12 bytes × n²)
 SHARED_LIMIT = 8000

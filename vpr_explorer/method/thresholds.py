@@ -21,7 +21,7 @@ import numpy as np
 from scipy.stats import norm
 
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.stats import SIGMA_FLOOR, NegativeStats, as_float32, mixture_moments, one_blas_thread
+from vpr_explorer.method.stats import SIGMA_FLOOR, NegativeStats, as_float32, mixture_moments, one_blas_thread
 
 #: Φ⁻¹(1 − 10⁻⁶) ≈ 4.753, the automatic threshold's multiple of the robust spread.
 AUTO_Z = float(norm.ppf(1 - 1e-6))

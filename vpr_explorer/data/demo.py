@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from vpr_explorer.datasets import Dataset, load_dataset
+from vpr_explorer.data.traversals import Dataset, load_dataset
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.settings import CACHE_ENV, cache_root
 
@@ -706,7 +706,7 @@ _README_TEXT = """\
 VPR Threshold Explorer: built-in demo route
 ===========================================
 
-A small street drawn by vpr_explorer.demo (seed {seed}, {n_frames} frames, drawing version
+A small street drawn by vpr_explorer.data.demo (seed {seed}, {n_frames} frames, drawing version
 {version}) and driven three times: day/, night/ and snow/. Frame f shows the same spot in
 every traversal; neighbouring frames overlap strongly and frames ten apart do not.
 positions.csv holds one map position (x,y in [0,1]) per frame.

@@ -21,7 +21,7 @@ from collections.abc import Sequence
 import numpy as np
 import plotly.graph_objects as go
 
-from vpr_explorer.plots import PALETTE, SKIPPED
+from vpr_explorer.views.plots import PALETTE, SKIPPED
 
 #: Above this many points a trace is drawn with WebGL (``Scattergl``): SVG slows down past a few thousand.
 WEBGL_POINTS = 5_000

@@ -30,13 +30,13 @@ from pathlib import Path
 
 import numpy as np
 
-from vpr_explorer.database import DatabaseModel, database_rows
+from vpr_explorer.method.database import DatabaseModel, database_rows
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.evaluation import KS, Evaluation, RetrievalTally
-from vpr_explorer.layouts import Layout, RetrievalDataset
+from vpr_explorer.protocols.evaluation import KS, Evaluation, RetrievalTally
+from vpr_explorer.data.layouts import Layout, RetrievalDataset
 from vpr_explorer.pipeline import retrieval_places
-from vpr_explorer.places import GEOMETRY_LABELS, MetricPlaceSpec, PlaceGeometry, PlaceSpec
-from vpr_explorer.retrieval import (
+from vpr_explorer.method.places import GEOMETRY_LABELS, MetricPlaceSpec, PlaceGeometry, PlaceSpec
+from vpr_explorer.method.retrieval import (
     TIE_TOLERANCE,
     Outcome,
     PlaceLayout,
@@ -49,14 +49,14 @@ from vpr_explorer.retrieval import (
     similarity,
     similarity_t,
 )
-from vpr_explorer.stats import RowsOf, mixture_moments, one_blas_thread, stats_rows
-from vpr_explorer.thresholds import (
+from vpr_explorer.method.stats import RowsOf, mixture_moments, one_blas_thread, stats_rows
+from vpr_explorer.method.thresholds import (
     ThresholdMethod,
     auto_global_threshold,
     place_thresholds,
     training_pair_scores,
 )
-from vpr_explorer.views import FIND_KINDS, PAIR_BUDGET, PlaceDetail, overview_frames
+from vpr_explorer.views.traversal import FIND_KINDS, PAIR_BUDGET, PlaceDetail, overview_frames
 
 #: Group and step in metres the app starts with: a place about as long as the field's 25 m
 #: radius, one every 100 m (GardensPoint at 10 m a frame: the paper's group 3, step 10).

@@ -15,10 +15,10 @@ from enum import StrEnum
 
 import numpy as np
 
-from vpr_explorer.datasets import Dataset
+from vpr_explorer.data.traversals import Dataset
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.places import Places, right_places
-from vpr_explorer.retrieval import (
+from vpr_explorer.method.places import Places, right_places
+from vpr_explorer.method.retrieval import (
     METHODS_BY_KEY,
     Outcome,
     PlaceLayout,
@@ -31,8 +31,8 @@ from vpr_explorer.retrieval import (
     similarity,
     similarity_t,
 )
-from vpr_explorer.stats import NegativeStats, mixture_moments, negative_stats, one_blas_thread, positive_means
-from vpr_explorer.thresholds import (
+from vpr_explorer.method.stats import NegativeStats, mixture_moments, negative_stats, one_blas_thread, positive_means
+from vpr_explorer.method.thresholds import (
     ThresholdMethod,
     adaptive_k,
     auto_global_threshold,

@@ -1,0 +1,1 @@
+"""Datasets in: traversal folders, the field's benchmark layouts, ground truth, the demo route and worked examples."""

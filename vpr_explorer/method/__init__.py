@@ -1,0 +1,1 @@
+"""The paper's method: places (group/step), negative statistics, thresholds, retrieval and decisions."""
