@@ -1,6 +1,6 @@
 """The 50-split protocol's pass and whole run, an earlier ``scale.py`` against today's, side by side (issue 13 §4).
 
-    git show 8ebd70a:vpr_explorer/protocols/scale.py > /tmp/scale_before.py
+    git show 8ebd70a:vpr_explorer/scale.py > /tmp/scale_before.py
     python benchmarks/bench_scale_before_after.py /tmp/scale_before.py [--places 2250] [--repeats 2]
 
 Loads the earlier module from the given file beside ``vpr_explorer.protocols.scale``, and on the same
