@@ -1,4 +1,4 @@
-"""The app on a 110k-image dataset: every page's run time beside the all-pairs work it avoids (issue 6).
+"""The app on a 110k-image dataset: every page's run time beside the all-pairs work it avoids.
 
     python benchmarks/bench_app_scale.py                         # 4 traversals x 27,591 frames = 110,364 images
     python benchmarks/bench_app_scale.py --frames 3000           # a quicker look
@@ -17,7 +17,7 @@ Side by side, in the same run: deciding every query frame against the database
 (``decide_traversal`` on all 27,591 frames, what a page that ignored the budget would
 compute), and the ratio of each page to it.
 
-Against the machine's limit (issue 13): before the pages, a group/step move (``views.regroup``
+Against the machine's limit: before the pages, a group/step move (``views.regroup``
 at group 4, step 10, as the Places page's slider move) is timed outside the app, split into
 its fit (``views.fit``: closed-form statistics, automatic θ, positive means) and its
 decisions, beside its floor: the flops it needs (``gemm_peak.fit_flops`` + 2·F·N·D) at
@@ -184,7 +184,7 @@ def time_move(descriptors, dataset, group: int = 4, step: int = 10) -> None:
     t_fit = time.perf_counter() - start
     r = regroup(descriptors, dataset, PlaceSpec(group, step), fitted=f)
     t_move, cpu_move = time.perf_counter() - start, time.process_time() - cpu
-    # Side by side, the same frames: the straightforward decisions (issue 13 §3's "before"),
+    # Side by side, the same frames: the straightforward decisions (no fused pieces),
     # then the fused ones again, alternating, best of each (the load on a shared machine changes).
     t_plain, t_fused, raw_same, raw_gap, differ = [], [], True, 0.0, np.zeros(len(r.frames), bool)
     for _ in range(2):

@@ -157,7 +157,7 @@ def main(argv: list[str] | None = None) -> None:
 
     paths = gardens_point_images(args.data, args.n)
     if args.workers is None:
-        from vpr_explorer.descriptors.extract import default_workers
+        from vpr_explorer.settings import default_workers
 
         args.workers = default_workers()
     import torch  # to report what the forward pass ran on

@@ -1,4 +1,4 @@
-"""The 50-split paper protocol at Nordland scale, beside one full similarity pass (issue 6).
+"""The 50-split paper protocol at Nordland scale, beside one full similarity pass.
 
     python benchmarks/bench_nordland_scale.py                       # 110,364 × 1,280, 9,197 places
     python benchmarks/bench_nordland_scale.py --places 1000 --runs 5 --check   # small, vs paper_protocol
@@ -18,7 +18,7 @@ shared, so CPU time is the steadier comparison) and the process's peak resident 
 The floor is timed before and after the protocol and the faster of the two is the one
 compared against.
 
-Against the machine's limit (issue 13): the BLAS kernel in use and numpy's float32 GEMM
+Against the machine's limit: the BLAS kernel in use and numpy's float32 GEMM
 rate on the pass's block shape (4,096 × D @ D × 4,096) are measured in the same process
 (``gemm_peak``), and each of the two steps prints its achieved rate counting only the flops
 it needs, N²·D (half of the 2·N²·D of all ordered pairs: the product is symmetric), as a
@@ -30,13 +30,14 @@ N²·R/(2m) sparse additions for block J's rows, m images per place), the float6
 and the per-split steps. Compare kernels with
 ``env -u OPENBLAS_CORETYPE -u OPENBLAS_L2_SIZE python benchmarks/bench_nordland_scale.py``.
 ``--device cpu`` (or ``cuda``) runs the pass's block products through torch.
-``--phases`` prints the protocol's wall and CPU seconds per step (timers around ``scale``'s functions;
-steps that run beside each other overlap, and their CPU seconds are the whole process's).
+``--phases`` prints the protocol's wall and CPU seconds per step (timers around the step functions
+``scale.protocol`` calls; steps that run beside each other overlap, and their CPU seconds are
+the whole process's).
 ``--check`` also runs ``evaluation.paper_protocol`` and asserts identical tables (small N).
 ``--storage float16`` writes the descriptors as a float16 ``.npy`` and memory-maps it, as
 the descriptor cache can.
-``--per-split-sample`` also runs the protocol as it was before issue 13 §4 took the automatic
-θ's sample once per run: a tile sample of each split's own training images
+``--per-split-sample`` also runs the protocol with the automatic θ from a tile sample of each
+split's own training images instead of one pooled sample per run
 (``training_pair_scores(rows=train, seed=seed + r)``), side by side with the pooled sample
 (``thresholds.pooled_pair_sample``), and prints both times and the largest difference of
 the automatic θ between the two in units of its spread over the splits.
@@ -53,11 +54,11 @@ from pathlib import Path
 
 import numpy as np
 
-import vpr_explorer.protocols.scale as scale
+import vpr_explorer.protocols.scale.protocol as scale_protocol
 from gemm_peak import load_average, measure_peak, share
-from vpr_explorer.views.report import render
-from vpr_explorer.protocols.scale import fast_paper_protocol
 from vpr_explorer.method.thresholds import auto_global_threshold, training_pair_scores
+from vpr_explorer.protocols.scale import fast_paper_protocol
+from vpr_explorer.views.report import render
 
 FRAMES, TRAVERSALS = 3, 4
 
@@ -112,7 +113,7 @@ def full_similarity_pass(d: np.ndarray, block: int = 4096) -> float:
 
 
 class PerSplitSample:
-    """The automatic θ as taken before issue 13 §4: a tile sample of each split's own training images."""
+    """The automatic θ from a tile sample of each split's own training images (not one pooled sample per run)."""
 
     def __init__(self, descriptors, trains, *, seed=0):
         self.descriptors, self.trains, self.seed = descriptors, list(trains), seed
@@ -121,18 +122,20 @@ class PerSplitSample:
         return auto_global_threshold(training_pair_scores(self.descriptors, rows=self.trains[r], seed=self.seed + r))
 
 
-#: The protocol's steps (module doc of ``scale``): full-set sums, each split's μ, the automatic θs and their sample,
-#: the layout copy, the pass, identical places, per-split thresholds, error scale, scoring, assembly.
-PHASES = ("_full_sums", "_split_mu", "_automatic_thetas", "pooled_pair_sample", "_as_layout32", "_blocked_pass", "_content_classes",
-          "_split_thresholds", "_error_scale", "_uncertainty", "_score_splits", "_assemble")
+#: The protocol's steps (package doc of ``scale``), as ``scale.protocol`` calls them: full-set sums, each split's
+#: μ, the automatic θs and their sample, the layout copy, the pass, identical places, per-split thresholds, error
+#: scale, scoring, assembly.
+PHASES = ("full_set_sums", "split_mu", "automatic_thetas", "pooled_pair_sample", "as_layout32", "blocked_pass",
+          "content_classes", "split_thresholds", "error_scale", "uncertainty", "score_splits", "assemble")
 
 
 def _time_phases() -> dict[str, list]:
-    """Wrap ``scale``'s step functions with timers; returns name -> [wall s, CPU s of the process, calls]."""
+    """Wrap the step functions where ``scale.protocol`` reads them with timers; returns name -> [wall s, CPU s of
+    the process, calls]."""
     out: dict[str, list] = {}
 
     def wrap(name):
-        fn = getattr(scale, name)
+        fn = getattr(scale_protocol, name)
 
         def timed_fn(*a, **k):
             w, c = time.perf_counter(), time.process_time()
@@ -143,7 +146,7 @@ def _time_phases() -> dict[str, list]:
                 acc[0] += time.perf_counter() - w
                 acc[1] += time.process_time() - c
                 acc[2] += 1
-        setattr(scale, name, timed_fn)
+        setattr(scale_protocol, name, timed_fn)
 
     for name in PHASES:
         wrap(name)
@@ -175,12 +178,12 @@ def main() -> None:
     ap.add_argument("--profile", action="store_true",
                     help="print the protocol's CPU profile (cProfile on CPU time), the 15 largest by cumulative time")
     ap.add_argument("--phases", action="store_true",
-                    help="print the protocol's wall and CPU seconds per step (timers around scale's functions; "
+                    help="print the protocol's wall and CPU seconds per step (timers around scale.protocol's steps; "
                          "CPU seconds are the process's: the automatic θs and content classes run beside the "
                          "full-set sums, the per-split steps side by side, so those overlap)")
     ap.add_argument("--per-split-sample", action="store_true",
                     help="also time the protocol with a tile sample per split for the automatic θ "
-                         "(before issue 13 §4)")
+                         "(instead of one pooled sample per run)")
     args = ap.parse_args()
     places = args.n // (FRAMES * TRAVERSALS) if args.n else args.places
 
@@ -239,14 +242,14 @@ def main() -> None:
                 return type("Recorded", (), {"theta": lambda self, r: into.append(sample.theta(r)) or into[-1]})()
             return make
 
-        pooled_sample = scale.pooled_pair_sample
+        pooled_sample = scale_protocol.pooled_pair_sample  # read by scale.protocol.automatic_thetas
         try:
-            scale.pooled_pair_sample = recording(pooled_sample, autos["pooled"])
+            scale_protocol.pooled_pair_sample = recording(pooled_sample, autos["pooled"])
             _, w_pooled, c_pooled = timed(protocol)
-            scale.pooled_pair_sample = recording(PerSplitSample, autos["per split"])
+            scale_protocol.pooled_pair_sample = recording(PerSplitSample, autos["per split"])
             ev_old, w_old, c_old = timed(protocol)
         finally:
-            scale.pooled_pair_sample = pooled_sample
+            scale_protocol.pooled_pair_sample = pooled_sample
         new, old = np.array(autos["pooled"]), np.array(autos["per split"])
         print(f"again, side by side: pooled sample {w_pooled:8.1f} s wall {c_pooled:8.1f} s CPU;  per-split samples "
               f"{w_old:8.1f} s wall {c_old:8.1f} s CPU;  per-split / pooled = {w_old / w_pooled:.2f}× wall, "

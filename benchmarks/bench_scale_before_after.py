@@ -1,13 +1,15 @@
-"""The 50-split protocol's pass and whole run, an earlier ``scale.py`` against today's, side by side (issue 13 §4).
+"""The 50-split protocol's pass and whole run, an earlier ``scale.py`` against today's ``scale`` package, side by side.
 
     git show 8ebd70a:vpr_explorer/scale.py > /tmp/scale_before.py
     python benchmarks/bench_scale_before_after.py /tmp/scale_before.py [--places 2250] [--repeats 2]
 
-Loads the earlier module from the given file beside ``vpr_explorer.protocols.scale``, and on the same
+Loads the earlier one-file module (its own private names: ``_blocked_pass``, ``_Entries``) from the
+given file beside ``vpr_explorer.protocols.scale``, and on the same
 Nordland-like data (``bench_nordland_scale.nordland_like``, places of 12 images, 50 splits)
 times, alternating before/now ``--repeats`` times in this one process:
 
-* the blocked pass alone (``_blocked_pass``, same inputs), and
+* the blocked pass alone (``_blocked_pass`` there, ``scale.blocked_pass.blocked_pass`` here, same
+  inputs), and
 * the whole ``scale_splits`` (full-set sums, automatic θ, pass, thresholds, scoring),
 
 in CPU seconds of this process (all threads: steadier than wall time on a shared machine),
@@ -31,6 +33,13 @@ import vpr_explorer.protocols.scale as now
 from bench_nordland_scale import nordland_like
 from gemm_peak import blas_kernel, gemm_rate, load_average
 from vpr_explorer.protocols.evaluation import draw_splits
+from vpr_explorer.protocols.scale.blocked_pass import blocked_pass
+from vpr_explorer.protocols.scale.full_sums import full_set_sums
+from vpr_explorer.protocols.scale.layout import as_layout32
+from vpr_explorer.protocols.scale.panel import PassInputs
+from vpr_explorer.protocols.scale.table import Entries
+
+PASS_THREADS = len(os.sched_getaffinity(0))  # the pass's threads: every CPU this process may use
 
 
 def load_before(path: str):
@@ -41,12 +50,23 @@ def load_before(path: str):
     return module
 
 
-def run_pass(mod, x, labels, places, query_rows, centre, block):
+def run_pass_before(mod, x, labels, places, query_rows, centre, block):
+    """The earlier module's pass, through its own names."""
     lay = mod.make_layout(labels, places, block)
     entries = mod._Entries(lay, mod.TABLE_MEMORY, None)
     try:
-        threads = len(os.sched_getaffinity(0))  # the pass's threads: every CPU this process may use
-        mod._blocked_pass(x, lay, query_rows, None, entries, 10, (0.0, 0.3), centre, threads, None)
+        mod._blocked_pass(x, lay, query_rows, None, entries, 10, (0.0, 0.3), centre, PASS_THREADS, None)
+    finally:
+        entries.close()
+
+
+def run_pass_now(x, labels, places, query_rows, centre, block):
+    """Today's pass on the same inputs."""
+    lay = now.make_layout(labels, places, block)
+    entries = Entries(lay, now.TABLE_MEMORY, None)
+    try:
+        blocked_pass(PassInputs(x, lay, query_rows, None, (0.0, 0.3), centre), entries, 10,
+                     now.PassOptions(block=block, threads=PASS_THREADS))
     finally:
         entries.close()
 
@@ -70,19 +90,20 @@ def main() -> None:
     splits = draw_splits(labels, args.places, runs=args.runs, seed=0)
     lay = now.make_layout(labels, args.places, now.BLOCK_ROWS)
     query_rows = np.stack([lay.row_of_image[sp.queries] for sp in splits])
-    centre = now._full_sums(d, lay, query_rows).centre
-    x = now._as_layout32(d, lay)
+    centre = full_set_sums(d, lay, query_rows).centre
+    x = as_layout32(d, lay)
     peak = gemm_rate(np.float32, 4096, args.dim, 4096, 3, clock=time.process_time)
     print(f"data: {len(d):,} images × {args.dim} in {args.places:,} places, {args.runs} splits; load average "
           f"{load_average()}")
     print(f"BLAS: {blas_kernel()}")
     mods = {"before": before, "now": now}
+    passes = {"before": lambda *a: run_pass_before(before, *a), "now": run_pass_now}
     best_pass = {k: np.inf for k in mods}
     best_run = {k: np.inf for k in mods}
     results = {}
     for rep in range(args.repeats):
         for name, mod in mods.items():
-            _, t = cpu(lambda: run_pass(mod, x, labels, args.places, query_rows, centre, now.BLOCK_ROWS))
+            _, t = cpu(lambda: passes[name](x, labels, args.places, query_rows, centre, now.BLOCK_ROWS))
             best_pass[name] = min(best_pass[name], t)
             results[name], t_run = cpu(lambda: mod.scale_splits(d, labels, trav, args.places, splits, seed=0))
             best_run[name] = min(best_run[name], t_run)

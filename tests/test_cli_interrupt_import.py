@@ -8,11 +8,11 @@ also at fixed instants after it was started.
 What no code of the package can reach is Python's own start-up before the console script
 calls ``main()``: a SIGINT that lands before the interpreter has installed its handler ends
 the process by the signal, silently (the shell reports 130); one that lands while Python
-initialises (its streams, ``site``) or while the script imports ``vpr_explorer.entry`` ends
+initialises (its streams, ``site``) or while the script imports ``vpr_explorer.cli`` ends
 in Python's traceback. The fixed instants accept exactly those outcomes there (:func:`before_main`) and
 nothing else after; that stretch ends about 20-40 ms after the start on this project's machine
 (an editable install's ``.pth`` imports pathlib in ``site``; without bytecode caches the
-script compiles ``vpr_explorer.entry`` too).
+script compiles ``vpr_explorer.cli`` too).
 """
 
 from __future__ import annotations
@@ -73,9 +73,9 @@ def before_main(proc: subprocess.Popen, err: str) -> bool:
 
     Before the interpreter has installed its handler, the signal's default action ends it
     silently; inside the rest of its initialisation (its standard streams, the ``site``
-    import), "Fatal Python error: init_…" and a traceback; inside the generated script's own imports (``from vpr_explorer.entry import
-    main`` and the package it imports), a traceback whose outermost frame is one of those
-    lines. Once the script has called ``main()`` none of these may happen.
+    import), "Fatal Python error: init_…" and a traceback; inside the generated script's own imports
+    (``from vpr_explorer.cli import main`` and the packages it imports), a traceback whose outermost
+    frame is one of those lines. Once the script has called ``main()`` none of these may happen.
     """
     if proc.returncode == -signal.SIGINT and err == "":
         return True
@@ -89,12 +89,14 @@ def before_main(proc: subprocess.Popen, err: str) -> bool:
 
 def before_main_imports(file: str) -> bool:
     """Whether a traceback's frame is in what the script imports before ``main()``: the package's
-    ``__init__``, ``errors`` and ``entry``, the standard library, an editable install's finder."""
+    ``__init__`` and ``errors``, ``cli/__init__``, the standard library, an editable install's finder."""
     path = Path(file)
     if file.startswith("<frozen ") or path == SCRIPT:
         return True
     if path.parent.name == "vpr_explorer":
-        return path.name in ("__init__.py", "errors.py", "entry.py")
+        return path.name in ("__init__.py", "errors.py")
+    if path.parent.name == "cli" and path.parent.parent.name == "vpr_explorer":
+        return path.name == "__init__.py"
     return "site-packages" not in path.parts or path.name.startswith("__editable__")
 
 

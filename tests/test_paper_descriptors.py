@@ -289,7 +289,7 @@ def test_short_side_rule_is_torchvisions():
 
 
 def test_default_decoding_threads_follow_the_cores():
-    from vpr_explorer.descriptors.extract import MAX_DEFAULT_WORKERS, default_workers
+    from vpr_explorer.settings import MAX_DEFAULT_WORKERS, default_workers
 
     assert default_workers() == min(len(os.sched_getaffinity(0)), MAX_DEFAULT_WORKERS)
 

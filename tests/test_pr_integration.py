@@ -5,6 +5,7 @@ import numpy as np
 
 from reference import synthetic_places, unit_rows
 from vpr_explorer.protocols import scale
+from vpr_explorer.protocols.scale import protocol as scale_protocol
 from vpr_explorer.cli import main
 from vpr_explorer.protocols.evaluation import open_set_protocol, paper_protocol, retrieval_protocol, traversal_protocol
 from vpr_explorer.data.groundtruth import GroundTruth
@@ -45,7 +46,7 @@ def test_paper_and_fast_paper_agree(monkeypatch):
     assert len(ev.pr) == len(ev.rows)
     fast = scale.fast_paper_protocol(d, lab, trav, 12, runs=4, pr=True, user_theta=0.3)
     assert [r.to_dict() for r in fast.pr] == [r.to_dict() for r in ev.pr]
-    monkeypatch.setattr(scale, "PR_FAMILY_CELLS", 0)
+    monkeypatch.setattr(scale_protocol, "PR_FAMILY_CELLS", 0)  # read by fast_paper_protocol
     blocked = scale.fast_paper_protocol(d, lab, trav, 12, runs=4, pr=True, user_theta=0.3)
     globals_ = {"image-baseline", "place-baseline", "global-auto", "global-oracle", "global-user"}
     assert {r.key for r in blocked.pr} == globals_  # the blocked pass keeps no raw_p: no family curves

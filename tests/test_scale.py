@@ -3,7 +3,7 @@
 Every comparison is exact (recall, accepted, precision and own-traversal share: mean and
 std; per split: ranks, answered places and images, the automatic and oracle θ) except the
 per-place thresholds, which agree to float rounding (the fast path downdates float32
-scores; see the module doc of ``vpr_explorer.protocols.scale``), and image-level ranks, which the
+scores; see the package doc of ``vpr_explorer.protocols.scale``), and image-level ranks, which the
 fast path resolves up to max(ks) (beyond: max(ks) + 1; Recall@K needs no more).
 """
 
@@ -15,11 +15,19 @@ import numpy as np
 import pytest
 
 import vpr_explorer.protocols.evaluation as evaluation
-import vpr_explorer.protocols.scale as scale
+import vpr_explorer.protocols.scale.blocked_pass as pass_module
+import vpr_explorer.protocols.scale.panel as panel
+import vpr_explorer.protocols.scale.protocol as protocol
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.protocols.evaluation import draw_splits, paper_protocol
-from vpr_explorer.protocols.scale import fast_paper_protocol, make_layout, scale_splits
 from vpr_explorer.method.thresholds import pooled_pair_sample
+from vpr_explorer.protocols.evaluation import draw_splits, paper_protocol
+from vpr_explorer.protocols.scale import PassOptions, fast_paper_protocol, make_layout, scale_splits
+from vpr_explorer.protocols.scale.full_sums import SUM_LANES, full_set_sums
+from vpr_explorer.protocols.scale.layout import as_layout32
+from vpr_explorer.protocols.scale.options import TABLE_MEMORY
+from vpr_explorer.protocols.scale.panel import PassInputs
+from vpr_explorer.protocols.scale.table import Entries
+from vpr_explorer.protocols.scale.twins import Content, shared_places, twins
 
 THETA_TOL = 1e-8  # per-place θ: float32 rounding in the downdated σ (typically 1e-11 here)
 
@@ -242,31 +250,29 @@ def test_twins_compare_only_places_that_share_an_image_and_match_all_places():
     classes[200:210] = classes[100]  # ten places of the same images as place 100
     classes[50, :3] = classes[60, :3]  # places 50 and 60 share three images
     classes[71] = classes[70][::-1]  # the same images in another order
-    content = scale._Content(classes, scale._shared_places(classes))
+    content = Content(classes, shared_places(classes))
     assert list(content.shared) == [50, 60, 70, 71, 100] + list(range(200, 210))
     for _ in range(20):
         held = rng.integers(0, m, n_p)
         k = np.arange(m - 1)[None, :]
         seq = np.where(k < held[:, None], classes[:, :-1], classes[:, 1:])  # every place compared
         _, first, inverse = np.unique(seq, axis=0, return_index=True, return_inverse=True)
-        np.testing.assert_array_equal(scale._twins(content, held), first[inverse.ravel()])
-    none = scale._Content(classes[:50], scale._shared_places(classes[:50]))
+        np.testing.assert_array_equal(twins(content, held), first[inverse.ravel()])
+    none = Content(classes[:50], shared_places(classes[:50]))
     assert len(none.shared) == 0
-    np.testing.assert_array_equal(scale._twins(none, held[:50]), np.arange(50))
+    np.testing.assert_array_equal(twins(none, held[:50]), np.arange(50))
 
 
 def test_near_tie_repair_recomputes_exactly(monkeypatch):
     # with every weighted θ declared unreliable, every query is a near tie: the repair path
     # recomputes its places in float64, which must then agree with the closed form to the
     # last digits, and every outcome with the reference
-    import vpr_explorer.protocols.scale as scale
-
     def unreliable(sd, lay, kappa):
         return np.full(len(lay.places), np.inf)
 
     d, labels, trav = awkward(seed=3)
     _, ref_splits = reference_with_splits(monkeypatch, d, labels, trav, 260, runs=2, seed=0)
-    monkeypatch.setattr(scale, "_uncertainty", unreliable)
+    monkeypatch.setattr(protocol, "uncertainty", unreliable)  # where scale_splits reads it
     fast = scale_splits(d, labels, trav, 260, draw_splits(labels, 260, runs=2, seed=0), block=600)
     assert_same_splits(ref_splits, fast, 10)
     for a, b in zip(ref_splits, fast):
@@ -314,6 +320,12 @@ def test_bad_input_raises_like_the_reference():
         fast_paper_protocol(d[:20], np.arange(20), trav[:20], 20, runs=1)
     with pytest.raises(VPRInputError, match="block="):
         fast_paper_protocol(d, labels, trav, 20, runs=1, block=0)
+    with pytest.raises(VPRInputError, match="block="):  # checked even where the run goes to paper_protocol
+        fast_paper_protocol(d, labels, trav, 20, runs=1, block=0, pr=True)
+    with pytest.raises(VPRInputError, match="threads=0"):
+        fast_paper_protocol(d, labels, trav, 20, runs=1, threads=0)
+    with pytest.raises(VPRInputError, match="threads=2.5"):
+        scale_splits(d, labels, trav, 20, draw_splits(labels, 20, runs=1, seed=0), threads=2.5)
     with pytest.raises(VPRInputError, match="open set"):
         scale_splits(d, labels, trav, 20, draw_splits(labels, 20, runs=1, seed=0, unknown_share=0.3))
 
@@ -353,7 +365,7 @@ def places_that_matter(raw, b, own, th_s, th_w):
 def test_candidate_cutoff_holds_for_every_weighted_threshold_within_its_bound():
     # The scoring reads only table entries at or above the cutoff, and the near-tie check only
     # sees those: a place below it must not matter under any weighted θ within the bounds.
-    from vpr_explorer.protocols.scale import _candidate_cutoff
+    from vpr_explorer.protocols.scale.scoring import candidate_cutoff
 
     # place 0's margin 0.2995 − 0.10 is just under the own place's 0.5 − 0.30; with θ_0 lower
     # by its bound 1e-3 it ranks above the own place
@@ -361,7 +373,7 @@ def test_candidate_cutoff_holds_for_every_weighted_threshold_within_its_bound():
     unc = np.full(3, 1e-3)
     b, own = np.array([0.5]), np.array([2])
     assert places_that_matter(np.array([[0.2995, 0.0, 0.5]]), b, own, th, th - unc * [1, 0, 0])[0, 0]
-    assert np.float32(0.2995) >= _candidate_cutoff(b, own, th, th, unc)[0]
+    assert np.float32(0.2995) >= candidate_cutoff(b, own, th, th, unc)[0]
 
     rng = np.random.default_rng(0)
     n_q, n_p = 400, 30
@@ -372,7 +384,7 @@ def test_candidate_cutoff_holds_for_every_weighted_threshold_within_its_bound():
     raw = rng.uniform(0.0, 0.6, (n_q, n_p)).astype(np.float32).astype(np.float64)
     b = raw[np.arange(n_q), own]
     b[:5] = -np.inf  # no image of the own place to match (cross-condition)
-    cut = _candidate_cutoff(b, own, th_s, th_w, unc)
+    cut = candidate_cutoff(b, own, th_s, th_w, unc)
     assert (raw < cut[:, None]).mean() > 0.2  # the cutoff still leaves places out
     for _ in range(50):  # weighted θs anywhere within their bounds, extremes included
         exact = th_w + unc * rng.choice([-1.0, 1.0, 0.0, -0.5], n_p)
@@ -405,8 +417,8 @@ print(json.dumps(out))
 def test_nordland_tables_do_not_depend_on_blas_kernel_block_size_or_threads(data_root):
     # Nordland's tunnels are runs of byte-identical frames: their scores against one query
     # differ in the last bit between BLAS kernels (Haswell vs Sandybridge vs the CPU's own),
-    # block shapes and thread counts. With exact-equality ties the image-level R@5 moved
-    # (issue 10); with the 1e-5 tie tolerance every table must be the same, digit for digit.
+    # block shapes and thread counts. With exact-equality ties the image-level R@5 would move;
+    # with the 1e-5 tie tolerance every table must be the same, digit for digit.
     import json
     import os
     import subprocess
@@ -437,14 +449,18 @@ def test_nordland_tables_do_not_depend_on_blas_kernel_block_size_or_threads(data
         assert table == first, f"{name} differs from {first_name}"
 
 
+def _run_pass(d, lay, query_rows, centre, threads, **kw):
+    """``blocked_pass`` of these rows (no cross-condition, records cap 7, μ in [0, 0.2]): its result and entries."""
+    entries = Entries(lay, TABLE_MEMORY, None)
+    inputs = PassInputs(as_layout32(d, lay), lay, query_rows, None, (0.0, 0.2), centre)
+    return pass_module.blocked_pass(inputs, entries, 7, PassOptions(threads=threads), **kw), entries
+
+
 def _pass_of(d, labels, n_places, splits, threads, block):
-    """``scale._blocked_pass`` on these splits: its sums, b, records and table, block by block."""
-    lay = scale.make_layout(labels, n_places, block)
+    """``blocked_pass`` on these splits: its sums, b, records and table, block by block."""
+    lay = make_layout(labels, n_places, block)
     query_rows = np.stack([lay.row_of_image[sp.queries] for sp in splits])
-    sums = scale._full_sums(d, lay, query_rows)
-    entries = scale._Entries(lay, scale.TABLE_MEMORY, None)
-    pas = scale._blocked_pass(scale._as_layout32(d, lay), lay, query_rows, None, entries, 7, (0.0, 0.2),
-                              sums.centre, threads, None)
+    pas, entries = _run_pass(d, lay, query_rows, full_set_sums(d, lay, query_rows).centre, threads)
     table = [entries.get(b) for b in range(lay.n_blocks)]
     return pas, table
 
@@ -454,14 +470,14 @@ def test_panels_slabs_and_threads_give_the_same_numbers(monkeypatch):
     # slab by slab, runs panels side by side in threads and merges them in task order: small
     # panels and slabs (several per block pair and per slot) give the reference's outcomes,
     # and the pass's sums, b and table do not depend on the number of threads, bit for bit
-    monkeypatch.setattr(scale, "PANEL_ROWS", 45)
-    monkeypatch.setattr(scale, "_SLAB_ROWS", 2)
+    monkeypatch.setattr(pass_module, "PANEL_ROWS", 45)  # read by blocked_pass
+    monkeypatch.setattr(panel, "SLAB_ROWS", 2)  # read by PassState and the panels
     d, labels, trav = awkward(seed=2)
     check(monkeypatch, d, labels, trav, 260, seed=1, cross_condition=True, runs=2,
           fast_kw={"block": 500, "threads": 3})
     splits = draw_splits(labels, 260, runs=3, seed=1)
     (p1, t1), *others = (_pass_of(d, labels, 260, splits, threads, 500) for threads in (1, 2, 3))
-    assert len(t1) > 1 and len(scale._panels(scale.make_layout(labels, 260, 500), 0, 1, 45)) > 2
+    assert len(t1) > 1 and len(pass_module.panels_of(make_layout(labels, 260, 500), 0, 1, 45)) > 2
     for p, t in others:  # 1 thread (no pool, BLAS in its own threads), 2 and 3 threads
         np.testing.assert_array_equal(p.v, p1.v)
         np.testing.assert_array_equal(p.best_own, p1.best_own)
@@ -481,13 +497,11 @@ def test_the_pass_against_straightforward_float64_sums():
     # come by symmetry)
     d, labels, _ = awkward(seed=4)
     splits = draw_splits(labels, 260, runs=3, seed=2)
-    lay = scale.make_layout(labels, 260, 400)
+    lay = make_layout(labels, 260, 400)
     query_rows = np.stack([lay.row_of_image[sp.queries] for sp in splits])
-    centre = scale._full_sums(d, lay, query_rows).centre
-    for panel_rows in (45, 240, scale.PANEL_ROWS):
-        pas = scale._blocked_pass(scale._as_layout32(d, lay), lay, query_rows, None,
-                                  scale._Entries(lay, scale.TABLE_MEMORY, None), 7, (0.0, 0.2), centre, 2, None,
-                                  panel_rows=panel_rows)
+    centre = full_set_sums(d, lay, query_rows).centre
+    for panel_rows in (45, 240, pass_module.PANEL_ROWS):
+        pas, _ = _run_pass(d, lay, query_rows, centre, 2, panel_rows=panel_rows)
         real = np.flatnonzero(lay.image_of_row >= 0)
         x = d[lay.image_of_row[real]].astype(np.float64)
         place = lay.place_of_row[real]
@@ -504,7 +518,7 @@ def test_the_pass_against_straightforward_float64_sums():
         mine = np.where(place[:, None] == place[None, :], s, -np.inf)
         np.fill_diagonal(mine, -np.inf)
         np.testing.assert_allclose(pas.best_own[real], mine.max(axis=1), rtol=0, atol=1e-6)
-    short, several = (scale._panels(lay, 0, 0, rows // scale._DIAGONAL_SPLIT) for rows in (45, 240))
+    short, several = (pass_module.panels_of(lay, 0, 0, rows // pass_module.DIAGONAL_SPLIT) for rows in (45, 240))
     assert len(short) > 10 and len(several) > 3 and min(p.g1 - p.g0 for p in several) > 2
 
 
@@ -513,9 +527,9 @@ def test_a_failing_panel_on_the_diagonal_ends_the_pass(monkeypatch):
     # caller, not leave the others waiting (the pool could then never shut down)
     d, labels, _ = awkward(seed=4)
     splits = draw_splits(labels, 260, runs=2, seed=2)
-    lay = scale.make_layout(labels, 260, 400)
+    lay = make_layout(labels, 260, 400)
     query_rows = np.stack([lay.row_of_image[sp.queries] for sp in splits])
-    calls, side = [0], scale._side
+    calls, side = [0], panel.table_side
 
     def failing_side(*a, **k):
         calls[0] += 1
@@ -523,14 +537,12 @@ def test_a_failing_panel_on_the_diagonal_ends_the_pass(monkeypatch):
             raise RuntimeError("a panel failed")
         return side(*a, **k)
 
-    monkeypatch.setattr(scale, "_side", failing_side)
+    monkeypatch.setattr(panel, "table_side", failing_side)  # read by the panels
     outcome = []
 
     def run():
         try:
-            scale._blocked_pass(scale._as_layout32(d, lay), lay, query_rows, None,
-                                scale._Entries(lay, scale.TABLE_MEMORY, None), 7, (0.0, 0.2), 0.1, 2, None,
-                                panel_rows=45)
+            _run_pass(d, lay, query_rows, 0.1, 2, panel_rows=45)
         except RuntimeError as e:
             outcome.append(str(e))
 
@@ -547,12 +559,12 @@ def test_full_sums_against_plain_float64_and_any_thread_count():
     # same numbers bit for bit (9 blocks: more than the lanes)
     d, labels, _ = awkward(seed=5)
     splits = draw_splits(labels, 260, runs=4, seed=3)
-    lay = scale.make_layout(labels, 260, 250)
-    assert lay.n_blocks > scale._SUM_LANES
+    lay = make_layout(labels, 260, 250)
+    assert lay.n_blocks > SUM_LANES
     query_rows = np.stack([lay.row_of_image[sp.queries] for sp in splits])
-    first = scale._full_sums(d, lay, query_rows, 1)
-    for threads, x32 in ((2, None), (3, scale._as_layout32(d, lay)), (1, scale._as_layout32(d, lay))):
-        other = scale._full_sums(d, lay, query_rows, threads, x32)
+    first = full_set_sums(d, lay, query_rows, 1)
+    for threads, x32 in ((2, None), (3, as_layout32(d, lay)), (1, as_layout32(d, lay))):
+        other = full_set_sums(d, lay, query_rows, threads, x32)
         for field in ("dot_other", "dot_queries", "gram", "a_centred"):
             np.testing.assert_array_equal(getattr(other, field), getattr(first, field), err_msg=field)
         assert other.centre == first.centre

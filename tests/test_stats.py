@@ -1,4 +1,4 @@
-"""Closed-form negative statistics equal the plain pairwise computation (DESIGN.md §2).
+"""Closed-form negative statistics equal the plain pairwise computation.
 
 Both precisions are checked against ``reference.pairwise_negative_stats`` (float64, full
 matrix); the float32 path also against its stated error bound (``sigma_sq_error_bound``).
@@ -39,7 +39,7 @@ def shared_component(rng, n, dim, places, share=0.8):
 
 
 def assert_within_bound(st, mu, sigma, d, labels, **kw):
-    """μ to float64 rounding; σ² within the float32 bound; σ within 1e-6 (the issue's goal)."""
+    """μ to float64 rounding; σ² within the float32 bound; σ within 1e-6 (the accuracy the fit promises)."""
     bound = sigma_sq_error_bound(d, labels, **kw)
     np.testing.assert_allclose(st.mu, mu, rtol=0, atol=1e-12)
     excess = np.abs(st.sigma**2 - sigma**2) - bound - FLOAT64_SLACK
@@ -187,7 +187,7 @@ def test_centred_gram_in_lanes_is_one_syrk_per_block_within_its_bound(dim):
     got = {}
     for threads in (1, 2, 3):
         with ThreadPoolExecutor(threads) as pool:
-            gram, total = got[threads] = _centred_gram(d, m, block, pool, threads > 1)
+            gram, total = got[threads] = _centred_gram(d, m, block, pool, threads)
         assert (np.abs(gram - exact) <= bound + 1e-12).all()
         if openblas_skylakex():
             np.testing.assert_array_equal(gram, expected)
@@ -198,8 +198,8 @@ def test_centred_gram_in_lanes_is_one_syrk_per_block_within_its_bound(dim):
 
 
 def _quadratic_forms_by_block(d, gram, block):
-    """``_quadratic_forms`` as it was before its row tasks: per block of rows, every column block
-    of W, then the row sums."""
+    """``_quadratic_forms`` one block of rows at a time: per block, every column block of W,
+    then the row sums."""
     from vpr_explorer.method.stats import _TRI_BLOCKS
 
     edges = np.linspace(0, d.shape[1], _TRI_BLOCKS + 1).round().astype(int)
@@ -231,7 +231,7 @@ def test_quadratic_forms_in_row_tasks_are_the_block_products(monkeypatch, dtype)
     # the tasks' products to OpenBLAS's small-matrix kernel, which rounds otherwise (within the bound)
     d = unit_rows(rng, BLOCK + 1500, 260).astype(dtype)
     with ThreadPoolExecutor(2) as pool:
-        gram, _ = _centred_gram(d, _centre(d), BLOCK, pool, True)
+        gram, _ = _centred_gram(d, _centre(d), BLOCK, pool, 2)
     expected = _quadratic_forms_by_block(d, gram, BLOCK)
     # (tasks of a few hundred rows of so narrow a W go to OpenBLAS's small-matrix kernel, which
     # rounds otherwise: 333 rows here; within the bound, which holds for any order of the sums)
@@ -245,7 +245,7 @@ def test_quadratic_forms_in_row_tasks_are_the_block_products(monkeypatch, dtype)
     for rows, threads in ((1024, 1), (1024, 2), (1024, 3), (2048, 3), (4096, 2)):
         monkeypatch.setattr(stats, "_QUAD_ROWS", rows)
         with ThreadPoolExecutor(threads) as pool:
-            got = _quadratic_forms(d, gram, BLOCK, pool, threads > 1)
+            got = _quadratic_forms(d, gram, pool, threads > 1)
         assert (np.abs(got - exact) <= bound + 1e-12).all(), (rows, threads)
         if openblas_skylakex():
             np.testing.assert_array_equal(got, expected)
@@ -370,7 +370,7 @@ def test_the_fits_positive_means_from_the_place_terms_against_pairs(monkeypatch,
 
 
 def _positive_means_one_product(d, labels, n_places, rows):
-    """``positive_means`` as it was before its threads: one sparse indicator product per block."""
+    """``positive_means`` in one thread: one sparse indicator product per block."""
     from scipy import sparse
 
     sums, sq = np.zeros((n_places, d.shape[1])), np.empty(len(labels))
@@ -430,11 +430,22 @@ def test_rows_whose_squares_overflow_are_not_called_nan():
 
 
 @pytest.mark.parametrize("kw, fragment", [({"precision": "half"}, "precision: expected one of 'float32', 'float64'"),
-                                          ({"block": 0}, "block: expected a positive")])
+                                          ({"block": 0}, "block: expected a positive"),
+                                          ({"block": 2.5}, "block: expected a positive"),
+                                          ({"threads": 0}, "threads=0: must be a whole number"),
+                                          ({"threads": True}, "threads=True: must be a whole number")])
 def test_bad_settings(kw, fragment):
+    # every entry point of the closed form checks block and threads alike
+    from vpr_explorer.method.stats import negative_stats_rows, stats_rows
+
     rng = np.random.default_rng(0)
+    d, labels = unit_rows(rng, 10, 4), np.arange(10) % 3
     with pytest.raises(VPRInputError, match=fragment):
-        negative_stats(unit_rows(rng, 10, 4), np.arange(10) % 3, **kw)
+        negative_stats(d, labels, **kw)
+    if "precision" not in kw:
+        for fit in (negative_stats_rows, stats_rows):
+            with pytest.raises(VPRInputError, match=fragment):
+                fit(d, None, labels, **kw)
 
 
 @pytest.mark.realdata

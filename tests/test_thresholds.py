@@ -318,3 +318,21 @@ def test_pooled_threshold_agrees_with_a_per_split_sample_within_sampling_error()
     assert abs(pooled.mean() - own.mean()) < 3 * np.sqrt((sd_pooled**2 + sd_own**2) / seeds)
     assert sd_pooled < 1.5 * sd_own
     assert np.abs(pooled - full).max() < 4 * sd_own
+
+
+@pytest.mark.parametrize("caller_threads", [1, 2])
+def test_all_training_pairs_score_the_same_bits_whatever_the_callers_blas_threads(caller_threads):
+    # OpenBLAS's Haswell kernel splits the sums of d @ dᵀ between its threads; the fast path
+    # scores these pairs in a thread beside another thread's one-thread limiter, the reference
+    # in the main thread: both must get the bits of one BLAS thread
+    from threadpoolctl import threadpool_limits
+
+    d = unit_rows(np.random.default_rng(3), 780, 260)
+    iu = np.triu_indices(len(d), k=1)
+    x = d.astype(np.float32)
+    with threadpool_limits(1, "blas"):
+        one = (x @ x.T)[iu]  # one operand: numpy's symmetric product, as the library's
+    with threadpool_limits(caller_threads, "blas"):
+        got = training_pair_scores(d)
+    assert got.dtype == np.float32 and len(got) == len(iu[0])
+    np.testing.assert_array_equal(got, one)

@@ -21,10 +21,10 @@ from vpr_explorer.protocols.evaluation import (
     open_set_protocol,
     traversal_protocol,
 )
-from vpr_explorer.method.places import Places, PlaceSpec, make_places
+from vpr_explorer.method.places import Places, PlaceSpec, make_places, retrieval_places
 from vpr_explorer.protocols.scale import fast_paper_protocol
 from vpr_explorer.protocols.shared_scores import SharedScores
-from vpr_explorer.settings import check_cache_root
+from vpr_explorer.settings import check_cache_root, default_workers
 
 DEMO = "demo"
 
@@ -98,7 +98,7 @@ def cached_view(paths: Sequence[Path], extractor, cache, *, batch_size: int = 32
     from concurrent.futures import ThreadPoolExecutor
 
     from vpr_explorer.descriptors import extract_descriptors
-    from vpr_explorer.descriptors.extract import default_workers, hash_paths
+    from vpr_explorer.descriptors.extract import hash_paths
 
     cache.check_writable()
     with ThreadPoolExecutor(max_workers=default_workers()) as pool:
@@ -355,7 +355,7 @@ def imported_descriptors(dataset, path: Path, *, names_file: Path | None = None,
     ``"auto"`` (default), the dataset is a database/queries one (``layouts.RetrievalDataset``,
     whose views and protocol read a map in blocks) and the file's float32 copy would reach
     ``store.mmap_min_bytes()`` (1 GiB): a million-image database is never copied into memory.
-    Other files are read as before.
+    Any other file is read into memory in ``dtype`` (``load_descriptor_file``).
     """
     from vpr_explorer.descriptors.imported import load_descriptor_file, npy_header
     from vpr_explorer.descriptors.store import check_mmap, open_npy, wants_mmap
@@ -426,34 +426,6 @@ def open_dataset(source: str | Path, layout: str = "auto", *, radius: float | No
     return dataset
 
 
-def retrieval_places(dataset, spec: PlaceSpec | None = None, metric=None):
-    """``(n_database,)`` place of each database image and the number of places.
-
-    The layout's own place ids (a manifest's ``place`` column) when it has them; else
-    ``metric`` (a ``MetricPlaceSpec``: metres along the route or a lattice) when the layout
-    has positions; else ``spec`` (group/step counting database images in listed order).
-    """
-    from vpr_explorer.method.places import frame_places, metric_places
-
-    if dataset.database_place is not None:
-        return dataset.database_place, int(dataset.database_place.max()) + 1
-    if metric is not None:
-        if dataset.database_xy is None:
-            raise VPRInputError(f"{dataset.name}: the {dataset.layout.value} layout has no positions: group/step in "
-                                "metres need them; use --geometry frames (group/step in images)")
-        place, n = metric_places(dataset.database_xy, metric)
-    else:
-        if spec is None:
-            raise VPRInputError("group/step missing: give a PlaceSpec(group, step) or a MetricPlaceSpec")
-        place = frame_places(dataset.n_database, spec)
-        n = int(place.max()) + 1 if (place >= 0).any() else 0
-    if n < 2:
-        what = metric.describe() if metric is not None else spec.describe()
-        raise VPRInputError(f"{what} leaves {n} place(s) in the {dataset.n_database} database images of "
-                            f"{dataset.name!r}: negative statistics need at least 2 places; lower group or step")
-    return place, n
-
-
 def evaluate_retrieval(
     dataset,
     descriptors: np.ndarray,
@@ -469,7 +441,7 @@ def evaluate_retrieval(
 
     In-memory float32 descriptors go to ``evaluation.retrieval_protocol``. A memory-mapped
     (or float16) matrix, such as a million-image database (``descriptors.store``), goes to
-    ``retrieval_views.evaluate_fitted``: the same table, the database read a block at a time
+    ``database_queries.evaluate_fitted``: the same table, the database read a block at a time
     and never converted whole, with the thresholds of the explorer's (kept) fit of these places.
     """
     from vpr_explorer.protocols.evaluation import retrieval_protocol

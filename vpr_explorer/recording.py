@@ -203,8 +203,8 @@ TITLE_CHARS = 40
 def playback_blueprint(query: str, database: Sequence[str]) -> rrb.Blueprint:
     """Query and both answers on top, the score series below, route, decisions and thresholds last.
 
-    View titles stay within ``TITLE_CHARS`` so that none is cut in a third of the page; the
-    colours and units they used to spell out are in each plot's legend (the series' names,
+    View titles stay within ``TITLE_CHARS`` so that none is cut in a third of the page;
+    colours and units are in each plot's legend instead (the series' names,
     ``_SERIES_NAMES``: rerun's plots have no axis titles) and in the summary. The summary
     shares the widest panel with the decision log, word-wrapped.
     """

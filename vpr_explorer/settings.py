@@ -1,4 +1,4 @@
-"""Where things live on disk: the cache, the demo route, the real datasets.
+"""Where things live on disk (the cache, the demo route, the real datasets), and how many threads work by default.
 
 Read from the environment so that tests, CI and users can redirect them:
 
@@ -7,6 +7,8 @@ Read from the environment so that tests, CI and users can redirect them:
   *root*: descriptors live under ``<root>/descriptors/`` and the demo route under
   ``<root>/demo/``, so one folder is always one cache.
 * ``VPR_EXPLORER_DATA``: folder holding real datasets (e.g. ``../shared/datasets``).
+
+Threads: every pool whose size the caller leaves open takes :func:`default_workers`.
 """
 
 from __future__ import annotations
@@ -19,6 +21,10 @@ import uuid
 from pathlib import Path
 
 from vpr_explorer.errors import VPRInputError
+
+MAX_DEFAULT_WORKERS = 8
+"""The most threads a pool takes when none are asked for (:func:`default_workers`): on a small CPU
+they share the cores with the work they feed; beside a GPU they are what feeds it."""
 
 CACHE_ENV = "VPR_EXPLORER_CACHE"
 DATA_ENV = "VPR_EXPLORER_DATA"
@@ -101,3 +107,23 @@ def data_root() -> Path | None:
     """The real-datasets folder, or ``None`` when ``VPR_EXPLORER_DATA`` is unset."""
     value = os.environ.get(DATA_ENV)
     return Path(value).expanduser() if value else None
+
+
+def usable_cpus() -> int:
+    """The CPUs this process may run on: its affinity where the OS tells it, else the machine's count; at least 1."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def default_workers(cap: int = MAX_DEFAULT_WORKERS) -> int:
+    """Threads for a pool when none are asked for: one per usable CPU (:func:`usable_cpus`), at most ``cap``.
+
+    Args:
+        cap: the most threads, at least 1.
+
+    Returns:
+        A whole number of threads in ``1..cap``.
+    """
+    return max(1, min(usable_cpus(), cap))

@@ -1,6 +1,6 @@
 """The field's benchmark layouts: a database and queries, with ground truth as a relation.
 
-Where ``datasets`` reads traversals whose frame indices line up, this module reads the
+Where ``data.traversals`` reads traversals whose frame indices line up, this module reads the
 layouts VPR benchmarks are distributed in, each into a ``RetrievalDataset`` (database
 images, query images, positions where the layout has them, and a ``GroundTruth``):
 
@@ -59,7 +59,7 @@ class Layout(StrEnum):
     MANIFEST = "manifest"
 
 
-#: Layouts read into a ``RetrievalDataset`` (the others are ``datasets.Dataset``).
+#: Layouts read into a ``RetrievalDataset`` (the others are ``traversals.Dataset``).
 RETRIEVAL_LAYOUTS = frozenset({Layout.DATABASE_QUERIES, Layout.VPR_BENCH, Layout.TRAVERSAL_POSITIONS, Layout.MANIFEST})
 VPR_BENCH_GT = "ground_truth_new.npy"
 #: The reference index VPR-Bench writes for a query with no right reference (``[-1]``).

@@ -172,8 +172,19 @@ def _writer_gone(host: str, pid: int) -> bool | None:
     return False
 
 
-def _is_stale(path: Path, owner: tuple[str, int] | None, now: float) -> bool:
-    """Whether a leftover of an unfinished write may be deleted (see the module docstring)."""
+def is_stale(path: Path, owner: tuple[str, int] | None, now: float) -> bool:
+    """Whether a leftover of an unfinished write may be deleted (see the module docstring).
+
+    Args:
+        path: the leftover file.
+        owner: ``(host, pid)`` of the process that wrote it, from its name; None when the
+            name carries none.
+        now: the current time, seconds since the epoch.
+
+    Returns:
+        False for a live writer's file, whatever its age; else whether it is older than
+        ``DEAD_WRITER_GRACE_S`` (its writer is gone) or ``STALE_AFTER_S`` (unknown writer).
+    """
     gone = _writer_gone(*owner) if owner is not None else None
     if gone is False:
         return False  # a live writer's file, whatever its age
@@ -446,7 +457,7 @@ class DescriptorCache:
             folder.mkdir(parents=True, exist_ok=True)
             now = time.time()
             for leftover in folder.glob(".*.tmp"):  # a killed compaction's temporary, once its writer is gone
-                if _is_stale(leftover, settings.temporary_owner(leftover.name), now):
+                if is_stale(leftover, settings.temporary_owner(leftover.name), now):
                     leftover.unlink(missing_ok=True)
             for shard in self._manifests(self._folder(cache_key)):
                 if not wanted:
@@ -621,7 +632,7 @@ class DescriptorCache:
                     owner = _shard_owner(name[:-4])
                 else:
                     continue
-                if _is_stale(path, owner, now):
+                if is_stale(path, owner, now):
                     try:
                         path.unlink()
                         removed += 1

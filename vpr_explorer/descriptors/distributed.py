@@ -49,8 +49,8 @@ from pathlib import Path
 import numpy as np
 
 from vpr_explorer import settings
-from vpr_explorer.descriptors.cache import DescriptorCache, _is_stale, check_dtype
-from vpr_explorer.descriptors.extract import ExtractionInterrupted, default_workers, extract_descriptors, hash_paths
+from vpr_explorer.descriptors.cache import DescriptorCache, check_dtype, is_stale
+from vpr_explorer.descriptors.extract import ExtractionInterrupted, extract_descriptors, hash_paths
 from vpr_explorer.errors import VPRInputError
 
 RAY_EXTRA = 'pip install ".[ray]"'
@@ -587,7 +587,7 @@ def _write_probe(cache: DescriptorCache) -> Path:
     cache.folder.mkdir(parents=True, exist_ok=True)
     now = time.time()
     for old in cache.folder.glob(f".{PROBE}.*.tmp"):
-        if _is_stale(old, settings.temporary_owner(old.name), now):
+        if is_stale(old, settings.temporary_owner(old.name), now):
             old.unlink(missing_ok=True)
     probe = cache.folder / settings.temporary_name(PROBE)
     probe.write_bytes(b"")
@@ -679,7 +679,7 @@ def extract_on_ray(
             # why the extractor cannot run there, if it cannot).
             described = ray.remote(_describe).options(num_cpus=0, num_gpus=1 if shape.gpus else 0).remote(
                 descriptor, model_options)
-        with ThreadPoolExecutor(max_workers=default_workers(), thread_name_prefix="vpr-hash") as pool:
+        with ThreadPoolExecutor(max_workers=settings.default_workers(), thread_name_prefix="vpr-hash") as pool:
             hashes = hash_paths(paths, pool)
         groups: dict[str, list[int]] = {}
         for i, h in enumerate(hashes):

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import os
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -16,13 +15,13 @@ import numpy as np
 from vpr_explorer.descriptors.base import Extractor
 from vpr_explorer.descriptors.cache import DescriptorCache, check_dtype, hash_file
 from vpr_explorer.errors import VPRInputError
+from vpr_explorer.settings import default_workers
 
 # Batches decoded ahead of the one in the model. When the model runs on the CPU it
 # shares the cores with the decoders: one batch ahead hides decoding, and more only lets
-# the decoders steal more from the forward pass (2 busy shared cores, paired runs of
-# 96 GardensPoint frames: end-to-end at a median 0.84 of the bare forward pass for
-# AlexNet conv3 with 1 ahead, 0.78 with 2; EfficientNet-Lite0 0.94 vs 0.93). A GPU leaves
-# the cores to the decoders, which then should never wait. Memory stays at a few batches (a 224x224 float32 image is 0.6 MB).
+# the decoders steal more from the forward pass. A GPU leaves the cores to the decoders,
+# which then should never wait. Memory stays at a few batches (a 224x224 float32 image is
+# 0.6 MB).
 PREFETCH_BATCHES = 1
 PREFETCH_BATCHES_GPU = 3
 # New vectors are cached as the run goes, so that an interrupted run resumes where it
@@ -33,10 +32,10 @@ PREFETCH_BATCHES_GPU = 3
 # whatever happens later in the run.
 SHARD_SIZE = 4096
 FLUSH_SECONDS = 10.0
-# Default decoding threads: one per core this process may use, up to this many. On a
-# small CPU they share the cores with the model; beside a GPU they are what feeds it.
-MAX_DEFAULT_WORKERS = 8
+#: A row whose norm is below this is all zero: its direction, and so its cosine similarity, is undefined.
 MIN_NORM = 1e-12
+#: ``MIN_NORM`` squared (1e-24): the same test on a row's squared norm.
+MIN_SQUARED_NORM = MIN_NORM * MIN_NORM
 # Cache hits are brought back to unit length this many bytes of float32 at a time: the
 # temporaries stay ~1 MiB (~200 rows at 1280-d) however many hits there are.
 RENORMALISE_BYTES = 1 << 20
@@ -123,15 +122,6 @@ def _name_files(paths: Sequence[Path]) -> str:
     shown = ", ".join(str(p) for p in paths[:NAMED_IN_ERRORS])
     more = len(paths) - NAMED_IN_ERRORS
     return f"{shown} and {more} more" if more > 0 else shown
-
-
-def default_workers() -> int:
-    """Decoding threads when none are asked for: the usable cores, at most ``MAX_DEFAULT_WORKERS``."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        cores = os.cpu_count() or 1
-    return max(1, min(cores, MAX_DEFAULT_WORKERS))
 
 
 def _check_options(paths: Sequence[Path], batch_size: int, workers: int) -> None:
@@ -251,7 +241,7 @@ def extract_descriptors(
 
     Args:
         paths: image files; repeats allowed.
-        workers: decoding threads; default :func:`default_workers` (2 on a 2-core machine).
+        workers: decoding threads; default ``settings.default_workers()``.
         progress: ``progress(done, total)`` in images. The first call's ``done`` is the
             number of images found in the cache (not computed in this run).
         dtype: ``"float32"`` (default) or ``"float16"``: the result's dtype. float16

@@ -168,7 +168,7 @@ class ImportedDescriptors:
 
 
 @dataclass(frozen=True, eq=False)
-class _Read:
+class ReadRows:
     """What a format's reader found: rows as stored, and their names when the file has them."""
 
     rows: np.ndarray  # (n_rows, D), any real dtype; a read-only memmap for .npy
@@ -264,12 +264,12 @@ def load_descriptor_file(
             f"names_file={str(names_file)!r}: only a .npy takes a names file; {path.name} carries its own names"
         )
 
-    before = _stamp(path)
+    before = file_stamp(path)
     read = _READERS[fmt](path, None if names_file is None else Path(names_file).expanduser())
     files = (path,) if read.names_file is None else (path, read.names_file)
-    digests = _file_digests(files)
-    key = _content_key(files, dtype, image_names, digests=digests)
-    if _stamp(path) != before:
+    digests = file_digests(files)
+    key = content_key(files, dtype, image_names, digests=digests)
+    if file_stamp(path) != before:
         raise VPRInputError(f"{path}: the file changed while it was read; open it again once it is fully written")
 
     notes = list(read.notes)
@@ -376,7 +376,7 @@ def write_descriptor_file(
 # --- readers, one per format ------------------------------------------------------------
 
 
-def _read_npz(path: Path, names_file: Path | None) -> _Read:
+def _read_npz(path: Path, names_file: Path | None) -> ReadRows:
     # Checked first: np.load takes a file without the zip signature for a pickle.
     if not _starts(path).startswith(ZIP_MAGIC) or not zipfile.is_zipfile(path):
         raise _unreadable(path, "not a zip archive: truncated, or not written by np.savez")
@@ -422,10 +422,26 @@ def _read_npz(path: Path, names_file: Path | None) -> _Read:
             "give one name per row, in row order"
         )
     decoded = tuple(_decode(n, path) for n in names.tolist())
-    return _Read(rows=rows, names=decoded, notes=(f"{path.name}: {_shape_note(rows)} with names",))
+    return ReadRows(rows=rows, names=decoded, notes=(f"{path.name}: {_shape_note(rows)} with names",))
 
 
-def _read_npy(path: Path, names_file: Path | None) -> _Read:
+def read_npy_rows(path: Path, names_file: Path | None) -> ReadRows:
+    """The rows of a ``.npy`` descriptor file, memory-mapped as stored, and their names when a names file is found.
+
+    Args:
+        path: the ``.npy`` file.
+        names_file: a text file of one image name per row; None: the file beside ``path``
+            when there is one (:func:`_find_names_file`), else rows in the dataset's order.
+
+    Returns:
+        ``rows``: the ``(n_rows, D)`` read-only memmap in the stored dtype; ``names``: one
+        per row, or None.
+
+    Raises:
+        VPRInputError: not a ``.npy`` file, a header that claims more than the file holds,
+            not a 2-D real matrix, or a names file that cannot be read or does not list one
+            name per row.
+    """
     magic = _starts(path)
     if magic.startswith(ZIP_MAGIC):
         raise VPRInputError(f"{path}: this is an .npz archive, not a single array: rename it {path.stem}.npz")
@@ -441,7 +457,7 @@ def _read_npy(path: Path, names_file: Path | None) -> _Read:
     names_file = _find_names_file(path, names_file)
     note = f"{path.name}: {_shape_note(rows)}"
     if names_file is None:
-        return _Read(rows=rows, names=None, notes=(note,))
+        return ReadRows(rows=rows, names=None, notes=(note,))
     try:
         text = names_file.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
@@ -454,8 +470,8 @@ def _read_npy(path: Path, names_file: Path | None) -> _Read:
             f"{path}: {len(rows):,} rows but {names_file.name} lists {len(names):,} names; give one name per "
             "row, in row order (or remove the names file to take rows in the dataset's image order)"
         )
-    return _Read(rows=rows, names=names, names_file=names_file,
-                 notes=(f"{note}, rows matched by the names in {names_file.name}",))
+    return ReadRows(rows=rows, names=names, names_file=names_file,
+                    notes=(f"{note}, rows matched by the names in {names_file.name}",))
 
 
 def _find_names_file(path: Path, given: Path | None) -> Path | None:
@@ -473,12 +489,12 @@ def _find_names_file(path: Path, given: Path | None) -> Path | None:
     return found[0] if found else None
 
 
-def _read_hloc(path: Path, names_file: Path | None) -> _Read:
+def _read_hloc(path: Path, names_file: Path | None) -> ReadRows:
     import h5py
 
     found: list[str] = []
     vectors: list[np.ndarray] = []
-    file_size = _stamp(path)[0]
+    file_size = file_stamp(path)[0]
     claimed = 0
     try:
         with h5py.File(path, "r") as fd:
@@ -529,7 +545,7 @@ def _read_hloc(path: Path, names_file: Path | None) -> _Read:
         )
     rows = np.stack(vectors)
     _check_matrix(rows, path, f"the {HLOC_KEY!r} datasets")
-    return _Read(rows=rows, names=names, notes=(f"{path.name}: hloc global features, {_shape_note(rows)}",))
+    return ReadRows(rows=rows, names=names, notes=(f"{path.name}: hloc global features, {_shape_note(rows)}",))
 
 
 def _hloc_claim(path: Path, name: str, dataset, file_size: int, h5py) -> int:
@@ -581,7 +597,7 @@ def _dataset_leaves(fd, h5py) -> set[str]:
 
 _READERS = {
     DescriptorFormat.NPZ: _read_npz,
-    DescriptorFormat.NPY: _read_npy,
+    DescriptorFormat.NPY: read_npy_rows,
     DescriptorFormat.HLOC: _read_hloc,
 }
 
@@ -599,7 +615,7 @@ def _check_matrix(rows: np.ndarray, path: Path, what: str) -> None:
         )
 
 
-def _clean(name: str) -> str:
+def clean_name(name: str) -> str:
     """A file's name for an image, with ``/`` separators and no leading ``./`` or ``/``."""
     parts = PurePosixPath(name.strip().replace("\\", "/")).parts
     return "/".join(p for p in parts if p != "/")
@@ -613,14 +629,14 @@ def _match_names(
     Raises:
         VPRInputError: duplicate names, images without a row, names that are no image.
     """
-    clean = [_clean(n) for n in names]
+    clean = [clean_name(n) for n in names]
     repeated = [n for n, c in Counter(clean).items() if c > 1]
     if repeated:
         raise VPRInputError(
             f"{path}: {len(repeated):,} names appear more than once ({_listing(repeated)}); give each image "
             "one row"
         )
-    index = {_clean(n): i for i, n in enumerate(image_names)}  # cleaned alike: an absolute name loses its '/'
+    index = {clean_name(n): i for i, n in enumerate(image_names)}  # cleaned alike: an absolute name loses its '/'
     row_of = np.full(len(image_names), -1, dtype=np.int64)
     claimed_by: dict[int, str] = {}
     unmatched: list[int] = []
@@ -923,7 +939,12 @@ def _unreadable(path: Path, why: object) -> VPRInputError:
     )
 
 
-def _stamp(path: Path) -> tuple[int, int]:
+def file_stamp(path: Path) -> tuple[int, int]:
+    """``(size in bytes, modification time in ns)`` of ``path``: compared before and after a read to see it unchanged.
+
+    Raises:
+        VPRInputError: the file cannot be stat'ed.
+    """
     try:
         st = path.stat()
     except OSError as exc:
@@ -931,7 +952,7 @@ def _stamp(path: Path) -> tuple[int, int]:
     return st.st_size, st.st_mtime_ns
 
 
-def _file_digests(files: Sequence[Path]) -> tuple[str, ...]:
+def file_digests(files: Sequence[Path]) -> tuple[str, ...]:
     """sha256 hex of each file's bytes, read in chunks."""
     out = []
     for f in files:
@@ -943,11 +964,11 @@ def _file_digests(files: Sequence[Path]) -> tuple[str, ...]:
     return tuple(out)
 
 
-def _content_key(files: Sequence[Path], dtype: str, image_names: Sequence[str], *,
-                 digests: Sequence[str] | None = None) -> str:
+def content_key(files: Sequence[Path], dtype: str, image_names: Sequence[str], *,
+                digests: Sequence[str] | None = None) -> str:
     """sha256 over the files' bytes (their ``digests`` when already computed), the dtype and the image order."""
     digest = hashlib.sha256(KEY_VERSION.encode())
-    for f, file_hash in zip(files, _file_digests(files) if digests is None else digests):
+    for f, file_hash in zip(files, file_digests(files) if digests is None else digests):
         digest.update(f"|{f.suffix}:{file_hash}".encode())
     digest.update(f"|{dtype}|".encode())
     digest.update(hashlib.sha256("\n".join(image_names).encode()).digest())

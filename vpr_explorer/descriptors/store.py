@@ -4,7 +4,7 @@
 every product over them another copy. Here they stay in one file, dataset-ordered, opened
 with ``np.load(mmap_mode="r")``: the operating system pages in what a pass reads, and every
 consumer (``stats.negative_stats_rows``, ``thresholds.training_pair_scores(rows=…)``,
-``retrieval_views.score_rows`` and the protocol ``retrieval_views.evaluate_fitted``) reads a
+``database_queries.score_rows`` and the protocol ``database_queries.evaluate_fitted``) reads a
 block of rows, converts it to float32, uses it and drops it.
 
 Two sources give such a file:
@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vpr_explorer.descriptors.extract import MIN_SQUARED_NORM
 from vpr_explorer.errors import VPRInputError
 
 MMAP_ENV = "VPR_EXPLORER_MMAP_BYTES"
@@ -92,7 +93,7 @@ def check_rows(rows: np.ndarray, names: Sequence[str], what: str, *, tolerance: 
         if bad.any():
             bad[bad] = ~np.isfinite(x[bad]).all(axis=1)
             not_finite.extend((lo + np.flatnonzero(bad)).tolist())
-        small = np.isfinite(sq) & (sq < 1e-24)
+        small = np.isfinite(sq) & (sq < MIN_SQUARED_NORM)
         zero.extend((lo + np.flatnonzero(small)).tolist())
         norm_off = np.isfinite(sq) & ~small & (np.abs(np.sqrt(np.where(np.isfinite(sq), sq, 1.0)) - 1.0) > tolerance)
         off.extend((lo + np.flatnonzero(norm_off)).tolist())
@@ -142,21 +143,21 @@ def open_npy(path: Path, image_paths: Sequence[Path], root: Path, *, names_file:
     if imp.descriptor_format(path) is not imp.DescriptorFormat.NPY or not path.is_file():
         return None
     image_names = _relative_names(image_paths, root)
-    before = imp._stamp(path)
-    read = imp._read_npy(path, None if names_file is None else Path(names_file).expanduser())
+    before = imp.file_stamp(path)
+    read = imp.read_npy_rows(path, None if names_file is None else Path(names_file).expanduser())
     rows = read.rows
     if rows.dtype not in (np.float16, np.float32) or not rows.flags.c_contiguous:
         return None
     if read.names is not None:
-        if tuple(imp._clean(n) for n in read.names) != image_names:
+        if tuple(imp.clean_name(n) for n in read.names) != image_names:
             return None  # matched by name, in another order: read into memory in the dataset's order
     elif len(rows) != len(image_names):
         return None  # load_descriptor_file names the count mismatch
     check_rows(rows, image_names, str(path))
     files = (path,) if read.names_file is None else (path, read.names_file)
-    digests = imp._file_digests(files)
-    key = imp._content_key(files, f"mmap-{rows.dtype}", image_names, digests=digests)
-    if imp._stamp(path) != before:
+    digests = imp.file_digests(files)
+    key = imp.content_key(files, f"mmap-{rows.dtype}", image_names, digests=digests)
+    if imp.file_stamp(path) != before:
         raise VPRInputError(f"{path}: the file changed while it was read; open it again once it is fully written")
     notes = (*read.notes, f"memory-mapped as stored ({rows.dtype}, {rows.nbytes / 2**30:.2f} GiB): read a block of "
              "rows at a time, never copied whole; every row checked finite and of unit length")

@@ -1,1 +1,15 @@
-"""The paper's method: places (group/step), negative statistics, thresholds, retrieval and decisions."""
+"""The paper's method: places, negative statistics, thresholds, retrieval and decisions.
+
+* ``places``: group/step (stride and skip readings) make places of frames, of database
+  images, or of metres along a route or on a lattice (``Places``, ``retrieval_places``).
+* ``stats``: each training image's negative similarity statistics in closed form, and the
+  place's negative Gaussian mixture M(p).
+* ``thresholds``: per-place θ_p (simple, weighted), the family θ_p(k), adaptive k, the
+  automatic global θ and its training-pair sample.
+* ``auto_theta``: why the automatic global θ is what it is (its median and MAD), and when
+  it rejects every query.
+* ``retrieval``: every method (image- and place-level baselines, filter-then-rank),
+  pessimistic ranks, ``QueryDecision`` records that explain themselves.
+* ``database``: a database with its per-place thresholds, and the decisions for queries
+  and whole traversals against it.
+"""

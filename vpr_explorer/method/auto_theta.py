@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vpr_explorer.method.thresholds import AUTO_Z, auto_global_threshold, training_pair_scores
+from vpr_explorer.method.thresholds import AUTO_Z, MAD_PER_SIGMA, auto_global_threshold, training_pair_scores
 
 #: The largest similarity two L2-normalised descriptors can have (cosine).
 MAX_SIMILARITY = 1.0
@@ -52,7 +52,7 @@ def rejects_all_note(parts: AutoParts, *, over: str = "the training images") -> 
     if not parts.rejects_everything:
         return None
     return (f"**global θ, automatic = {parts.theta:.3f}**, from {over}: median {parts.median:.3f} + "
-            f"{AUTO_Z:.2f} × MAD {parts.mad:.3f} / 0.675 over {parts.n_scores:,} training similarities. That is "
+            f"{AUTO_Z:.2f} × MAD {parts.mad:.3f} / {MAD_PER_SIGMA:g} over {parts.n_scores:,} training similarities. That is "
             f"above {MAX_SIMILARITY:g}, the largest similarity two descriptors can have, so it **rejects every "
             "query**: its 0% recall and empty precision come from the threshold, not from the places. "
             "These descriptors' similarities spread too widely for the rule; set a global θ of your own on the "

@@ -7,7 +7,6 @@ the negative statistics and thresholds on their images only, then decide any que
 
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -39,13 +38,14 @@ from vpr_explorer.method.thresholds import (
     place_thresholds,
     training_pair_scores,
 )
+from vpr_explorer.settings import default_workers
 
 
 #: Query × database similarities held at once by ``decide_traversal`` (64 MB of float32).
 PAIRS_PER_BLOCK = 1 << 24
-#: Query frames from which ``decide_traversal`` takes the fused path by default: it groups the
-#: database rows by place (about 0.1 s at 33,108 × 2,048, quiet), and saves about 1.3 ms per
-#: query frame there (906 frames: ``bench_app_scale.py --move-only``).
+#: Query frames from which ``decide_traversal`` takes the fused path by default: the path first
+#: groups the database rows by place (one copy of the database), a cost that only many query
+#: frames repay (``benchmarks/bench_app_scale.py --move-only`` times both paths).
 FUSED_MIN_FRAMES = 64
 #: Database × query similarities the fused path holds at once (128 MB of float32, in the
 #: database's place order: no float64 copy): the app's 906 sampled frames against 33,108
@@ -264,7 +264,7 @@ def decide_traversal(
     Args:
         frames: query frame numbers to decide, in the order wanted (default: all, in order).
             Deciding a sample is how an overview of a 100k-image dataset stays interactive
-            (``views.regroup``): the cost is ``len(frames) × n_database`` similarities.
+            (``traversal.regroup``): the cost is ``len(frames) × n_database`` similarities.
         block: query frames per block (at most ``PAIRS_PER_BLOCK`` similarities held at once,
             ``FUSED_PAIRS_PER_BLOCK`` on the fused path).
         threads: threads sharing a block's products and place maxima (default: CPU count, at
@@ -298,7 +298,7 @@ def decide_traversal(
     if fused or (fused is None and len(qi) >= FUSED_MIN_FRAMES):
         block = max(1, min(block, FUSED_PAIRS_PER_BLOCK // max(1, len(model.images))))
         layout = PlaceLayout.of(model.places, model.n_places)
-        threads = min(os.cpu_count() or 1, 8) if threads is None else max(1, int(threads))
+        threads = default_workers() if threads is None else max(1, int(threads))
         rows = model.images[layout.order]  # database rows grouped by place
         with one_blas_thread(), ThreadPoolExecutor(threads, thread_name_prefix="vpr-decide") as pool:
             # several blocks read every row several times: copy them grouped once; one block reads
@@ -343,7 +343,7 @@ def _gather_rows(d: np.ndarray, rows: np.ndarray, pool: ThreadPoolExecutor, part
 
 #: Database rows per piece of ``_decide_block`` (whole places): a piece's similarities with a
 #: block's queries (1,024 × 906 float32 for the app's sample at 110k images, 3.7 MB) are still
-#: in the core's cache when their maxima are taken (512 rows measured no quicker).
+#: in the core's cache when their maxima are taken.
 PIECE_ROWS = 1024
 
 

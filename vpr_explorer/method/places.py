@@ -1,4 +1,4 @@
-"""Group-and-step: frames become places (DESIGN.md §1).
+"""Group-and-step: frames (or database images, or metres along a route) become places.
 
 Two readings of the paper are offered side by side:
 
@@ -11,6 +11,11 @@ Two readings of the paper are offered side by side:
 A trailing place with fewer than ``group`` frames is dropped, so every place holds the
 same number of frames. Changing group/step only relabels images: descriptors are per
 image and are never recomputed.
+
+A database/queries dataset's places (``retrieval_places``) come from the layout's own place
+ids, from group/step over its database images in listed order (``frame_places``), or from
+group/step in metres along the route or on a square lattice (``MetricPlaceSpec``,
+``metric_places``) where the layout has positions.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from vpr_explorer.data.traversals import Dataset
 from vpr_explorer.errors import VPRInputError
 
 
+
 class Reading(StrEnum):
     """How ``step`` is read."""
 
@@ -33,6 +39,8 @@ class Reading(StrEnum):
 
 MAX_FRAMES = 10_000_000
 """The most frames ``group`` or ``step`` may span: far beyond any route (Nordland has 27,592 frames)."""
+MAX_PLACE_METRES = 1e7
+"""The most metres ``group`` or ``step`` of a ``MetricPlaceSpec`` may span (10,000 km)."""
 
 READING_LABELS = {
     Reading.STRIDE: "stride: a place starts every `step` frames (authors' code, paper's numbers)",
@@ -235,8 +243,9 @@ class MetricPlaceSpec:
         for name in ("group", "step"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
-                    or not np.isfinite(value) or value <= 0 or value > 1e7:
-                raise VPRInputError(f"{name}={value!r}: must be a distance in metres above 0 (at most 10,000 km)")
+                    or not np.isfinite(value) or value <= 0 or value > MAX_PLACE_METRES:
+                raise VPRInputError(f"{name}={value!r}: must be a distance in metres above 0 "
+                                    f"(at most {MAX_PLACE_METRES / 1000:,.0f} km)")
         if self.reading not in {r.value for r in Reading}:
             raise VPRInputError(f"reading={self.reading!r}: choose {' or '.join(r.value for r in Reading)}")
         object.__setattr__(self, "reading", Reading(self.reading))
@@ -282,3 +291,45 @@ def metric_places(xy: np.ndarray, spec: MetricPlaceSpec) -> tuple[np.ndarray, in
     out = np.full(len(place), -1, dtype=np.int64)
     out[place >= 0] = np.searchsorted(used, place[place >= 0])
     return out, len(used)
+
+
+def retrieval_places(dataset, spec: PlaceSpec | None = None,
+                     metric: MetricPlaceSpec | None = None) -> tuple[np.ndarray, int]:
+    """``(n_database,)`` place of each database image and the number of places.
+
+    The layout's own place ids (a manifest's ``place`` column) when it has them; else
+    ``metric`` (a ``MetricPlaceSpec``: metres along the route or a lattice) when the layout
+    has positions; else ``spec`` (group/step counting database images in listed order).
+
+    Args:
+        dataset: a database/queries dataset (``data.layouts.RetrievalDataset``); its
+            ``database_place``, ``database_xy``, ``n_database``, ``layout`` and ``name`` are read.
+        spec: group/step in database images, used when the layout has no place ids and
+            ``metric`` is None.
+        metric: group/step in metres, used when the layout has no place ids.
+
+    Returns:
+        ``(place, n_places)``: ``(n_database,)`` int64 place of each database image, ``-1``
+        for an image between places, and the number of places.
+
+    Raises:
+        VPRInputError: ``metric`` on a layout without positions, neither ``spec`` nor
+            ``metric`` given, or fewer than 2 places.
+    """
+    if dataset.database_place is not None:
+        return dataset.database_place, int(dataset.database_place.max()) + 1
+    if metric is not None:
+        if dataset.database_xy is None:
+            raise VPRInputError(f"{dataset.name}: the {dataset.layout.value} layout has no positions: group/step in "
+                                "metres need them; use --geometry frames (group/step in images)")
+        place, n = metric_places(dataset.database_xy, metric)
+    else:
+        if spec is None:
+            raise VPRInputError("group/step missing: give a PlaceSpec(group, step) or a MetricPlaceSpec")
+        place = frame_places(dataset.n_database, spec)
+        n = int(place.max()) + 1 if (place >= 0).any() else 0
+    if n < 2:
+        what = metric.describe() if metric is not None else spec.describe()
+        raise VPRInputError(f"{what} leaves {n} place(s) in the {dataset.n_database} database images of "
+                            f"{dataset.name!r}: negative statistics need at least 2 places; lower group or step")
+    return place, n

@@ -1,4 +1,4 @@
-"""Retrieval: the image- and place-level baselines and filter-then-rank (DESIGN.md §3).
+"""Retrieval: the image- and place-level baselines and filter-then-rank.
 
 For a query q and place p, raw_p = max over p's database images i of s(q, i).
 

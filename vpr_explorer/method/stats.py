@@ -1,4 +1,4 @@
-"""Negative similarity statistics of each training image, in closed form (DESIGN.md §2).
+"""Negative similarity statistics of each training image, in closed form.
 
 For training image i of place p, its negative scores are S⁻ᵢ = { dᵢ·dⱼ : j in a place r ≠ p }.
 A normal N(μᵢ, σᵢ²) is fitted to them (maximum likelihood, so σᵢ is the population
@@ -29,7 +29,7 @@ per-image centre score aᵢ = dᵢ·m, for any m exactly:
 so the float32 error is relative to |dᵢ|·|eⱼ|, not to |sᵢⱼ|, and the last line no longer
 cancels (μᵢ − aᵢ is the gap between the negatives' mean and the all-image mean). μᵢ, aᵢ, dᵢ·T
 and the same-place terms are float64 products (``_place_terms``): μ is exact to float64
-rounding, as before. Three passes: E (``_centred_gram``), the float64 terms place by place
+rounding. Three passes: E (``_centred_gram``), the float64 terms place by place
 (``_place_terms``), dᵢᵀEdᵢ (``_quadratic_forms``, (1 + 1/8)·N·D² flops by symmetry).
 
 **Error bound.** u = 2⁻²⁴, γ_k = k·u/(1 − k·u), |·| elementwise, L = min(block, N) the rows
@@ -62,18 +62,19 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import os
 import threading
 import warnings
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from enum import StrEnum
+from typing import NamedTuple
 
 import numpy as np
 from scipy import sparse
 
 from vpr_explorer.errors import VPRInputError
+from vpr_explorer.settings import MAX_DEFAULT_WORKERS, default_workers
 
 #: σ below this is treated as this when a weight 1/σ² or a density is needed: a place
 #: whose image has a single negative score (σ = 0) would otherwise divide by zero.
@@ -192,6 +193,26 @@ def _check_labels(labels: np.ndarray, n: int, n_places: int | None) -> tuple[np.
     return labels.astype(np.int64), int(n_places)
 
 
+def thread_count(threads: int | None, cap: int = MAX_DEFAULT_WORKERS) -> int:
+    """``threads`` checked, or ``settings.default_workers(cap)`` for ``None``.
+
+    Raises:
+        VPRInputError: ``threads`` is not a whole number, 1 or more.
+    """
+    if threads is None:
+        return default_workers(cap)
+    if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
+        raise VPRInputError(f"threads={threads!r}: must be a whole number, 1 or more (or unset: one per CPU)")
+    return int(threads)
+
+
+def _block_and_threads(block: int, threads: int | None) -> tuple[int, int]:
+    """The closed form's ``block`` (rows at a time, 1 or more) and ``threads`` (``thread_count``), checked."""
+    if isinstance(block, bool) or not isinstance(block, (int, np.integer)) or block < 1:
+        raise VPRInputError(f"block: expected a positive number of rows, got {block!r}")
+    return int(block), thread_count(threads)
+
+
 def within_place_sq(d: np.ndarray, labels: np.ndarray, *, block_elems: int = 2**24) -> np.ndarray:
     """``(n,)`` Σ_{j∈p(i)} (dᵢ·dⱼ)², the squared same-place scores of each image, i itself included.
 
@@ -225,7 +246,7 @@ class Precision(StrEnum):
     """Arithmetic of the O(N·D²) products in ``negative_stats`` (module docstring)."""
 
     FLOAT32 = "float32"  # float32 GEMMs of centred descriptors, float64 sums: the default
-    FLOAT64 = "float64"  # everything in float64: the code before issue 13, to compare against
+    FLOAT64 = "float64"  # everything in float64: the reference the float32 products are checked against
 
 
 def negative_stats(
@@ -249,24 +270,28 @@ def negative_stats(
         precision: ``"float32"``: μ to float64 rounding, σ² within ``sigma_sq_error_bound``
             (module docstring); ``"float64"``: both to float64 rounding, about 4× the time
             at N = 100,000, D = 1,280 (benchmarks/bench_negative_stats.py).
-        threads: threads for the elementwise work of the float32 path (default: CPU count, at
-            most 8; BLAS keeps its own). The work is cut into the same parts whatever the
-            count, so the result does not depend on it.
+        threads: threads for the elementwise work of the float32 path (default: one per usable
+            CPU, at most ``settings.MAX_DEFAULT_WORKERS``; BLAS keeps its own). The work is cut
+            into the same parts whatever the count, so the result does not depend on it.
         device: ``None`` (numpy, the default) or a torch device ("cpu", "cuda", …): the float32
             products as torch matmuls there (module docstring); within the same error bound.
             Only with ``precision="float32"``.
+
+    Returns:
+        μᵢ, σᵢ and n⁻ᵢ of every image, ``(n,)`` each.
+
+    Raises:
+        VPRInputError: bad descriptors, labels, ``block``, ``threads``, ``precision`` or ``device``.
     """
     d = validate_descriptors(descriptors, "training descriptors")
     n, dim = d.shape
     labels, n_places = _check_labels(labels, n, n_places)
-    if isinstance(block, bool) or not isinstance(block, (int, np.integer)) or block < 1:
-        raise VPRInputError(f"block: expected a positive number of rows, got {block!r}")
+    block, threads = _block_and_threads(block, threads)
     try:
         closed_form = _CLOSED_FORMS[Precision(precision)]
     except ValueError:
         choices = ", ".join(repr(p.value) for p in Precision)
         raise VPRInputError(f"precision: expected one of {choices}, got {precision!r}") from None
-    threads = min(os.cpu_count() or 1, 8) if threads is None else max(1, int(threads))
     counts = np.bincount(labels, minlength=n_places)
     n_neg = n - counts[labels]
     if device is not None:
@@ -274,16 +299,35 @@ def negative_stats(
             raise VPRInputError(f"device={device!r}: the torch path computes precision='float32' only")
         dev = torch_device(device)
         closed_form = functools.partial(_closed_form_torch, device=dev)
-    mu, var = closed_form(d, labels, counts, n_neg, int(block), threads)
+    fit = closed_form(d, labels, counts, n_neg, block, threads)
     # Cancellation can leave -1e-17 where the true variance is 0 (all negatives equal).
-    sigma = np.sqrt(np.clip(var, 0.0, None))
-    return NegativeStats(mu=mu, sigma=sigma, n_neg=n_neg.astype(np.int64), labels=labels, n_places=n_places)
+    sigma = np.sqrt(np.clip(fit.var, 0.0, None))
+    return NegativeStats(mu=fit.mu, sigma=sigma, n_neg=n_neg.astype(np.int64), labels=labels, n_places=n_places)
+
+
+class _PlaceTerms(NamedTuple):
+    """The float64 terms of each image against its own place, T and m (``_place_terms``), each ``(n,)``."""
+
+    dot_total: np.ndarray  # dᵢ·T
+    centre_score: np.ndarray  # aᵢ = dᵢ·m
+    same: np.ndarray  # Σ_{j∈p} sᵢⱼ
+    same_sq: np.ndarray  # Σ_{j∈p} (sᵢⱼ − aᵢ)²
+    own: np.ndarray  # sᵢᵢ = ‖dᵢ‖²
+
+
+class _Moments(NamedTuple):
+    """What a closed form returns: μᵢ and σᵢ² (before clipping at 0), each ``(n,)``, and the place
+    terms it took on the way (``None`` where it took none: the float64 form)."""
+
+    mu: np.ndarray
+    var: np.ndarray
+    terms: _PlaceTerms | None
 
 
 def _closed_form_float64(
     d: np.ndarray, labels: np.ndarray, counts: np.ndarray, n_neg: np.ndarray, block: int, threads: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """``(mu, var)``, each ``(n,)``: C and dᵢᵀCdᵢ in float64 (the code before issue 13)."""
+) -> _Moments:
+    """μ and σ², C and dᵢᵀCdᵢ in float64: the reference the float32 products are checked against."""
     n, dim = d.shape
     n_places = len(counts)
     total = np.zeros(dim)
@@ -305,43 +349,46 @@ def _closed_form_float64(
         second[lo : lo + block] = np.einsum("ij,ij->i", x @ gram, x)
     second -= within_place_sq(d, labels)
     mu /= n_neg
-    return mu, second / n_neg - mu**2
+    return _Moments(mu, second / n_neg - mu**2, None)
 
 
 def _closed_form_float32(
-    d: np.ndarray, labels: np.ndarray, counts: np.ndarray, n_neg: np.ndarray, block: int, threads: int,
-    terms: list | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """``(mu, var)``, each ``(n,)``: E and dᵢᵀEdᵢ as float32 GEMMs of centred rows, the rest float64.
+    d: np.ndarray, labels: np.ndarray, counts: np.ndarray, n_neg: np.ndarray, block: int, threads: int
+) -> _Moments:
+    """μ and σ²: E and dᵢᵀEdᵢ as float32 GEMMs of centred rows, the rest float64.
 
     Three passes (module docstring): the centred Gram E, the float64 terms place by place,
-    the quadratic forms. Elementwise work runs in ``threads`` threads over fixed parts.
-    ``terms``, a list, receives the place terms' Σ_{j∈p} sᵢⱼ and sᵢᵢ (``_positive_from_terms``).
+    the quadratic forms. Elementwise work runs in ``threads`` threads over fixed parts. The
+    place terms come back too (their Σ_{j∈p} sᵢⱼ and sᵢᵢ give ``_positive_from_terms``).
     """
     centre = _centre(d)
     # BLAS in one thread throughout when the products run side by side (entered once: each
     # entry asks threadpoolctl for the loaded libraries)
     with ThreadPoolExecutor(threads) as pool, one_blas_thread() if threads > 1 else contextlib.nullcontext():
-        gram, total = _centred_gram(d, centre, block, pool, threads > 1)
-        dot_total, a, same, same_sq, own = _place_terms(d, labels, counts, np.stack([total, centre]), pool)
-        quad = _quadratic_forms(d, gram, block, pool, threads > 1)
-    if terms is not None:
-        terms += [same, own]
-    mu = (dot_total - same) / n_neg  # Σ_{j∉p} sᵢⱼ / n⁻ᵢ
+        gram, total = _centred_gram(d, centre, block, pool, threads)
+        terms = _place_terms(d, labels, counts, np.stack([total, centre]), pool)
+        quad = _quadratic_forms(d, gram, pool, threads > 1)
+    return _moments(terms, quad, n_neg)
+
+
+def _moments(terms: _PlaceTerms, quad: np.ndarray, n_neg: np.ndarray) -> _Moments:
+    """μᵢ and σᵢ² from the place terms and the quadratic forms dᵢᵀEdᵢ ``(n,)`` (module docstring)."""
+    mu = (terms.dot_total - terms.same) / n_neg  # Σ_{j∉p} sᵢⱼ / n⁻ᵢ
     # E⁻[(s − aᵢ)²]: Σ_all (sᵢⱼ − aᵢ)² = dᵢᵀEdᵢ, less the same-place terms
-    return mu, (quad - same_sq) / n_neg - (mu - a) ** 2
+    return _Moments(mu, (quad - terms.same_sq) / n_neg - (mu - terms.centre_score) ** 2, terms)
 
 
 def _centred_gram(
-    d: np.ndarray, centre: np.ndarray, block: int, pool: ThreadPoolExecutor, side_by_side: bool = True
+    d: np.ndarray, centre: np.ndarray, block: int, pool: ThreadPoolExecutor, threads: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """E = Σⱼ (dⱼ − m)(dⱼ − m)ᵀ ``(D, D)`` and T = Σⱼ dⱼ ``(D,)``, both float64.
 
     Per block of ``block`` rows (read in order, in this thread: a ``_FirstPass`` reads the next
     one meanwhile): the centred rows, each rounded once from dⱼ − m itself (so the error is
     relative to |dⱼ − m|, not |dⱼ|), then the block's float32 Gram (one syrk of depth L), added
-    to a float64 sum. Block k goes to lane k mod ``_GRAM_LANES``, one pool task per block with
-    BLAS in one thread when ``side_by_side``; a lane's sum takes its blocks in order (block k
+    to a float64 sum. Block k goes to lane k mod ``_GRAM_LANES``, one task per block of
+    ``pool`` (``threads`` workers) with BLAS in one thread when ``threads`` > 1, in turn in this
+    thread otherwise; a lane's sum takes its blocks in order (block k
     waits for block k − lanes), and E is the lanes' sums added in lane order. So E is the same
     numbers for any thread count, the syrks run whole and side by side (the rate of one
     single-threaded syrk per thread: numpy's one syrk in two BLAS threads ran them at about
@@ -370,7 +417,7 @@ def _centred_gram(
         np.add(lanes[lane], buffers.g, out=lanes[lane])
 
     run_in_lanes(pool, ((lo, d[lo : lo + block]) for lo in range(0, n, block)), len(lanes),
-                 lambda lane, item: task(lane, *item), side_by_side)
+                 lambda lane, item: task(lane, *item), in_flight=threads if threads > 1 else None)
     gram = lanes[0]
     for lane in lanes[1:]:
         gram += lane
@@ -379,16 +426,18 @@ def _centred_gram(
 
 
 def run_in_lanes(pool: ThreadPoolExecutor, items: Iterable, n_lanes: int, task: Callable[[int, object], None],
-                 side_by_side: bool = True) -> None:
+                 in_flight: int | None) -> None:
     """``task(lane, item)`` for every item in order, item k on lane k mod ``n_lanes``.
 
-    As pool tasks with BLAS in one thread when ``side_by_side``, in turn otherwise (BLAS in
-    its own threads). Items are drawn from ``items`` in this thread, one ahead of the tasks;
-    item k starts once item k − ``n_lanes`` (its lane's last) has finished and fewer than the
-    pool's threads are in flight. So a float64 sum per lane takes its items in order, and the
-    lanes added in lane order are the same numbers for any thread count.
+    With ``in_flight`` (the pool's worker count, as its caller made it), as pool tasks with
+    BLAS in one thread; with ``None``, in turn in this thread (BLAS in its own threads). Items
+    are drawn from ``items`` in this thread, one ahead of the tasks; item k starts once item
+    k − ``n_lanes`` (its lane's last) has finished and fewer than ``in_flight`` are in flight.
+    So a float64 sum per lane takes its items in order, and the lanes added in lane order
+    are the same numbers for any thread count.
     """
-    threads = max(1, pool._max_workers) if side_by_side else 1
+    side_by_side = in_flight is not None
+    threads = max(1, in_flight) if side_by_side else 1
     futures: dict[int, object] = {}
     with one_blas_thread() if side_by_side else contextlib.nullcontext():
         for k, item in enumerate(items):
@@ -421,14 +470,15 @@ def _side_by_side(pool: ThreadPoolExecutor, tasks: tuple[Callable[[], None], ...
 
 def _place_terms(
     d: np.ndarray, labels: np.ndarray, counts: np.ndarray, proj: np.ndarray, pool: ThreadPoolExecutor
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> _PlaceTerms:
     """dᵢ·T, aᵢ = dᵢ·m, Σ_{j∈p} sᵢⱼ, Σ_{j∈p} (sᵢⱼ − aᵢ)² and sᵢᵢ = ‖dᵢ‖², each ``(n,)``, in float64.
 
-    Args:
-        proj: ``(2, D)`` float64 T and m.
     Parts hold whole places of one size k (``_place_slabs``): each is one batched product of
     small matrices ``(P, k, D) @ (P, D, k + 2)`` (the place's k images, then T and m), which
     BLAS runs single-threaded, so the parts run side by side.
+
+    Args:
+        proj: ``(2, D)`` float64 T and m.
     """
     n, dim = d.shape
     order, slabs = _place_slabs(labels, counts, _PART)
@@ -448,7 +498,7 @@ def _place_terms(
                 out[:, order[lo:hi][band]] = _terms(x[0, band] @ x[0].T, k, band.start)
 
     list(pool.map(part, slabs))
-    return out[0], out[1], out[2], out[3], out[4]
+    return _PlaceTerms(*out)
 
 
 def _terms(g: np.ndarray, k: int, first: int = 0) -> np.ndarray:
@@ -481,7 +531,7 @@ def _mean_over_pairs(pair_sums: np.ndarray, counts: np.ndarray) -> np.ndarray:
 
 
 def _quadratic_forms(
-    d: np.ndarray, gram: np.ndarray, block: int, pool: ThreadPoolExecutor, side_by_side: bool = True
+    d: np.ndarray, gram: np.ndarray, pool: ThreadPoolExecutor, side_by_side: bool = True
 ) -> np.ndarray:
     """``(n,)`` dᵢᵀ E dᵢ: float32 GEMMs with E as float32, float64 row sums.
 
@@ -493,11 +543,10 @@ def _quadratic_forms(
     with BLAS in one thread when ``side_by_side``: the tasks are equal, so the threads stay
     busy to the end, with no wait between blocks of rows. A GEMM splits rows between calls
     as it splits them between threads, never an inner product, so each dᵢᵀWdᵢ is the same
-    float32 products and float64 sum whatever rows share its call, as in whole blocks of
-    ``block`` rows before (``tests/test_stats.py``; products so small that OpenBLAS takes its
+    float32 products and float64 sum whatever rows share its call, as in one GEMM per block
+    of ``BLOCK`` rows (``tests/test_stats.py``; products so small that OpenBLAS takes its
     small-matrix kernel, a few hundred rows of a W a few dozen columns wide, round
-    otherwise, within the error bound). ``block`` is unused: the memory is a task's rows
-    per thread.
+    otherwise, within the error bound). The memory is a task's rows per thread.
     """
     n, dim = d.shape
     cols, w = triangular_blocks(gram, np.float32)
@@ -578,8 +627,8 @@ class ieee_float32:
 
 def _closed_form_torch(
     d: np.ndarray, labels: np.ndarray, counts: np.ndarray, n_neg: np.ndarray, block: int, threads: int, *, device
-) -> tuple[np.ndarray, np.ndarray]:
-    """``(mu, var)`` as ``_closed_form_float32``, the two N·D² products as torch matmuls on ``device``.
+) -> _Moments:
+    """μ and σ² as ``_closed_form_float32``, the two N·D² products as torch matmuls on ``device``.
 
     Blocks of rows go to the device once per pass; E is summed there in float64, and the
     quadratic forms use the whole E (2·N·D² flops: simpler than the triangle, and a GPU has
@@ -610,9 +659,8 @@ def _closed_form_torch(
             quad[lo : lo + len(x)] = ((x @ gram32).to(torch.float64) * x.to(torch.float64)).sum(dim=1)
         quad, total = quad.cpu().numpy(), total.cpu().numpy()
     with ThreadPoolExecutor(threads) as pool:
-        dot_total, a, same, same_sq, _ = _place_terms(d, labels, counts, np.stack([total, centre]), pool)
-    mu = (dot_total - same) / n_neg
-    return mu, (quad - same_sq) / n_neg - (mu - a) ** 2
+        terms = _place_terms(d, labels, counts, np.stack([total, centre]), pool)
+    return _moments(terms, quad, n_neg)
 
 
 _CLOSED_FORMS = {Precision.FLOAT32: _closed_form_float32, Precision.FLOAT64: _closed_form_float64}
@@ -670,11 +718,11 @@ def _take_blas_control() -> None:
     """Let this thread set OpenBLAS's thread count (under ``_BLAS_LOCK``, the one limiter's lock).
 
     threadpoolctl (3.8) ignores limits set on a pthreads OpenBLAS from any thread but the first
-    that set one while that thread lives: once the main thread had entered ``one_blas_thread``
-    (a library call before the app, as in ``benchmarks/bench_million.py``), the app's script
-    threads' limits were dropped, and each pool thread's GEMMs ran with all of BLAS's threads
-    (the app's fits took about twice the library's in ``bench_million.py --app``). The limiter is process-wide by
-    design, so whichever thread sets or restores it takes control first.
+    that set one while that thread lives: once the main thread has entered ``one_blas_thread``
+    (a library call before the app, as in ``benchmarks/bench_million.py``), the limits of the
+    app's script threads would be dropped, and each pool thread's GEMMs would run with all of
+    BLAS's threads. The limiter is process-wide by design, so whichever thread sets or
+    restores it takes control first.
     """
     from threadpoolctl import OpenBLASController
 
@@ -783,10 +831,9 @@ def positive_means(
     """``(n_places,)`` mean same-place score over pairs i ≠ j; NaN where a place has < 2 images.
 
     Σ_{i≠j∈p} dᵢ·dⱼ = ‖T_p‖² − Σ_{i∈p} ‖dᵢ‖², so no pairwise matrix is needed. Rows are
-    converted to float64 ``_MEAN_ROWS`` at a time into one buffer (a whole float64 copy of a
-    33,000 × 2,048 database was 14% of the app's fit, mostly page faults); up to that many
-    rows the sums are the single product they were before. ``threads`` (default: CPU count, at
-    most 8) share the conversion and ‖dᵢ‖² by rows and the place sums by bands of places:
+    converted to float64 ``_MEAN_ROWS`` at a time into one buffer (no float64 copy of the whole
+    database); up to that many rows the sums are a single product. ``threads`` (default: one
+    per usable CPU, at most ``settings.MAX_DEFAULT_WORKERS``) share the conversion and ‖dᵢ‖² by rows and the place sums by bands of places:
     each number comes from the same operations in the same order whatever their count.
     """
     d = np.asarray(descriptors)
@@ -795,7 +842,7 @@ def positive_means(
     sums = np.zeros((n_places, d.shape[1]))
     sq = np.empty(n)
     buf = np.empty((min(_MEAN_ROWS, n), d.shape[1]))
-    threads = min(os.cpu_count() or 1, 8) if threads is None else max(1, int(threads))
+    threads = thread_count(threads)
     bands = [slice(lo, min(lo + -(-n_places // threads), n_places)) for lo in range(0, n_places, -(-n_places // threads))]
     with ThreadPoolExecutor(threads) as pool:
         for lo in range(0, n, _MEAN_ROWS):
@@ -928,12 +975,12 @@ def negative_stats_rows(
     validate_rows(view, "training descriptors")
     n = len(view)
     labels, n_places = _check_labels(labels, n, n_places)
-    threads = min(os.cpu_count() or 1, 8) if threads is None else max(1, int(threads))
+    block, threads = _block_and_threads(block, threads)
     counts = np.bincount(labels, minlength=n_places)
     n_neg = n - counts[labels]
-    mu, var = _closed_form_float32(view, labels, counts, n_neg, int(block), threads)
-    sigma = np.sqrt(np.clip(var, 0.0, None))
-    return NegativeStats(mu=mu, sigma=sigma, n_neg=n_neg.astype(np.int64), labels=labels, n_places=n_places)
+    fit = _closed_form_float32(view, labels, counts, n_neg, block, threads)
+    sigma = np.sqrt(np.clip(fit.var, 0.0, None))
+    return NegativeStats(mu=fit.mu, sigma=sigma, n_neg=n_neg.astype(np.int64), labels=labels, n_places=n_places)
 
 
 class _FirstPass(RowsOf):
@@ -1031,18 +1078,17 @@ def stats_rows(descriptors: np.ndarray, rows: np.ndarray | None, labels: np.ndar
         except VPRInputError as exc:
             raise VPRInputError(f"{exc} (counting from row {lo:,})") from None
 
-    threads = min(os.cpu_count() or 1, 8) if threads is None else max(1, int(threads))
+    block, threads = _block_and_threads(block, threads)
     counts = np.bincount(labels, minlength=n_places)
     n_neg = n - counts[labels]
-    terms: list[np.ndarray] = []
     with ThreadPoolExecutor(1, thread_name_prefix="vpr-read-ahead") as ahead:
         view = _FirstPass(descriptors, rows, [check], ahead if threads > 1 else None)
         try:
-            mu, var = _closed_form_float32(view, labels, counts, n_neg, int(block), threads, terms)
+            fit = _closed_form_float32(view, labels, counts, n_neg, block, threads)
         finally:
             view.close()
     if not view.complete:  # the first pass read otherwise: the checks on their own
         validate_rows(base, "training descriptors")
-    sigma = np.sqrt(np.clip(var, 0.0, None))
-    stats = NegativeStats(mu=mu, sigma=sigma, n_neg=n_neg.astype(np.int64), labels=labels, n_places=n_places)
-    return stats, _positive_from_terms(*terms, labels, n_places)
+    sigma = np.sqrt(np.clip(fit.var, 0.0, None))
+    stats = NegativeStats(mu=fit.mu, sigma=sigma, n_neg=n_neg.astype(np.int64), labels=labels, n_places=n_places)
+    return stats, _positive_from_terms(fit.terms.same, fit.terms.own, labels, n_places)

@@ -12,7 +12,6 @@
 
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from enum import StrEnum
@@ -22,29 +21,32 @@ from scipy.stats import norm
 
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.method.stats import SIGMA_FLOOR, NegativeStats, as_float32, mixture_moments, one_blas_thread
+from vpr_explorer.settings import default_workers
 
 #: Φ⁻¹(1 − 10⁻⁶) ≈ 4.753, the automatic threshold's multiple of the robust spread.
 AUTO_Z = float(norm.ppf(1 - 1e-6))
+#: The MAD of normal scores in units of their σ (Φ⁻¹(0.75) ≈ 0.6745, as the automatic rule rounds it):
+#: ``MAD / MAD_PER_SIGMA`` is the automatic threshold's robust spread.
+MAD_PER_SIGMA = 0.675
 #: Pairs used for the automatic global threshold when the training set has more.
 AUTO_MAX_PAIRS = 2_000_000
 #: How a training set with more pairs than ``AUTO_MAX_PAIRS`` is sampled (``training_pair_scores``).
 AUTO_SAMPLES = ("tiles", "pairs")
 #: Images the tile sample reads at most (2¹⁷, above the largest training sets of the protocols and
-#: the app's 110k route, whose samples are unchanged): a larger training set's tiles are drawn over
-#: a seeded subset of this many, so at 500,000 images they are 8,590 GEMMs of groups of 15 over
-#: 131,072 gathered rows, not 125,000 GEMMs of groups of 4 over all 500,000: 0.07 s CPU instead of
-#: 0.38 s from a float16 memory map of 500,000 × 512, the θ within 1.3 standard errors of the
-#: independent pairs' and its spread over seeds 1.24× theirs (1.43× over all images)
-#: (``benchmarks/bench_auto_sample.py --n 500000 --dim 512 --mmap --seeds 20``).
+#: the app's 110k route, whose samples it leaves whole): a larger training set's tiles are drawn
+#: over a seeded subset of this many, so at 500,000 images they are 8,590 GEMMs of groups of 15
+#: over 131,072 gathered rows, not 125,000 GEMMs of groups of 4 over all 500,000
+#: (``benchmarks/bench_auto_sample.py`` compares the θ and its spread over seeds with the
+#: independent pairs').
 AUTO_TILE_IMAGES = 1 << 17
 #: Rows gathered at a time by the tile sample (2,048 × 2,048 float32: 16 MiB): at 33,108 × 2,048
-#: (the app at 110k images) 17 chunks share the threads evenly, and each reuses the memory of the
-#: last instead of mapping fresh pages (64 MiB chunks: five, in two threads, each a new mapping).
+#: (the app at 110k images) 17 chunks share the threads evenly, and each chunk fits in memory
+#: that the allocator reuses for the next instead of mapping fresh pages.
 TILE_ROWS = 2048
-# Independent pairs (``sample="pairs"``) scored per task, and threads (110k-image app benchmark,
-# 24,831 x 2048 database: 13.5 s in one thread with 65,536-pair blocks, 7.8 s with two).
+#: Independent pairs (``sample="pairs"``) scored per task.
 PAIR_BLOCK = 4096
-PAIR_WORKERS = min(4, os.cpu_count() or 1)
+#: Threads scoring the sample's tiles or pair blocks.
+PAIR_WORKERS = default_workers(4)
 
 
 class ThresholdMethod(StrEnum):
@@ -159,13 +161,16 @@ def training_pair_scores(
     if total <= max_pairs:
         d = np.asarray(descriptors if rows is None else descriptors[rows], dtype=np.float32)
         iu = np.triu_indices(n, k=1)
-        return (d @ d.T)[iu]
+        # one BLAS thread: OpenBLAS's Haswell kernel splits this product's sums between its
+        # threads, and a caller beside another thread's limiter would get either count
+        with one_blas_thread():
+            return (d @ d.T)[iu]
     rng = np.random.default_rng(seed)
     if sample == "tiles":
         if n > images and images * (images - 1) // 2 <= max_pairs:
             raise VPRInputError(f"images={images}: a subset of the tile sample needs more than max_pairs="
                                 f"{max_pairs} pairs")
-        perm = rng.permutation(n)[:images]  # up to ``images`` images, all of them, as before the subset
+        perm = rng.permutation(n)[:images]  # the first ``images`` of one permutation: every image when n <= images
         return _tile_scores(gather, perm, *tile_groups(len(perm), max_pairs), max(1, workers))
     i = rng.integers(0, n, size=max_pairs)
     j = rng.integers(0, n - 1, size=max_pairs)
@@ -313,13 +318,13 @@ def _sorted_auto_threshold(s: np.ndarray) -> float:
     below = med - np.asarray(s[:split][::-1], dtype=np.float64)
     above = np.asarray(s[split:], dtype=np.float64) - med
     mad = _middle(lambda k: _kth_of_two(below, above, k), n)
-    return float(med + AUTO_Z * mad / 0.675)
+    return float(med + AUTO_Z * mad / MAD_PER_SIGMA)
 
 
 def pooled_pair_sample(
     descriptors: np.ndarray, trains, *, max_pairs: int = AUTO_MAX_PAIRS, seed: int = 0, workers: int = PAIR_WORKERS,
 ) -> PooledPairSample:
-    """One tile sample for the automatic θ of all of a protocol run's splits (issue 13 §4).
+    """One tile sample for the automatic θ of all of a protocol run's splits.
 
     ``training_pair_scores`` per split draws a tile sample of the split's own training images,
     one set of small GEMMs per split. Here one seeded tile sample is drawn over the images
@@ -373,4 +378,4 @@ def auto_global_threshold(scores: np.ndarray) -> float:
         raise VPRInputError("the automatic global threshold needs at least one training score")
     med = np.median(s)
     mad = np.median(np.abs(s - med))
-    return float(med + AUTO_Z * mad / 0.675)
+    return float(med + AUTO_Z * mad / MAD_PER_SIGMA)

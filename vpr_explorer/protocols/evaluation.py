@@ -340,7 +340,15 @@ def _rates(o: Outcome, known: np.ndarray) -> dict[str, float]:
     }
 
 
-def _summarise(splits: list[SplitScores], ks: tuple[int, ...], *, own_traversal: bool) -> tuple[MethodRow, ...]:
+def summarise(splits: list[SplitScores], ks: tuple[int, ...], *, own_traversal: bool) -> tuple[MethodRow, ...]:
+    """One ``MethodRow`` per method of the splits: mean and std over the splits of each rate.
+
+    Args:
+        splits: the scored splits (every split holds the same methods).
+        ks: the K of Recall@K.
+        own_traversal: fill ``MethodRow.own_traversal`` (the share of accepted answers from the
+            query's own traversal); ``None`` otherwise.
+    """
     rows = []
     for key in splits[0].outcomes:
         m = METHODS_BY_KEY[key]
@@ -402,7 +410,17 @@ def _tradeoff(splits: list[SplitScores], k_grid: Sequence[float]) -> tuple[Trade
 # --------------------------------------------------------------------------- protocols
 
 
-def _check_common(descriptors, image_place, image_traversal, runs=1, ks=KS):
+def check_protocol_inputs(descriptors, image_place, image_traversal, runs=1, ks=KS):
+    """The inputs every protocol takes, checked: descriptors, labels, ``runs`` and ``ks``.
+
+    Returns:
+        ``(descriptors, image_place, image_traversal, ks)``: the descriptors as
+        ``validate_descriptors`` returns them, the labels as ``(n_images,)`` arrays, ``ks`` a
+        tuple of ints.
+
+    Raises:
+        VPRInputError: on bad descriptors, labels of another length, ``runs`` < 1 or a K < 1.
+    """
     d = validate_descriptors(descriptors)
     image_place = np.asarray(image_place)
     image_traversal = np.asarray(image_traversal)
@@ -418,8 +436,13 @@ def _check_common(descriptors, image_place, image_traversal, runs=1, ks=KS):
     return d, image_place, image_traversal, ks
 
 
-def _members(image_place: np.ndarray, n_places: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Images sorted by place with each place's start and size."""
+def place_members(image_place: np.ndarray, n_places: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Labelled images sorted by place (stable), with each place's start and size.
+
+    Returns:
+        ``(order, starts, sizes)``: ``order`` the image indices, place by place; ``starts`` and
+        ``sizes`` ``(n_places,)``, each place's first position in ``order`` and its image count.
+    """
     labelled = np.flatnonzero(image_place >= 0)
     order = labelled[np.argsort(image_place[labelled], kind="stable")]
     sizes = np.bincount(image_place[labelled], minlength=n_places)
@@ -455,7 +478,7 @@ def draw_splits(
     """
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2**63:
         raise VPRInputError(f"seed={seed!r}: must be a whole number from 0 to 2**63 - 1")
-    order, starts, sizes = _members(image_place, n_places)
+    order, starts, sizes = place_members(image_place, n_places)
     places = np.flatnonzero(sizes > 0)
     _require_two_per_place(sizes, places)
     if len(places) < 2:
@@ -598,7 +621,7 @@ def paper_protocol(
             the numbers are the same either way, bit for bit. Not used above the limit.
     """
     t0 = time.perf_counter()
-    d, image_place, image_traversal, ks = _check_common(descriptors, image_place, image_traversal, runs, ks)
+    d, image_place, image_traversal, ks = check_protocol_inputs(descriptors, image_place, image_traversal, runs, ks)
     shared = resolve(shared, descriptors, len(d))
     extra = pooled_truth(image_place, image_frame, frame_place, tolerance, n_places)
     splits = _pooled_splits(d, image_place, image_traversal, n_places, runs=runs, seed=seed, unknown_share=None,
@@ -613,7 +636,7 @@ def paper_protocol(
         protocol=Protocol.PAPER,
         settings={**(settings or {}), "runs": runs, "seed": seed, "cross_condition": cross_condition,
                   "tolerance": int(tolerance), "queries_per_run": len(splits[0].known)},
-        ks=ks, rows=_summarise(splits, ks, own_traversal=True), notes=tuple(notes),
+        ks=ks, rows=summarise(splits, ks, own_traversal=True), notes=tuple(notes),
         seconds=time.perf_counter() - t0, pr=pr_rows_, pr_curves=pr_curves,
     )
 
@@ -645,7 +668,7 @@ def open_set_protocol(
     of a held-out place with a known place within the tolerance counts as a known-place query.
     """
     t0 = time.perf_counter()
-    d, image_place, image_traversal, ks = _check_common(descriptors, image_place, image_traversal, runs, ks)
+    d, image_place, image_traversal, ks = check_protocol_inputs(descriptors, image_place, image_traversal, runs, ks)
     shared = resolve(shared, descriptors, len(d))
     k_grid = tuple(float(k) for k in k_grid)
     if not k_grid or not all(np.isfinite(k_grid)):
@@ -661,7 +684,7 @@ def open_set_protocol(
         settings={**(settings or {}), "runs": runs, "seed": seed, "unknown_share": unknown_share,
                   "unknown_places_per_run": n_unknown, "known_places_per_run": int(splits[0].known.sum()),
                   "cross_condition": cross_condition, "tolerance": int(tolerance), "k_grid": list(k_grid)},
-        ks=ks, rows=_summarise(splits, ks, own_traversal=True), tradeoff=_tradeoff(splits, k_grid),
+        ks=ks, rows=summarise(splits, ks, own_traversal=True), tradeoff=_tradeoff(splits, k_grid),
         notes=("the oracle global θ is chosen knowing which queries are unknown: an upper bound, not a method",),
         seconds=time.perf_counter() - t0, pr=pr_rows_, pr_curves=pr_curves,
     )
@@ -698,7 +721,7 @@ def traversal_protocol(
     places, so a sweep computes it once), up to ``SHARED_LIMIT`` such images.
     """
     t0 = time.perf_counter()
-    d, image_place, image_traversal, ks = _check_common(descriptors, image_place, image_traversal, 1, ks)
+    d, image_place, image_traversal, ks = check_protocol_inputs(descriptors, image_place, image_traversal, 1, ks)
     database = [int(t) for t in database]
     if not database:
         raise VPRInputError("database: name at least one database traversal")
@@ -728,7 +751,7 @@ def traversal_protocol(
         settings={**(settings or {}), "database": [names[t] for t in database] if names else database,
                   "queries": names[query] if names else query, "tolerance": tolerance, "queries_scored": int(len(qs)),
                   "queries_between_places": int((~keep).sum())},
-        ks=ks, rows=_summarise([split], ks, own_traversal=False), seconds=time.perf_counter() - t0,
+        ks=ks, rows=summarise([split], ks, own_traversal=False), seconds=time.perf_counter() - t0,
         pr=pr_rows_, pr_curves=pr_curves,
     )
 
@@ -834,7 +857,7 @@ class RetrievalTally:
             split = SplitScores(outs, empty, empty.astype(np.int64), empty.astype(bool), known_rows,
                                 np.zeros(len(known_rows), dtype=np.int64), np.ones(self.n_database, dtype=np.int64),
                                 th, spread, k_ad)
-            return _summarise([split], ks, own_traversal=False)
+            return summarise([split], ks, own_traversal=False)
 
         place_outs = {k: Outcome(o.method, o.rank[scored], o.answer_place[scored], o.answer_image[scored],
                                  o.n_kept[scored]) for k, o in outcomes.items()}

@@ -1,13 +1,12 @@
-"""Scores shared by every protocol run on one set of descriptors (issue 12 §2), and the
-negative statistics of a split taken pairwise from them.
+"""Scores shared by every protocol run on one set of descriptors, and a split's negative statistics from them.
 
 A group/step sweep runs one protocol per cell on the same descriptors. What depends on
 group and step is which images train a split (the places, the query drawn from each, the
 held-out places); what does not is every image pair's score. ``SharedScores`` holds those
 scores, computed once and kept for as long as the caller keeps it:
 
-* ``full()``: the float32 similarity of all images, ``retrieval.similarity(d, d)``, bit for
-  bit what the protocols scored queries with before (``(n_images, n_images)``, 4·n² bytes);
+* ``full()``: the float32 similarity of all images, ``retrieval.similarity(d, d)``
+  (``(n_images, n_images)``, 4·n² bytes), from which the protocols take their queries' scores;
 * ``gram(images)``: a float64 Gram ``d64 @ d64ᵀ`` over the distinct descriptors of
   ``images`` (8 bytes × their number²) with each row's mean score cᵢ, over all images
   (paper and open set) or over the database traversals' images (traversal protocol),
@@ -15,7 +14,7 @@ scores, computed once and kept for as long as the caller keeps it:
   can depend on where a row sits, and identical images must get identical statistics.
 
 From a Gram, ``Negatives`` gives a split's ``stats.NegativeStats`` pairwise instead of in
-closed form (DESIGN.md §2). For the members M of one protocol run (the images in a place)
+closed form (``stats.negative_stats``). For the members M of one protocol run (the images in a place)
 and each member i, once per run (masked matrix–vector products over row blocks):
 
     Aᵢ = Σ_{j∈M} (sᵢⱼ − cᵢ),   Bᵢ = Σ_{j∈M} (sᵢⱼ − cᵢ)²
@@ -36,8 +35,7 @@ place's pairs in the order of their rows) in a loop that does not depend on wher
 descriptors in identical places get identical statistics, and identical places tie exactly.
 
 Memory decides where this is used: ``SHARED_LIMIT`` = 8,000 images, i.e. the float32 and
-float64 matrices, 12 bytes × n² = 768 MB at the limit (the float32 similarity alone was
-already kept up to there). Above it the protocols keep the closed form and score each split
+float64 matrices, 12 bytes × n² = 768 MB at the limit. Above it the protocols keep the closed form and score each split
 against its training images (O(n·D²) per split, no n² memory).
 """
 

@@ -1,4 +1,4 @@
-"""Group/step sweeps (issue 12 §2): one protocol over a grid of group × step, in both readings.
+"""Group/step sweeps: one protocol over a grid of group × step, in both readings.
 
 Each cell of the grid is a ``PlaceSpec(group, step, reading)`` evaluated with
 ``pipeline.run_protocol`` on the same descriptors, with the same options, exactly as one
@@ -30,7 +30,7 @@ What is shared between cells, and what is not:
   the float32 similarity of all images that scores the queries, and a float64 Gram from
   which each split's negative statistics come pairwise. A split's μᵢ, σᵢ are still its own
   (its training images depend on group and step: the places, the query drawn from each, the
-  held-out places; DESIGN.md §2), but they are sums over the Gram's rows, not a closed form
+  held-out places), but they are sums over the Gram's rows, not a closed form
   of O(n·D²) per split. A run outside a sweep builds the same scores itself, so a cell and a
   separate ``evaluate`` agree bit for bit. Above the limit each cell fits its own in closed form.
 
@@ -76,7 +76,7 @@ SWEEP_METHODS = ("margin-weighted", "margin-simple", "raw-weighted", "raw-simple
 BASELINE = "place-baseline"
 LARGE_SWEEP_PAIRS = 10_000_000
 """Above this many image pairs a sweep is large: the app states its cost and waits for a button press.
-A tenth of the Evaluation page's limit for one run (``views.AUTO_RUN_PAIRS``): a sweep is many runs, each
+A tenth of the Evaluation page's limit for one run (``traversal.AUTO_RUN_PAIRS``): a sweep is many runs, each
 with its own negative statistics. Any sweep on Nordland_64x32 is above it (one traversal-protocol cell
 scores 1.3e7 pairs); GardensPoint's 4 × 4 grid in both readings is below (2e6)."""
 CACHE_ENTRIES = 512
@@ -228,7 +228,7 @@ class Cell:
         missing: metric -> why that one number is absent (e.g. rejection in a closed set).
         same_as: the ``(group, step, reading)`` whose evaluation this cell shares (same places).
         seconds: time this cell took here (0 when shared or cached).
-        cost: image pairs the protocol scores for this cell (``views.protocol_pairs``).
+        cost: image pairs the protocol scores for this cell (``traversal.protocol_pairs``).
         evaluation: the full ``Evaluation`` behind the numbers (``None`` when empty).
     """
 
@@ -366,7 +366,7 @@ class SweepCost:
     Attributes:
         cells: cells in the grid; valid: those whose group/step make places;
         runs: distinct evaluations to run (valid cells, less those sharing places, less cached ones);
-        pairs: image pairs those evaluations score (``views.protocol_pairs``, summed).
+        pairs: image pairs those evaluations score (``traversal.protocol_pairs``, summed).
     """
 
     cells: int

@@ -1,6 +1,6 @@
 """The numbers behind the explorer's views of a database/queries dataset (``layouts.RetrievalDataset``).
 
-Where ``views`` serves aligned traversals (a query traversal against the others, the right
+Where ``views.traversal`` serves aligned traversals (a query traversal against the others, the right
 place by frame index), this module serves the field's layouts: database images and query
 images with the ground truth as a relation (``groundtruth.GroundTruth``). Places cover
 database images only, made by one of (``RetrievalPlaces``):
@@ -22,7 +22,6 @@ Pure functions over arrays; never imports streamlit.
 from __future__ import annotations
 
 import functools
-import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -34,8 +33,7 @@ from vpr_explorer.method.database import DatabaseModel, database_rows
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.protocols.evaluation import KS, Evaluation, RetrievalTally
 from vpr_explorer.data.layouts import Layout, RetrievalDataset
-from vpr_explorer.pipeline import retrieval_places
-from vpr_explorer.method.places import GEOMETRY_LABELS, MetricPlaceSpec, PlaceGeometry, PlaceSpec
+from vpr_explorer.method.places import GEOMETRY_LABELS, MetricPlaceSpec, PlaceGeometry, PlaceSpec, retrieval_places
 from vpr_explorer.method.retrieval import (
     TIE_TOLERANCE,
     Outcome,
@@ -56,6 +54,7 @@ from vpr_explorer.method.thresholds import (
     place_thresholds,
     training_pair_scores,
 )
+from vpr_explorer.settings import default_workers
 from vpr_explorer.views.traversal import FIND_KINDS, PAIR_BUDGET, PlaceDetail, overview_frames
 
 #: Group and step in metres the app starts with: a place about as long as the field's 25 m
@@ -75,14 +74,14 @@ SCORE_ELEMS = 1 << 25
 EVAL_SCORE_ELEMS = 1 << 28
 EVAL_ROWS = 32
 #: float32 entries of a memory-mapped block converted at a time (``score_rows``): 2²⁰, 4 MB,
-#: 2,048 rows at D = 512. Blocks of 64 MB (``CHECK_ELEMS``) were fresh mappings each time
-#: (above glibc's largest reuse threshold): page faults cost 4× the conversion itself; blocks
-#: of 16 MB left the converted rows out of cache before a narrow product (one query, one
-#: place's images, the overview's sample) read them; the protocol's wide blocks of queries
-#: score as fast either way (``benchmarks/bench_million.py`` times both kinds).
+#: 2,048 rows at D = 512. Small enough that the allocator reuses one block's memory for the
+#: next (a block above glibc's largest reuse threshold is a fresh mapping, paid in page
+#: faults each time) and that the converted rows are still in cache when a narrow product
+#: (one query, one place's images, the overview's sample) reads them
+#: (``benchmarks/bench_million.py`` times narrow and wide products).
 SCORE_BLOCK_ELEMS = 1 << 20
 #: threads converting and scoring blocks side by side (BLAS in one thread each)
-SCORE_THREADS = min(os.cpu_count() or 1, 4)
+SCORE_THREADS = default_workers(4)
 
 
 # --------------------------------------------------------------------------- scores over a large database
@@ -349,7 +348,7 @@ def explain_query(fitted: RetrievalFitted, descriptors: np.ndarray, query: int, 
 
 
 def place_detail(fitted: RetrievalFitted, descriptors: np.ndarray, place: int) -> PlaceDetail:
-    """One place's negative mixture, its scores and thresholds (``views.PlaceDetail``, for ``plots.mixture_figure``).
+    """One place's negative mixture, its scores and thresholds (``traversal.PlaceDetail``, for ``plots.mixture_figure``).
 
     Scores only the place's own rows: its database images against every database image in a
     place (n_p × n_placed, a block of the database at a time on a memory map), never all
@@ -525,7 +524,7 @@ class RetrievalOverview:
 
     Attributes:
         queries: ``(n,)`` ascending query indices decided: all, or a seeded sample when queries ×
-            database images exceed the pair budget (``views.overview_frames``).
+            database images exceed the pair budget (``traversal.overview_frames``).
         n_queries: query images in the dataset.
         scored: ``(n,)`` the query has a right place (Recall@1 counts it).
         unknown: ``(n,)`` the query has no positive at all (an unknown-place query).
@@ -582,7 +581,7 @@ def find_query(fitted: RetrievalFitted, descriptors: np.ndarray, *, after: int, 
 
     "answered wrong": a query with a right place not answered right at rank 1, or an
     unknown-place query accepted (a false positive). Queries are decided in growing chunks
-    and the search stops at ``pair_budget`` similarities, as ``views.find_frame`` does; on a
+    and the search stops at ``pair_budget`` similarities, as ``traversal.find_frame`` does; on a
     memory-mapped database the first chunk is a whole block of ``decide_queries`` (each chunk
     reads the database once, whatever its size).
 

@@ -1,8 +1,9 @@
 """Plotly figures of the explorer: pure functions, library results in, ``go.Figure`` out.
 
 A leaf of the library (like LightGlue's ``viz2d``): nothing here computes a threshold or a
-score, it only draws what ``database``, ``views`` and ``evaluation`` computed, so a test
-can read a figure's data and compare it with the library's numbers. No streamlit import.
+score, it only draws what ``method.database``, ``views.traversal`` and ``protocols.evaluation``
+computed, so a test can read a figure's data and compare it with the library's numbers. No
+streamlit import.
 
 Conventions: vertical threshold lines are drawn as two-point scatter traces (not layout
 shapes), so their ``x`` is in the figure's data; every trace that stands for a library
@@ -13,7 +14,6 @@ must select something, ``customdata`` carrying its id.
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 
@@ -26,6 +26,7 @@ from vpr_explorer.protocols.evaluation import Evaluation
 from vpr_explorer.protocols.precision_recall import PRCurve, PRPoint
 from vpr_explorer.method.retrieval import METHODS_BY_KEY, QueryDecision
 from vpr_explorer.method.stats import mixture_pdf
+from vpr_explorer.settings import default_workers
 from vpr_explorer.views.traversal import PlaceDetail, SimilarityGrid
 
 KEPT = "#2e8b57"
@@ -319,6 +320,8 @@ NEGATIVE_BINS = 60
 
 #: values binned per thread by ``density_histogram`` (fewer are binned in one call)
 HISTOGRAM_PART = 1 << 21
+#: the most threads ``density_histogram`` bins parts in
+HISTOGRAM_THREADS = 4
 
 
 def density_histogram(values: np.ndarray, bins: int, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray]:
@@ -337,7 +340,7 @@ def density_histogram(values: np.ndarray, bins: int, lo: float, hi: float) -> tu
         return np.histogram(part, bins=bins, range=edges_range)[0]
 
     if len(parts) > 1:
-        with ThreadPoolExecutor(min(len(parts), os.cpu_count() or 1, 4)) as pool:
+        with ThreadPoolExecutor(min(len(parts), default_workers(HISTOGRAM_THREADS))) as pool:
             counts = sum(pool.map(count, parts))
     else:
         counts = count(parts[0])

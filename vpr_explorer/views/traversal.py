@@ -58,8 +58,8 @@ def split_traversals(dataset: Dataset, query: str | int | None = None) -> tuple[
 
 #: Query × database similarities an overview computes at most; above it the query frames
 #: it decides are a seeded random sample (the pages say so). 3·10⁷ keeps GardensPoint
-#: (8·10⁴) and Nordland 64x32 (1.3·10⁷) exact, and a slider move on 110k images at a few
-#: hundred sampled query frames (``benchmarks/bench_app_scale.py``).
+#: (8·10⁴) and Nordland 64x32 (1.3·10⁷) exact, and 110k images at a few hundred sampled
+#: query frames (``benchmarks/bench_app_scale.py`` times a slider move there).
 PAIR_BUDGET = 30_000_000
 OVERVIEW_SEED = 0
 

@@ -34,6 +34,8 @@ ensure_routed(__file__)
 OTHER = "__folder__"
 FILE = "__file__"  # the descriptor radio's "a file of descriptors" choice
 STRIP = 8  # thumbnails per traversal
+RADIUS_RANGE = (0.1, 10_000.0)
+"""The radius box's range in metres."""
 LAYOUT_LABELS = {
     Layout.TRAVERSALS: "traversals: one sub-folder per traversal, frame i = the same spot",
     Layout.PREPARED: "prepared: Place####_Cond##_G## images",
@@ -235,7 +237,7 @@ def show_retrieval(ds: RetrievalDataset) -> None:
         st.caption(f"note: {note}")
     if radius_of(ds) is not None:
         st.number_input(
-            "radius (m): a database image within it is right for a query", min_value=0.1, max_value=10_000.0,
+            "radius (m): a database image within it is right for a query", *RADIUS_RANGE,
             step=5.0, format="%g", help=f"The field's convention is {DEFAULT_RADIUS:g} m (VPR datasets downloader, most "
                                          "papers). The ground truth, every table and the map follow it.",
             **state.bind("w_radius", "radius", float(v.radius or DEFAULT_RADIUS)))

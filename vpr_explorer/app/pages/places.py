@@ -49,9 +49,9 @@ else:
 
     group_step.offer_fix(lambda g: check(group=g, step=g))
     c1, c2, c3 = st.columns([2, 2, 3])
-    c1.slider("group: frames per place", 1, max(2, spec.group, min(20, ds.n_frames // 2)),
+    c1.slider("group: frames per place", 1, group_step.group_slider_top(spec.group, ds.n_frames),
               **state.bind("w_group", "group", spec.group, validate=check_group))
-    c2.slider("step: frames from one place to the next", 1, max(2, spec.step, min(60, ds.n_frames - 1)),
+    c2.slider("step: frames from one place to the next", 1, group_step.step_slider_top(spec.step, ds.n_frames),
               **state.bind("w_step", "step", spec.step, validate=lambda s: check(step=s)))
     c3.radio("reading of step", [r.value for r in Reading], format_func=lambda r: READING_LABELS[Reading(r)],
              **state.bind("w_reading", "reading", spec.reading.value, validate=lambda r: check(reading=r)))

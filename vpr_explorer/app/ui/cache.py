@@ -9,7 +9,7 @@ compute query × database pairs beyond their own row.
 
 A database/queries dataset (``layouts.RetrievalDataset``: database-queries, vpr-bench,
 traversal-positions, manifest) flows the same way through the ``retrieval_*`` functions,
-with its ground truth and places from ``retrieval_views.RetrievalPlaces`` (frames, or metres
+with its ground truth and places from ``database_queries.RetrievalPlaces`` (frames, or metres
 along a route or over a lattice).
 
 Keys: Streamlit samples large arrays when it hashes them, so functions never hash the
@@ -478,7 +478,7 @@ def _found(key: str, group, step, reading, query: str, after: int, kind: str, me
 
 def find(data: Loaded, spec: PlaceSpec | None, query: str, *, after: int, kind: str, method: str, k: float = 0.0,
          user_theta: float | None = None) -> tuple[int | None, int]:
-    """``views.find_frame``: the next query frame after ``after`` that ``method`` rejected or got wrong."""
+    """``traversal.find_frame``: the next query frame after ``after`` that ``method`` rejected or got wrong."""
     return _found(data.key, *_spec_key(spec), query, int(after), kind, method, float(k), user_theta, data)
 
 
@@ -527,7 +527,7 @@ def evaluation(data: Loaded, spec: PlaceSpec | None, protocol: str, *, peek: boo
 # --------------------------------------------------------------------------- database/queries datasets
 
 
-def _places_key(places: RetrievalPlaces) -> tuple:
+def places_key(places: RetrievalPlaces) -> tuple:
     """``places`` as plain values (what Streamlit hashes) that ``_places`` turns back into it."""
     spec, metric = places.spec, places.metric
     return (None if places.geometry is None else places.geometry.value,
@@ -550,7 +550,7 @@ def _retrieval_fitted(key: str, places: tuple, _data: Loaded) -> RetrievalFitted
 
 def retrieval_fitted(data: Loaded, places: RetrievalPlaces) -> RetrievalFitted:
     """Places of the database images and their thresholds: what one-query views of a database/queries dataset need."""
-    return _retrieval_fitted(data.key, _places_key(places), data)
+    return _retrieval_fitted(data.key, places_key(places), data)
 
 
 @st.cache_resource(show_spinner="Deciding the queries…", max_entries=32)
@@ -562,7 +562,7 @@ def _retrieval_overview(key: str, places: tuple, _data: Loaded) -> tuple[Retriev
 
 def retrieval_overview_timed(data: Loaded, places: RetrievalPlaces) -> tuple[RetrievalOverview, float]:
     """The query images decided (a sample on big datasets) and the seconds it took when first asked for."""
-    return _retrieval_overview(data.key, _places_key(places), data)
+    return _retrieval_overview(data.key, places_key(places), data)
 
 
 @st.cache_data(show_spinner=False, max_entries=256)
@@ -574,7 +574,7 @@ def _retrieval_decision(key: str, places: tuple, query: int, k: float, user_thet
 def retrieval_decision(data: Loaded, places: RetrievalPlaces, query: int, *, k: float = 0.0,
                        user_theta: float | None = None) -> QueryDecision:
     """The decision record of one query image under every method."""
-    return _retrieval_decision(data.key, _places_key(places), int(query), float(k), user_theta, data)
+    return _retrieval_decision(data.key, places_key(places), int(query), float(k), user_theta, data)
 
 
 @st.cache_data(show_spinner=False, max_entries=256)
@@ -597,12 +597,12 @@ def _retrieval_found(key: str, places: tuple, after: int, kind: str, method: str
 
 def retrieval_find(data: Loaded, places: RetrievalPlaces, *, after: int, kind: str, method: str, k: float = 0.0,
                    user_theta: float | None = None) -> tuple[int | None, int]:
-    """``retrieval_views.find_query``: the next query after ``after`` that ``method`` rejected or got wrong."""
-    return _retrieval_found(data.key, _places_key(places), int(after), kind, method, float(k), user_theta, data)
+    """``database_queries.find_query``: the next query after ``after`` that ``method`` rejected or got wrong."""
+    return _retrieval_found(data.key, places_key(places), int(after), kind, method, float(k), user_theta, data)
 
 
 def _retrieval_evaluation_key(data: Loaded, places: RetrievalPlaces, user_theta: float | None, pr: bool) -> tuple:
-    return ("retrieval-evaluation", data.key, _places_key(places), user_theta, pr)
+    return ("retrieval-evaluation", data.key, places_key(places), user_theta, pr)
 
 
 def retrieval_evaluated(data: Loaded, places: RetrievalPlaces, *, user_theta: float | None = None,

@@ -36,7 +36,7 @@ def jump_to_next(search: Callable[[], tuple[int | None, int]], current: int, n: 
                  unit: str, short: str) -> None:
     """The inspectors' "next ▶": move the view's ``frame`` to what ``search()`` found after ``current``.
 
-    ``search`` returns ``(found, last)`` as ``views.find_frame`` does (``last``: where a search
+    ``search`` returns ``(found, last)`` as ``traversal.find_frame`` does (``last``: where a search
     that ran out of budget stopped); ``unit``/``short`` name the items ("query frame"/"frame").
     What could not be found is kept for the page to show (``st.session_state["find_none"]``).
     """

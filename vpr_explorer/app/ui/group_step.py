@@ -18,6 +18,35 @@ from vpr_explorer.app.ui import state
 
 _FIX = "group_step_fix"
 
+GROUP_SLIDER_TOP = 20
+"""The group slider's top in frames or database images (:func:`group_slider_top`)."""
+STEP_SLIDER_TOP = 60
+"""The step slider's top in frames or database images (:func:`step_slider_top`)."""
+GROUP_M_RANGE = (0.5, 100_000.0)
+"""The group box's range in metres."""
+STEP_M_RANGE = (0.5, 1_000_000.0)
+"""The step box's range in metres."""
+
+
+def group_slider_top(group: int, n: int) -> int:
+    """The group slider's top over ``n`` frames or database images.
+
+    Returns:
+        ``GROUP_SLIDER_TOP``, or half of ``n`` when that is less; never below the view's
+        ``group`` (a link may ask for more) or 2.
+    """
+    return max(2, group, min(GROUP_SLIDER_TOP, n // 2))
+
+
+def step_slider_top(step: int, n: int) -> int:
+    """The step slider's top over ``n`` frames or database images.
+
+    Returns:
+        ``STEP_SLIDER_TOP``, or ``n - 1`` when that is less; never below the view's ``step``
+        or 2.
+    """
+    return max(2, step, min(STEP_SLIDER_TOP, n - 1))
+
 
 def refuse_overlap(check: Callable[[], None], *, group_field: str, step_field: str, group: float, step: float,
                    stride: bool, unit: str = "") -> None:

@@ -18,8 +18,7 @@ import streamlit as st
 from vpr_explorer.views import maps
 from vpr_explorer.views import plots
 from vpr_explorer.views import database_queries as retrieval_views
-from vpr_explorer.pipeline import retrieval_places
-from vpr_explorer.method.places import READING_LABELS, PlaceGeometry, Reading
+from vpr_explorer.method.places import READING_LABELS, PlaceGeometry, Reading, retrieval_places
 from vpr_explorer.views.database_queries import geometries, geometry_label, query_label, radius_of
 from vpr_explorer.views.traversal import LIVE_METHODS, top_candidates
 
@@ -71,12 +70,12 @@ def _one_place(cur: Current, fitted) -> None:
                          "of every other place; only this place's rows are scored here.",
                     **state.bind("w_place_one", "place", place))
     with stop_on_input_error(hint="Choose another place."):
-        detail = _place_detail(cur.data.key, cache._places_key(cur.places), int(place), cur.data, fitted)
+        detail = _place_detail(cur.data.key, cache.places_key(cur.places), int(place), cur.data, fitted)
     c2.markdown(f"**P{place}**: {len(detail.images)} database image(s), {detail.negatives.size:,} negative scores "
                 f"(against the {len(model.images) - len(detail.images):,} database images of other places); "
                 f"θ_p simple {detail.theta['simple']:.4f}, weighted {detail.theta['weighted']:.4f}, spread "
                 f"s_p {detail.spread:.4f}; automatic global θ {detail.auto:.4f}.")
-    st.plotly_chart(_mixture_figure(cur.data.key, cache._places_key(cur.places), int(place), v.k, v.theta, detail),
+    st.plotly_chart(_mixture_figure(cur.data.key, cache.places_key(cur.places), int(place), v.k, v.theta, detail),
                     key="place_mixture", width="stretch")
 
 
@@ -104,10 +103,10 @@ def _controls(cur: Current) -> None:
                                       group=g, step=spec.step, stride=spec.reading is Reading.STRIDE)
 
         group_step.offer_fix(lambda g: _check(ds, group=g, step=g))
-        c1.slider("group: database images per place", 1, max(2, spec.group, min(20, ds.n_database // 2)),
+        c1.slider("group: database images per place", 1, group_step.group_slider_top(spec.group, ds.n_database),
                   **state.bind("w_group", "group", spec.group, validate=check_group))
         c2.slider("step: database images from one place to the next", 1,
-                  max(2, spec.step, min(60, ds.n_database - 1)),
+                  group_step.step_slider_top(spec.step, ds.n_database),
                   **state.bind("w_step", "step", spec.step, validate=lambda x: _check(ds, step=x)))
         reading = spec.reading
     else:
@@ -119,9 +118,9 @@ def _controls(cur: Current) -> None:
                                       stride=metric.reading is Reading.STRIDE, unit=" m")
 
         group_step.offer_fix(lambda g: _check(ds, group_m=g, step_m=g))
-        c1.number_input("group (m): metres per place", min_value=0.5, max_value=100_000.0, step=5.0, format="%g",
+        c1.number_input("group (m): metres per place", *group_step.GROUP_M_RANGE, step=5.0, format="%g",
                         **state.bind("w_group_m", "group_m", float(metric.group), validate=check_group_m))
-        c2.number_input("step (m): metres from one place to the next", min_value=0.5, max_value=1_000_000.0,
+        c2.number_input("step (m): metres from one place to the next", *group_step.STEP_M_RANGE,
                         step=5.0, format="%g",
                         **state.bind("w_step_m", "step_m", float(metric.step),
                                      validate=lambda x: _check(ds, step_m=x)))
@@ -181,7 +180,7 @@ def _map(cur: Current, fitted) -> None:
         if picked:
             state.update(frame=int(picked[0]))
 
-    fig, shown = _map_figure(cur.data.key, cache._places_key(cur.places), q, tuple(int(c) for c in candidates),
+    fig, shown = _map_figure(cur.data.key, cache.places_key(cur.places), q, tuple(int(c) for c in candidates),
                              int(answer), ds, fitted)
     st.plotly_chart(fig, key="layout_map", on_select=pick, selection_mode="points", width="stretch")
     st.caption("Coloured dots: database images, one colour per place (colours repeat); grey: database images between "

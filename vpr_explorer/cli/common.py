@@ -1,0 +1,316 @@
+"""What several commands share: the dataset options, progress bars, the protocol options' checks.
+
+Each command's module adds its options with the helpers here and reads them back with
+:func:`protocol_options`, :func:`descriptor_name` and the radius checks, so that an option
+means the same and is refused with the same words in every command that takes it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from vpr_explorer.data.groundtruth import DEFAULT_RADIUS, check_radius
+from vpr_explorer.data.layouts import VPR_BENCH_GT, Layout, RetrievalDataset, radius_applies
+from vpr_explorer.errors import VPRInputError
+from vpr_explorer.method.places import PlaceGeometry, Reading
+from vpr_explorer.pipeline import MAX_RUNS
+from vpr_explorer.protocols.evaluation import Protocol
+from vpr_explorer.settings import CACHE_ENV
+
+#: the extractor a command runs when neither --descriptor nor --descriptors names one
+DEFAULT_DESCRIPTOR = "efficientnet-lite0"
+#: --cache-dir's help: where the cache is when the option is not given (``settings.cache_root``)
+CACHE_HELP = f"descriptor cache folder (default: ${CACHE_ENV}, else ~/.cache/vpr_explorer)"
+
+#: The paper and open-set protocols' options: name -> (the protocols that read it, its value when
+#: not given). Their argparse default is None ("not given"), so that one the chosen protocol would
+#: ignore is refused (:func:`protocol_options`); each command adds its own to this table.
+SPLIT_OPTIONS = {
+    "runs": ((Protocol.PAPER, Protocol.OPEN_SET), 50),
+    "seed": ((Protocol.PAPER, Protocol.OPEN_SET), 0),
+    "cross_condition": ((Protocol.PAPER, Protocol.OPEN_SET), False),
+    "unknown_share": ((Protocol.OPEN_SET,), 0.3),
+}
+
+
+def shown(value) -> str:
+    """A default as a help text writes it: numbers in their shortest form, a list's items spaced."""
+    if isinstance(value, (list, tuple)):
+        return " ".join(map(shown, value))
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def default_note(value) -> str:
+    """`` (default: VALUE)``, as :class:`HelpFormatter` appends it, for an option whose argparse default is None."""
+    return f" (default: {shown(value)})".replace("%", "%%")
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """argparse's help with each option's default appended where there is one to state.
+
+    A required option, a switch (default False) and an option whose default is None (not
+    given: the command decides, and the option's help says how) get none appended.
+    """
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        default = action.default
+        if action.required or default is None or default is False or default is argparse.SUPPRESS:
+            return text
+        if "%(default)" in text or not action.option_strings:
+            return text
+        return text + default_note(default)
+
+
+class Bars:
+    """The progress bars drawn on stderr, so that an ``error:`` line never lands on one's line.
+
+    Attributes:
+        open: the bars not yet finished (tqdm objects), in the order they were drawn.
+        drawn: whether a bar was drawn since the last :meth:`reset`.
+    """
+
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the bars: a command starts with none."""
+        self.open: list = []
+        self.drawn = False
+
+    def clear(self) -> None:
+        """Close the unfinished bars and end their line, so that what follows starts a line of its own."""
+        while self.open:
+            self.open.pop().close()
+        if self.drawn:
+            sys.stderr.write("\n")
+            sys.stderr.flush()
+        self.reset()
+
+
+#: the bars of the command running in this process (``parser.run_command`` resets and clears them)
+BARS = Bars()
+
+
+def bar(desc: str):
+    """A progress callback drawing a tqdm bar on stderr, registered in :data:`BARS`.
+
+    Args:
+        desc: the bar's label, e.g. ``"descriptors"``.
+
+    Returns:
+        ``update(done, total, *message)``: the bar shows ``done`` of ``total``; a first
+        message, when given and not empty, goes beside it.
+    """
+    from tqdm import tqdm
+
+    state: dict = {}
+
+    def update(done: int, total: int, *message):
+        if "bar" not in state:
+            BARS.drawn = True  # before the bar exists: Ctrl-C may land while it is being drawn
+            state["bar"] = tqdm(total=total, desc=desc, unit="", file=sys.stderr, leave=False, dynamic_ncols=True)
+            BARS.open.append(state["bar"])
+        progress = state["bar"]
+        if message and message[0]:
+            progress.set_postfix_str(str(message[0]), refresh=False)
+        progress.update(done - progress.n)
+        if done >= total and progress in BARS.open:
+            progress.close()
+            BARS.open.remove(progress)
+
+    return update
+
+
+def number(text: str) -> int | float:
+    """A group/step value: a whole number of frames, or metres (which may have a fraction).
+
+    Raises:
+        argparse.ArgumentTypeError: ``text`` is not a number (argparse names the option).
+    """
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    return int(value) if value.is_integer() and abs(value) < 2**63 else value
+
+
+def add_dataset_args(p: argparse.ArgumentParser, *, places: bool = True) -> None:
+    """The options of every command that reads a dataset and its descriptors.
+
+    Args:
+        p: the command's parser.
+        places: add ``--group``, ``--step`` and ``--reading`` (one value each); a command that
+            takes several of each adds its own instead.
+    """
+    p.add_argument("--dataset", required=True,
+                   help="dataset folder (or a manifest .csv), or 'demo' for the built-in route")
+    p.add_argument("--layout", choices=[x.value for x in Layout], default=Layout.AUTO.value,
+                   help="how the dataset is laid out: aligned traversal folders, prepared Place####_Cond##_G## "
+                        "images, database/ + queries/ with @UTM@ names, VPR-Bench ref/ + query/ + "
+                        "ground_truth_new.npy, traversal folders with positions.csv, or a manifest CSV; auto "
+                        "detects it")
+    p.add_argument("--radius", type=float, default=None,
+                   help="position-tagged layouts: a database image within this many metres is right"
+                        + default_note(DEFAULT_RADIUS))
+    p.add_argument("--geometry", choices=[g.value for g in PlaceGeometry], default=None,
+                   help="database/queries layouts: group/step count database images in order (frames), or metres "
+                        "along the route (route) or of a lattice over the plane (lattice); default route or lattice "
+                        "where the layout has positions, else frames")
+    if places:
+        p.add_argument("--group", type=number, default=3,
+                       help="consecutive frames (or metres, see --geometry) per place")
+        p.add_argument("--step", type=number, default=10, help="frames (or metres) from one place to the next")
+        p.add_argument("--reading", choices=[r.value for r in Reading], default=Reading.STRIDE.value,
+                       help="stride: a place starts every STEP frames (authors' code); skip: take GROUP, skip STEP "
+                            "(paper text)")
+    p.add_argument("--descriptor", default=None, help="descriptor name" + default_note(DEFAULT_DESCRIPTOR))
+    p.add_argument("--descriptors", type=Path, default=None, metavar="FILE",
+                   help="descriptors computed elsewhere: .npz (names, descriptors), .npy (rows in 'vpr-explorer list' "
+                        "order, or names in FILE.txt) or an hloc global-feature .h5; named by the file's stem")
+    p.add_argument("--names", type=Path, default=None, metavar="FILE",
+                   help="with a .npy --descriptors: the file naming its rows (one image path per line)")
+    p.add_argument("--cache-dir", type=Path, default=None, help=CACHE_HELP)
+    p.add_argument("--dtype", choices=["float32", "float16"], default="float32",
+                   help="descriptor precision in memory and in the cache: float16 halves the descriptor memory "
+                        "and disk, at about 1e-3 relative error in scores")
+
+
+def add_split_args(p: argparse.ArgumentParser, splits: str = "random splits") -> None:
+    """The options of :data:`SPLIT_OPTIONS`: ``--runs``, ``--seed``, ``--cross-condition``, ``--unknown-share``.
+
+    Args:
+        p: the command's parser.
+        splits: what ``--runs`` counts, e.g. ``"random splits per cell"``.
+    """
+    runs, seed, unknown_share = (SPLIT_OPTIONS[name][1] for name in ("runs", "seed", "unknown_share"))
+    p.add_argument("--runs", type=int, default=None,
+                   help=f"paper and open-set protocols: {splits}, at most {MAX_RUNS} (default: {runs}, the paper's)")
+    p.add_argument("--seed", type=int, default=None,
+                   help="paper and open-set protocols: seed of the splits" + default_note(seed))
+    p.add_argument("--cross-condition", action="store_true", default=None,
+                   help="paper and open-set protocols: score each query only against database images of other "
+                        "traversals")
+    p.add_argument("--unknown-share", type=float, default=None,
+                   help="open-set protocol: share of places held out" + default_note(unknown_share))
+
+
+def protocol_options(args: argparse.Namespace, options: dict) -> dict:
+    """The options ``args.protocol`` reads, defaults filled in; one it would ignore is refused, named.
+
+    Args:
+        args: the parsed command line; ``args.protocol`` names the protocol.
+        options: option name -> (the protocols that read it, its value when not given), e.g.
+            :data:`SPLIT_OPTIONS` with the command's own.
+
+    Returns:
+        Option name -> its value, for every option of ``options``.
+
+    Raises:
+        VPRInputError: an option was given that ``args.protocol`` does not read.
+    """
+    protocol = Protocol(args.protocol)
+    values = {}
+    for name, (protocols, default) in options.items():
+        value = getattr(args, name)
+        if value is not None and protocol not in protocols:
+            option = "--" + name.replace("_", "-")
+            owners = " and ".join(p.value for p in protocols)
+            raise VPRInputError(
+                f"{option} applies to the {owners} protocol{'s' if len(protocols) > 1 else ''} only, and this is "
+                f"--protocol {protocol.value}: drop {option}, or pick --protocol {protocols[0].value}"
+            )
+        values[name] = default if value is None else value
+    return values
+
+
+def descriptor_name(args: argparse.Namespace) -> str:
+    """The descriptor's name: ``--descriptors FILE``'s stem, else ``--descriptor``, else :data:`DEFAULT_DESCRIPTOR`.
+
+    Raises:
+        VPRInputError: both ``--descriptor`` and ``--descriptors`` were given, or ``--names``
+            without ``--descriptors``.
+    """
+    if args.descriptors is not None:
+        if args.descriptor is not None:
+            raise VPRInputError(f"--descriptor {args.descriptor} and --descriptors {args.descriptors}: give one "
+                                "(a file of descriptors computed elsewhere, or an extractor to compute them here)")
+        return args.descriptors.stem
+    if args.names is not None:
+        raise VPRInputError("--names goes with a .npy --descriptors FILE")
+    return args.descriptor or DEFAULT_DESCRIPTOR
+
+
+def check_radius_option(args: argparse.Namespace) -> float | None:
+    """``--radius`` when given: a positive number of metres (``groundtruth.check_radius``), else None.
+
+    Raises:
+        VPRInputError: ``--radius`` is not a positive number of metres.
+    """
+    return None if args.radius is None else check_radius(args.radius, "radius")
+
+
+def check_radius_applies(args: argparse.Namespace, dataset) -> None:
+    """Refuse ``--radius`` for a dataset whose ground truth no radius makes (VPR-Bench, a manifest's place ids).
+
+    Args:
+        args: the parsed command line.
+        dataset: the opened dataset (``Dataset`` or ``RetrievalDataset``).
+
+    Raises:
+        VPRInputError: ``--radius`` was given and ``dataset`` takes its ground truth from elsewhere.
+    """
+    if args.radius is None or (isinstance(dataset, RetrievalDataset) and radius_applies(dataset)):
+        return
+    if not isinstance(dataset, RetrievalDataset):
+        where = "the frame index of aligned traversals"
+    elif dataset.layout is Layout.VPR_BENCH:
+        where = VPR_BENCH_GT
+    elif dataset.layout is Layout.MANIFEST:
+        where = "its place column (the same place id)"
+    else:
+        where = dataset.ground_truth.description
+    layout = dataset.layout.value if isinstance(dataset, RetrievalDataset) else "traversal folders"
+    raise VPRInputError(f"--radius applies to position-tagged layouts; {args.dataset} is {layout}, which takes its "
+                        f"ground truth from {where}: drop --radius")
+
+
+def refuse_retrieval_options(args: argparse.Namespace, reason: str) -> None:
+    """Refuse ``--radius`` and ``--geometry``, which apply to database/queries layouts, saying why not here.
+
+    Args:
+        args: the parsed command line.
+        reason: why they do not apply, e.g. ``"a sweep reads aligned traversal folders"``.
+
+    Raises:
+        VPRInputError: one of them was given.
+    """
+    for option in ("radius", "geometry"):
+        if getattr(args, option) is not None:
+            raise VPRInputError(f"--{option} applies to database/queries layouts; {reason}")
+
+
+def write_text(path: Path | None, text: str, option: str) -> None:
+    """Write ``text`` to ``path`` (nothing when None) and say so.
+
+    Args:
+        path: the file an option named, or None when it was not given.
+        text: the file's content.
+        option: the option that named it, e.g. ``"--json"``.
+
+    Raises:
+        VPRInputError: the file cannot be written.
+    """
+    if path is None:
+        return
+    try:
+        path.write_text(text)
+    except OSError as exc:
+        raise VPRInputError(f"{option} {path}: cannot write ({exc.strerror}); pick a writable path") from exc
+    print(f"wrote {path}")

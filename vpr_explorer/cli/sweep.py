@@ -1,0 +1,166 @@
+"""``vpr-explorer sweep``: one protocol over a grid of group × step, printed as tables, written as CSV/JSON.
+
+    vpr-explorer sweep --dataset GardensPointWalking --descriptor pixels \\
+        --groups 1 2 3 --steps 3 5 10 --reading stride skip --protocol paper --runs 10 --csv sweep.csv
+
+The dataset options are ``evaluate``'s (``common.add_dataset_args``), with ``--groups``,
+``--steps`` and ``--reading`` taking several values; the protocol options are
+``evaluate``'s too, and ``--k`` is the one k whose unknown-place rejection the open set
+reports. The cost (cells, protocol runs, image pairs) is printed before the work starts.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from vpr_explorer.cli.common import (
+    SPLIT_OPTIONS,
+    add_dataset_args,
+    add_split_args,
+    bar,
+    check_radius_option,
+    default_note,
+    descriptor_name,
+    number,
+    protocol_options,
+    refuse_retrieval_options,
+    write_text,
+)
+from vpr_explorer.errors import VPRInputError
+from vpr_explorer.method.places import Reading
+from vpr_explorer.protocols.evaluation import K_GRID, Protocol
+from vpr_explorer.protocols.sweep import (
+    METRIC_LABELS,
+    SWEEP_METHODS,
+    SWEEP_PROTOCOLS,
+    Metric,
+    SweepResult,
+    SweepSpec,
+    empty_reasons,
+    missing_reasons,
+    sweep,
+    sweep_cost,
+    table,
+)
+
+#: sweep's options that only some protocols read: ``common.SPLIT_OPTIONS``, the reported k and its grid,
+#: the traversals
+PROTOCOL_OPTIONS = {
+    **SPLIT_OPTIONS,
+    "k": ((Protocol.OPEN_SET,), 0.0),
+    "k_grid": ((Protocol.OPEN_SET,), list(K_GRID)),
+    "database": ((Protocol.TRAVERSAL,), None),
+    "queries": ((Protocol.TRAVERSAL,), None),
+}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """``sweep``'s options: the dataset's (``common.add_dataset_args``), the grid's, the protocol's, the outputs.
+
+    ``--group``, ``--step`` and ``--reading`` take one value or more here (``--group`` and
+    ``--step`` are aliases of ``--groups`` and ``--steps``).
+    """
+    add_dataset_args(p, places=False)
+    p.add_argument("--groups", "--group", dest="groups", type=number, nargs="+", required=True,
+                   metavar="G", help="frames per place, one or more (e.g. 1 2 3 4 5 6)")
+    p.add_argument("--steps", "--step", dest="steps", type=number, nargs="+", required=True,
+                   metavar="S", help="frames from one place to the next (stride) or skipped (skip), one or more")
+    p.add_argument("--reading", "--readings", dest="reading", nargs="+", choices=[r.value for r in Reading],
+                   default=[r.value for r in Reading],
+                   help="stride (a place starts every STEP frames, authors' code) and/or skip (take GROUP, skip "
+                        "STEP, paper text); a grid each")
+    p.add_argument("--protocol", choices=[x.value for x in SWEEP_PROTOCOLS], default=Protocol.PAPER.value,
+                   help="the protocol every cell runs")
+    p.add_argument("--method", choices=list(SWEEP_METHODS), default=SWEEP_METHODS[0],
+                   help="the thresholded method whose R@1 gain over the place level, unknown-place rejection "
+                        "and AUC the cells report (default: %(default)s, the paper's)")
+    add_split_args(p, "random splits per cell")
+    p.add_argument("--k", type=float, default=None,
+                   help="open-set protocol: the k of θ_p + k·s_p whose unknown-place rejection the cells report "
+                        f"(default: {PROTOCOL_OPTIONS['k'][1]:g}, the paper's θ_p; added to --k-grid when missing)")
+    p.add_argument("--k-grid", type=float, nargs="+", default=None,
+                   help="open-set protocol: the trade-off's k values" + default_note(PROTOCOL_OPTIONS["k_grid"][1]))
+    p.add_argument("--database", nargs="+", default=None, help="traversal protocol: database traversal(s)")
+    p.add_argument("--queries", default=None, help="traversal protocol: query traversal")
+    p.add_argument("--tolerance", type=int, default=0,
+                   help="frames of slack: a place is right when one of its frames is within this many frames of "
+                        "the query's")
+    p.add_argument("--theta", type=float, default=None, help="also evaluate this global threshold in each cell")
+    p.add_argument("--no-pr", action="store_true",
+                   help="skip precision–recall (faster; the AUC column stays empty)")
+    p.add_argument("--metric", nargs="+", choices=[m.value for m in Metric], default=None,
+                   help="the grids to print, of " +
+                        ", ".join(f"{m.value} = {METRIC_LABELS[m]}" for m in Metric).replace("%", "%%") +
+                        " (default: all)")
+    p.add_argument("--csv", type=Path, default=None, help="write one row per cell, every setting in a column")
+    p.add_argument("--json", type=Path, default=None, help="write the settings and every cell as JSON")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the sweep ``args`` describe; print the cost, the grids and why cells are empty; write CSV/JSON.
+
+    Returns:
+        0 (bad input raises ``VPRInputError``).
+    """
+    from vpr_explorer.data.traversals import Dataset
+    from vpr_explorer.pipeline import dataset_descriptors, imported_descriptors, open_dataset
+    from vpr_explorer.settings import check_cache_root
+
+    check_radius_option(args)
+    refuse_retrieval_options(args, "a sweep reads aligned traversal folders, whose places group/step make")
+    o = protocol_options(args, PROTOCOL_OPTIONS)
+    spec = SweepSpec(groups=args.groups, steps=args.steps, readings=args.reading, protocol=args.protocol,
+                     method=args.method, k=o["k"], runs=o["runs"], seed=o["seed"],
+                     cross_condition=o["cross_condition"], unknown_share=o["unknown_share"],
+                     database=o["database"], queries=o["queries"], tolerance=args.tolerance, user_theta=args.theta,
+                     k_grid=o["k_grid"], pr=not args.no_pr)
+    descriptor = descriptor_name(args)
+    if args.descriptors is None:
+        check_cache_root(args.cache_dir)
+    dataset = open_dataset(args.dataset, args.layout)
+    if not isinstance(dataset, Dataset):
+        raise VPRInputError(f"{args.dataset} is a {dataset.layout.value} layout: a sweep reads aligned traversal "
+                            "folders (group/step over their frames); evaluate it with `vpr-explorer evaluate`")
+    cost = sweep_cost(dataset, spec)  # also refuses a dataset whose file names fix the places, before extraction
+    print(f"{dataset.name}: {cost.describe()}")
+    source: dict[str, str] = {}
+    if args.descriptors is not None:
+        imp = imported_descriptors(dataset, args.descriptors, names_file=args.names, dtype=args.dtype)
+        desc, descriptor, source = imp.descriptors, imp.name, imp.settings()
+    else:
+        desc = dataset_descriptors(dataset, descriptor, cache_root=args.cache_dir, progress=bar("descriptors"),
+                                   dtype=args.dtype)
+    result = sweep(dataset, desc, spec, descriptor=descriptor, progress=bar("sweep cells"),
+                   cell_progress=bar(f"{spec.protocol.value} protocol"), source=source)
+    _print_result(result, spec, descriptor, [Metric(m) for m in (args.metric or [m.value for m in Metric])])
+    write_text(args.csv, result.to_csv(), "--csv")
+    write_text(args.json, result.to_json(), "--json")
+    return 0
+
+
+def _print_result(result: SweepResult, spec: SweepSpec, descriptor: str, metrics: list[Metric]) -> None:
+    """The sweep's grids (one per metric and reading), why cells are empty, and the best cell of each metric."""
+    print(f"{spec.protocol.value} protocol, {descriptor}, method {spec.method}"
+          + (f", rejection at k = {spec.k:g}" if spec.protocol is Protocol.OPEN_SET else "")
+          + f" · {result.seconds:.1f} s")
+    for metric in metrics:
+        for reading in spec.readings:
+            print()
+            print(table(result, metric, reading))
+    reasons = empty_reasons(result)
+    missing = missing_reasons(result)
+    if reasons or missing:
+        print()
+    for line in reasons:
+        print(f"empty: {line}")
+    for line in missing:
+        print(f"missing: {line}")
+    shared = [c for c in result.cells if c.same_as is not None]
+    if shared:
+        print(f"{len(shared)} cell(s) share their places with another reading's cell (skip g/s = stride g/g+s): "
+              "evaluated once")
+    for metric in metrics:
+        best = result.best(metric)
+        if best is not None:
+            print(f"best {metric.value}: group {best.group}, step {best.step} ({best.reading.value})")
