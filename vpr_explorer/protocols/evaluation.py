@@ -1,4 +1,4 @@
-"""Evaluation protocols (DESIGN.md §4): paper (closed set), traversal, open set.
+"""Evaluation protocols: paper (closed set), traversal, open set.
 
 * **paper**: R seeded random splits; in each, one image per place is the query and the rest
   train; thresholds come from that split's training images only (a query never influences
