@@ -13,6 +13,8 @@ their own.
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -30,6 +32,20 @@ def pytest_configure(config):
     config.addinivalue_line("markers", "realdata: needs VPR_EXPLORER_DATA")
 
 
+@contextmanager
+def _environment(name: str, value: str) -> Iterator[None]:
+    """``os.environ[name] = value`` inside, and what it was (or its absence) after."""
+    old = os.environ.get(name)
+    os.environ[name] = value
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = old
+
+
 @pytest.fixture(scope="session", autouse=True)
 def isolated_cache(tmp_path_factory) -> Path:
     """One descriptor cache for the whole session, never the user's ~/.cache.
@@ -37,13 +53,8 @@ def isolated_cache(tmp_path_factory) -> Path:
     Set in the environment so that streamlit servers the tests start share it.
     """
     root = tmp_path_factory.mktemp("vpr_cache")
-    old = os.environ.get(CACHE_ENV)
-    os.environ[CACHE_ENV] = str(root)
-    yield root
-    if old is None:
-        os.environ.pop(CACHE_ENV, None)
-    else:
-        os.environ[CACHE_ENV] = old
+    with _environment(CACHE_ENV, str(root)):
+        yield root
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -57,13 +68,8 @@ def app_data_root(tmp_path_factory) -> Path:
     if os.environ.get(DATA_ENV):
         folders.append(Path(os.environ[DATA_ENV]).expanduser().resolve())
     root = Path(os.path.commonpath(folders))
-    old = os.environ.get(DATA_ROOT_ENV)
-    os.environ[DATA_ROOT_ENV] = str(root)
-    yield root
-    if old is None:
-        os.environ.pop(DATA_ROOT_ENV, None)
-    else:
-        os.environ[DATA_ROOT_ENV] = old
+    with _environment(DATA_ROOT_ENV, str(root)):
+        yield root
 
 
 @pytest.fixture(scope="session")
