@@ -39,6 +39,7 @@ from vpr_explorer.app import (
     ENTRY,
     LAYOUT_ENV,
     RADIUS_ENV,
+    data_root,
     started_view,
 )
 from vpr_explorer.errors import VPRInputError
@@ -141,12 +142,12 @@ def _data_root(given: Path | None, dataset: str | None) -> Path:
         path = Path(dataset)
         holder = path.parent
         return path if path.is_dir() and holder == Path(holder.anchor) else holder
-    value = os.environ.get(DATA_ENV, "").strip()
-    root = Path(value).expanduser() if value else Path.cwd()
+    value = os.environ.get(DATA_ENV, "")
+    root = data_root({DATA_ENV: value})  # the app's own fallback: $VPR_EXPLORER_DATA, else the current folder
     if not root.is_dir():
-        raise VPRInputError(f"{DATA_ENV}={value}: no such folder; point it at the folder holding the datasets, or "
-                            "give --data-root")
-    return root.resolve()
+        raise VPRInputError(f"{DATA_ENV}={value.strip()}: no such folder; point it at the folder holding the "
+                            "datasets, or give --data-root")
+    return root
 
 
 def is_loopback(address: str) -> bool:
