@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from vpr_explorer.data.traversals import (
+    Dataset,
     IMAGE_SUFFIXES,
     entries,
     images_in,
@@ -78,12 +79,21 @@ class RetrievalDataset:
         database_paths, query_paths: the images, in listed order.
         database_xy, query_xy: ``(n, 2)`` positions in metres (UTM or a local plane), or ``None``.
         ground_truth: which database images are right for each query.
-        database_place: ``(n_database,)`` place ids given by the layout (a manifest's
-            ``place`` column), or ``None`` when places come from group/step.
         database_traversal, query_traversal: traversal of each image (indices into ``traversals``).
         traversals: traversal names (``("database", "queries")`` when the layout has none).
         ordered: the database is one route in order (positions along it make sense).
+        database_place: ``(n_database,)`` place ids given by the layout (a manifest's
+            ``place`` column, prepared places' file names), or ``None`` when places come from group/step.
         notes: what the loader decided (e.g. which traversal queries).
+        database_frame, query_frame: ``(n,)`` frame index of each image along the route, for aligned
+            traversals (``data.aligned``: frame ``f`` of every traversal is the same spot); ``None`` for
+            the other layouts, where group/step in frames count database images in listed order.
+        n_frames: frames along the route of aligned traversals (``0`` for the other layouts).
+        frame_xy: ``(n_frames, 2)`` position of each frame in metres for aligned traversals with a
+            positions file, else ``None``.
+        aligned: the aligned traversals this value was made from (``data.aligned.database_queries``),
+            for what needs every traversal of every frame (the paper's random split, the open-set
+            protocol); ``None`` for the other layouts.
     """
 
     name: str
@@ -100,9 +110,15 @@ class RetrievalDataset:
     ordered: bool = True
     database_place: np.ndarray | None = None
     notes: tuple[str, ...] = ()
+    database_frame: np.ndarray | None = None
+    query_frame: np.ndarray | None = None
+    n_frames: int = 0
+    frame_xy: np.ndarray | None = None
+    aligned: Dataset | None = None
 
     def __post_init__(self) -> None:
-        for a in (self.database_xy, self.query_xy, self.database_traversal, self.query_traversal, self.database_place):
+        for a in (self.database_xy, self.query_xy, self.database_traversal, self.query_traversal, self.database_place,
+                  self.database_frame, self.query_frame, self.frame_xy):
             if a is not None:
                 a.setflags(write=False)
 

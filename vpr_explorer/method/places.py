@@ -13,7 +13,8 @@ same number of frames. Changing group/step only relabels images: descriptors are
 image and are never recomputed.
 
 A database/queries dataset's places (``retrieval_places``) come from the layout's own place
-ids, from group/step over its database images in listed order (``frame_places``), or from
+ids, from group/step over its frames (aligned traversals) or its database images in listed
+order (``frame_places``), or from
 group/step in metres along the route or on a square lattice (``MetricPlaceSpec``,
 ``metric_places``) where the layout has positions.
 """
@@ -299,12 +300,14 @@ def retrieval_places(dataset, spec: PlaceSpec | None = None,
 
     The layout's own place ids (a manifest's ``place`` column) when it has them; else
     ``metric`` (a ``MetricPlaceSpec``: metres along the route or a lattice) when the layout
-    has positions; else ``spec`` (group/step counting database images in listed order).
+    has positions; else ``spec`` (group/step counting frames along the route for aligned
+    traversals, database images in listed order for the other layouts).
 
     Args:
         dataset: a database/queries dataset (``data.layouts.RetrievalDataset``); its
-            ``database_place``, ``database_xy``, ``n_database``, ``layout`` and ``name`` are read.
-        spec: group/step in database images, used when the layout has no place ids and
+            ``database_place``, ``database_xy``, ``database_frame``, ``frame_xy``, ``n_frames``,
+            ``n_database``, ``layout`` and ``name`` are read.
+        spec: group/step in frames (database images without frames), used when the layout has no place ids and
             ``metric`` is None.
         metric: group/step in metres, used when the layout has no place ids.
 
@@ -318,18 +321,28 @@ def retrieval_places(dataset, spec: PlaceSpec | None = None,
     """
     if dataset.database_place is not None:
         return dataset.database_place, int(dataset.database_place.max()) + 1
+    frames = dataset.database_frame
     if metric is not None:
         if dataset.database_xy is None:
             raise VPRInputError(f"{dataset.name}: the {dataset.layout.value} layout has no positions: group/step in "
                                 "metres need them; use --geometry frames (group/step in images)")
-        place, n = metric_places(dataset.database_xy, metric)
+        if dataset.frame_xy is not None:  # aligned traversals: metres along the route of frames
+            frame_place, n = metric_places(dataset.frame_xy, metric)
+            place = frame_place[frames]
+        else:
+            place, n = metric_places(dataset.database_xy, metric)
     else:
         if spec is None:
             raise VPRInputError("group/step missing: give a PlaceSpec(group, step) or a MetricPlaceSpec")
-        place = frame_places(dataset.n_database, spec)
+        if frames is None:
+            place = frame_places(dataset.n_database, spec)
+        else:
+            place = frame_places(dataset.n_frames, spec)[frames]
         n = int(place.max()) + 1 if (place >= 0).any() else 0
     if n < 2:
         what = metric.describe() if metric is not None else spec.describe()
-        raise VPRInputError(f"{what} leaves {n} place(s) in the {dataset.n_database} database images of "
-                            f"{dataset.name!r}: negative statistics need at least 2 places; lower group or step")
+        where = (f"{dataset.n_frames} frames" if frames is not None
+                 else f"the {dataset.n_database} database images")
+        raise VPRInputError(f"{what} leaves {n} place(s) in {where} of {dataset.name!r}: negative statistics need at "
+                            "least 2 places; lower group or step")
     return place, n

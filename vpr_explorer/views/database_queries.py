@@ -196,12 +196,13 @@ def geometries(dataset: RetrievalDataset) -> tuple[PlaceGeometry, ...]:
 
 
 def default_geometry(dataset: RetrievalDataset) -> PlaceGeometry | None:
-    """Metres where there are positions (along the route when the database is one route in order, else a
-    lattice), else frames; ``None`` when the layout fixes the places (the command line's default too)."""
+    """Frames for aligned traversals; metres where there are positions (along the route when the database is one
+    route in order, else a lattice), else frames; ``None`` when the layout fixes the places (the command line's
+    default too)."""
     offered = geometries(dataset)
     if not offered:
         return None
-    if PlaceGeometry.ROUTE not in offered:
+    if PlaceGeometry.ROUTE not in offered or dataset.database_frame is not None:
         return PlaceGeometry.FRAMES
     return PlaceGeometry.ROUTE if dataset.ordered else PlaceGeometry.LATTICE
 
@@ -618,6 +619,8 @@ def find_query(fitted: RetrievalFitted, descriptors: np.ndarray, *, after: int, 
 
 def query_label(dataset: RetrievalDataset, query: int) -> str:
     """How a page names query image ``query``: ``"<traversal> · frame N"`` for traversal folders, else its file name."""
+    if dataset.query_frame is not None:
+        return f"{dataset.traversals[int(dataset.query_traversal[query])]} · frame {int(dataset.query_frame[query])}"
     if dataset.layout is Layout.TRAVERSAL_POSITIONS:
         return f"{dataset.traversals[int(dataset.query_traversal[query])]} · frame {query}"
     return Path(dataset.query_paths[query]).name
@@ -625,6 +628,9 @@ def query_label(dataset: RetrievalDataset, query: int) -> str:
 
 def database_label(dataset: RetrievalDataset, image: int) -> str:
     """How a page names database image ``image`` (database position): as ``query_label`` does."""
+    if dataset.database_frame is not None:
+        t = int(dataset.database_traversal[image])
+        return f"{dataset.traversals[t]} · frame {int(dataset.database_frame[image])}"
     if dataset.layout is Layout.TRAVERSAL_POSITIONS:
         t = int(dataset.database_traversal[image])
         first = int(np.argmax(dataset.database_traversal == t))

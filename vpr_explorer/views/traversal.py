@@ -27,6 +27,7 @@ from vpr_explorer.method.database import (
     decide_traversal,
     fit_database,
 )
+from vpr_explorer.data.aligned import split_traversals
 from vpr_explorer.data.traversals import Dataset
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.protocols.evaluation import Evaluation
@@ -42,18 +43,6 @@ LIVE_METHODS = ("place-baseline", "margin-simple", "margin-weighted", "raw-simpl
 def default_step(n_frames: int) -> int:
     """The step the app starts with: the paper's 10 on long routes, 5 on short ones."""
     return 10 if n_frames >= 100 else 5
-
-
-def split_traversals(dataset: Dataset, query: str | int | None = None) -> tuple[tuple[str, ...], str]:
-    """Database traversals (every one but the query) and the query traversal (default: the last)."""
-    if dataset.n_traversals < 2:
-        raise VPRInputError(
-            f"{dataset.name!r} has one traversal: the explorer needs a second one to query with; "
-            "add a traversal folder or pick another dataset"
-        )
-    q = dataset.n_traversals - 1 if query is None else dataset.traversal_index(query)
-    database = tuple(t for i, t in enumerate(dataset.traversals) if i != q)
-    return database, dataset.traversals[q]
 
 
 #: Query × database similarities an overview computes at most; above it the query frames

@@ -1,16 +1,13 @@
 """Every Streamlit cache of the app, in one place, chained like the data flow.
 
 dataset (listing, in its layout) -> descriptors (extraction, on-disk cache; or a descriptor
-file: one the app was started with, or one typed on the Dataset page) -> fitted (places,
-database thresholds) -> place detail / query decision / next rejected frame, and ->
-regrouped (the query frames decided: the overview, sampled on big datasets) / similarity
-grid / evaluation. Pages that show one place or one query only need ``fitted``: they never
-compute query × database pairs beyond their own row.
-
-A database/queries dataset (``layouts.RetrievalDataset``: database-queries, vpr-bench,
-traversal-positions, manifest) flows the same way through the ``retrieval_*`` functions,
-with its ground truth and places from ``database_queries.RetrievalPlaces`` (frames, or metres
-along a route or over a lattice).
+file: one the app was started with, or one typed on the Dataset page) -> the dataset value
+(``value``: aligned traversals become a database/queries dataset for the chosen query
+traversal) -> fitted (places, database thresholds) -> query decision / next rejected query,
+and -> overview (the queries decided, sampled on big datasets) / evaluation. Pages that show
+one place or one query only need ``fitted``: they never compute query × database pairs
+beyond their own row. Places come from ``database_queries.RetrievalPlaces`` (the layout's
+own ids, frames, or metres along a route or over a lattice).
 
 Keys: Streamlit samples large arrays when it hashes them, so functions never hash the
 descriptors; they take them as an underscore argument (unhashed) beside ``data.key``,
@@ -50,7 +47,8 @@ from PIL import Image
 
 from vpr_explorer import settings
 from vpr_explorer.app import data_root, descriptor_files, under_data_root
-from vpr_explorer.method.database import QueryDecision, explain_query
+from vpr_explorer.method.retrieval import QueryDecision
+from vpr_explorer.data.aligned import database_queries, value_rows
 from vpr_explorer.data.traversals import Dataset, load_dataset
 from vpr_explorer.descriptors import extract_descriptors, fingerprint, get_extractor
 from vpr_explorer.descriptors.base import open_image
@@ -66,22 +64,11 @@ from vpr_explorer.pipeline import (
     resolve_dataset,
     run_protocol,
 )
-from vpr_explorer.method.places import PlaceSpec
+from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec
 from vpr_explorer.protocols.shared_scores import SHARED_LIMIT, SharedScores
-from vpr_explorer.views import database_queries as retrieval_views
+from vpr_explorer.views import database_queries as views
 from vpr_explorer.method import stats
 from vpr_explorer.views.database_queries import RetrievalFitted, RetrievalOverview, RetrievalPlaces
-from vpr_explorer.views.traversal import (
-    Fitted,
-    PlaceDetail,
-    Regrouped,
-    SimilarityGrid,
-    find_frame,
-    fit,
-    place_detail,
-    regroup,
-    similarity_grid,
-)
 
 from vpr_explorer.app.ui.feedback import progress_reporter
 
@@ -108,11 +95,6 @@ class Loaded:
     descriptors: np.ndarray
     key: str
     notes: tuple[str, ...] = ()
-
-    @property
-    def retrieval(self) -> bool:
-        """True for a database/queries dataset (its own pages' branches and ``retrieval_*`` caches)."""
-        return isinstance(self.dataset, RetrievalDataset)
 
 
 # --------------------------------------------------------------------------- memo with progress
@@ -405,91 +387,102 @@ def loaded_in_memory(source: str, descriptor: str, *, layout: str = Layout.AUTO.
         return False
 
 
+# --------------------------------------------------------------------------- the dataset value
+
+
+@st.cache_resource(show_spinner=False, max_entries=8)
+def _value(key: str, query: str, _data: Loaded) -> Loaded:
+    value = database_queries(_data.dataset, query)
+    rows = value_rows(value)
+    d = _data.descriptors
+    if rows is not None:
+        d = d[rows]
+        d.setflags(write=False)
+    return Loaded(value, _data.descriptor, d, f"{key}-query-{query}", _data.notes)
+
+
+def value(data: Loaded, query: str) -> Loaded:
+    """``data`` as one dataset value: aligned traversals become a database/queries dataset with ``query`` as the
+    query traversal (``data.aligned.database_queries``) and their descriptors in its order; any other layout
+    is returned as it is."""
+    if isinstance(data.dataset, RetrievalDataset):
+        return data
+    return _value(data.key, query, data)
+
+
 # --------------------------------------------------------------------------- derived results
 
 
-def _spec(group, step, reading) -> PlaceSpec | None:
-    return None if group is None else PlaceSpec(group, step, reading)
+def places_key(places: RetrievalPlaces) -> tuple:
+    """``places`` as plain values (what Streamlit hashes) that ``_places`` turns back into it."""
+    spec, metric = places.spec, places.metric
+    return (None if places.geometry is None else places.geometry.value,
+            None if spec is None else (spec.group, spec.step, spec.reading.value),
+            None if metric is None else (metric.group, metric.step, metric.reading.value, metric.geometry.value))
 
 
-def _spec_key(spec: PlaceSpec | None) -> tuple:
-    return (None, None, "stride") if spec is None else (spec.group, spec.step, spec.reading.value)
+def _places(key: tuple) -> RetrievalPlaces:
+    geometry, spec, metric = key
+    return RetrievalPlaces(None if geometry is None else PlaceGeometry(geometry),
+                           None if spec is None else PlaceSpec(*spec), None if metric is None else MetricPlaceSpec(*metric))
 
 
-@st.cache_resource(show_spinner="Fitting the database thresholds for this group/step…", max_entries=32)
-def _fitted(key: str, group: int | None, step: int | None, reading: str, query: str, _data: Loaded) -> Fitted:
-    return fit(_data.descriptors, _data.dataset, _spec(group, step, reading), query)
+@st.cache_resource(show_spinner="Fitting the database thresholds for these places…", max_entries=32)
+def _fitted(key: str, places: tuple, _data: Loaded) -> RetrievalFitted:
+    return views.fit_retrieval(_data.descriptors, _data.dataset, _places(places))
 
 
-def fitted(data: Loaded, spec: PlaceSpec | None, query: str) -> Fitted:
-    """Places and database thresholds for one group/step: what one-place and one-query pages need."""
-    return _fitted(data.key, *_spec_key(spec), query, data)
+def fitted(data: Loaded, places: RetrievalPlaces) -> RetrievalFitted:
+    """Places of the database images and their thresholds: what one-place and one-query pages need."""
+    return _fitted(data.key, places_key(places), data)
 
 
-@st.cache_resource(show_spinner="Deciding the query frames…", max_entries=32)
-def _regrouped(key: str, group: int | None, step: int | None, reading: str, query: str,
-               _data: Loaded) -> tuple[Regrouped, float]:
+@st.cache_resource(show_spinner="Deciding the queries…", max_entries=32)
+def _overview(key: str, places: tuple, _data: Loaded) -> tuple[RetrievalOverview, float]:
     start = time.perf_counter()
-    f = _fitted(key, group, step, reading, query, _data)
-    r = regroup(_data.descriptors, _data.dataset, _spec(group, step, reading), query, fitted=f)
-    return r, time.perf_counter() - start
+    f = _fitted(key, places, _data)
+    return views.overview(f, _data.descriptors), time.perf_counter() - start
 
 
-def regrouped_timed(data: Loaded, spec: PlaceSpec | None, query: str) -> tuple[Regrouped, float]:
-    """``regrouped`` and the seconds its computation took (when first asked for; cached after)."""
-    return _regrouped(data.key, *_spec_key(spec), query, data)
-
-
-def regrouped(data: Loaded, spec: PlaceSpec | None, query: str) -> Regrouped:
-    """Places, thresholds and the query frames decided (a sample on big datasets), for one group/step."""
-    return regrouped_timed(data, spec, query)[0]
-
-
-@st.cache_data(show_spinner=False, max_entries=64)
-def _place_detail(key: str, group, step, reading, query: str, place: int, _data: Loaded) -> PlaceDetail:
-    f = _fitted(key, group, step, reading, query, _data)
-    return place_detail(f.model, _data.descriptors, _data.dataset, f.places, place, query)
-
-
-def detail(data: Loaded, spec: PlaceSpec | None, query: str, place: int) -> PlaceDetail:
-    """One place's mixture, scores and thresholds."""
-    return _place_detail(data.key, *_spec_key(spec), query, place, data)
+def overview_timed(data: Loaded, places: RetrievalPlaces) -> tuple[RetrievalOverview, float]:
+    """The query images decided (a sample on big datasets) and the seconds it took when first asked for."""
+    return _overview(data.key, places_key(places), data)
 
 
 @st.cache_data(show_spinner=False, max_entries=256)
-def _decision(key: str, group, step, reading, query: str, image: int, k: float, user_theta, _data: Loaded) -> QueryDecision:
-    f = _fitted(key, group, step, reading, query, _data)
-    return explain_query(f.model, _data.descriptors, _data.dataset, f.places, image, k=k, user_theta=user_theta)
+def _decision(key: str, places: tuple, query: int, k: float, user_theta, _data: Loaded) -> QueryDecision:
+    f = _fitted(key, places, _data)
+    return views.explain_query(f, _data.descriptors, query, k=k, user_theta=user_theta)
 
 
-def decision(data: Loaded, spec: PlaceSpec | None, query: str, image: int, *, k: float = 0.0,
+def decision(data: Loaded, places: RetrievalPlaces, query: int, *, k: float = 0.0,
              user_theta: float | None = None) -> QueryDecision:
     """The decision record of one query image under every method."""
-    return _decision(data.key, *_spec_key(spec), query, image, float(k), user_theta, data)
+    return _decision(data.key, places_key(places), int(query), float(k), user_theta, data)
 
 
 @st.cache_data(show_spinner=False, max_entries=256)
-def _found(key: str, group, step, reading, query: str, after: int, kind: str, method: str, k: float, user_theta,
+def _image_answer(key: str, query: int, _data: Loaded) -> views.ImageAnswer:
+    return views.image_answer(_data.dataset, _data.descriptors, query)
+
+
+def image_answer(data: Loaded, query: int) -> views.ImageAnswer:
+    """The query's top database image over all of them (the field's image-level answer)."""
+    return _image_answer(data.key, int(query), data)
+
+
+@st.cache_data(show_spinner=False, max_entries=256)
+def _found(key: str, places: tuple, after: int, kind: str, method: str, k: float, user_theta,
            _data: Loaded) -> tuple[int | None, int]:
-    f = _fitted(key, group, step, reading, query, _data)
-    return find_frame(f, _data.descriptors, _data.dataset, after=after, kind=kind, method=method, k=k,
-                      user_theta=user_theta)
+    f = _fitted(key, places, _data)
+    return views.find_query(f, _data.descriptors, after=after, kind=kind, method=method, k=k,
+                            user_theta=user_theta)
 
 
-def find(data: Loaded, spec: PlaceSpec | None, query: str, *, after: int, kind: str, method: str, k: float = 0.0,
+def find(data: Loaded, places: RetrievalPlaces, *, after: int, kind: str, method: str, k: float = 0.0,
          user_theta: float | None = None) -> tuple[int | None, int]:
-    """``traversal.find_frame``: the next query frame after ``after`` that ``method`` rejected or got wrong."""
-    return _found(data.key, *_spec_key(spec), query, int(after), kind, method, float(k), user_theta, data)
-
-
-@st.cache_resource(show_spinner="Computing the similarity matrix…", max_entries=8)
-def _grid(key: str, database: tuple[str, ...], query: str, _data: Loaded) -> SimilarityGrid:
-    return similarity_grid(_data.descriptors, _data.dataset, database, query)
-
-
-def grid(data: Loaded, database: tuple[str, ...], query: str) -> SimilarityGrid:
-    """Query frames × database frames similarity, pooled for display."""
-    return _grid(data.key, tuple(database), query, data)
+    """``database_queries.find_query``: the next query after ``after`` that ``method`` rejected or got wrong."""
+    return _found(data.key, places_key(places), int(after), kind, method, float(k), user_theta, data)
 
 
 @st.cache_resource(show_spinner=False, max_entries=1)
@@ -506,7 +499,7 @@ def shared_scores(data: Loaded) -> SharedScores | None:
 
 def evaluation(data: Loaded, spec: PlaceSpec | None, protocol: str, *, peek: bool = False,
                **options) -> Evaluation | None:
-    """A protocol run (see ``pipeline.run_protocol``), with a progress bar the first time.
+    """A protocol run on aligned traversals (see ``pipeline.run_protocol``), with a progress bar the first time.
 
     ``peek``: only a run already in this server's memory, ``None`` when it has not been
     computed (nothing is run): how a page decides whether showing it costs anything.
@@ -524,97 +517,21 @@ def evaluation(data: Loaded, spec: PlaceSpec | None, protocol: str, *, peek: boo
         settings={"descriptor": data.descriptor}, shared=shared_scores(data), **options))
 
 
-# --------------------------------------------------------------------------- database/queries datasets
-
-
-def places_key(places: RetrievalPlaces) -> tuple:
-    """``places`` as plain values (what Streamlit hashes) that ``_places`` turns back into it."""
-    spec, metric = places.spec, places.metric
-    return (None if places.geometry is None else places.geometry.value,
-            None if spec is None else (spec.group, spec.step, spec.reading.value),
-            None if metric is None else (metric.group, metric.step, metric.reading.value, metric.geometry.value))
-
-
-def _places(key: tuple) -> RetrievalPlaces:
-    from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry
-
-    geometry, spec, metric = key
-    return RetrievalPlaces(None if geometry is None else PlaceGeometry(geometry),
-                           None if spec is None else PlaceSpec(*spec), None if metric is None else MetricPlaceSpec(*metric))
-
-
-@st.cache_resource(show_spinner="Fitting the database thresholds for these places…", max_entries=32)
-def _retrieval_fitted(key: str, places: tuple, _data: Loaded) -> RetrievalFitted:
-    return retrieval_views.fit_retrieval(_data.descriptors, _data.dataset, _places(places))
-
-
-def retrieval_fitted(data: Loaded, places: RetrievalPlaces) -> RetrievalFitted:
-    """Places of the database images and their thresholds: what one-query views of a database/queries dataset need."""
-    return _retrieval_fitted(data.key, places_key(places), data)
-
-
-@st.cache_resource(show_spinner="Deciding the queries…", max_entries=32)
-def _retrieval_overview(key: str, places: tuple, _data: Loaded) -> tuple[RetrievalOverview, float]:
-    start = time.perf_counter()
-    f = _retrieval_fitted(key, places, _data)
-    return retrieval_views.overview(f, _data.descriptors), time.perf_counter() - start
-
-
-def retrieval_overview_timed(data: Loaded, places: RetrievalPlaces) -> tuple[RetrievalOverview, float]:
-    """The query images decided (a sample on big datasets) and the seconds it took when first asked for."""
-    return _retrieval_overview(data.key, places_key(places), data)
-
-
-@st.cache_data(show_spinner=False, max_entries=256)
-def _retrieval_decision(key: str, places: tuple, query: int, k: float, user_theta, _data: Loaded) -> QueryDecision:
-    f = _retrieval_fitted(key, places, _data)
-    return retrieval_views.explain_query(f, _data.descriptors, query, k=k, user_theta=user_theta)
-
-
-def retrieval_decision(data: Loaded, places: RetrievalPlaces, query: int, *, k: float = 0.0,
-                       user_theta: float | None = None) -> QueryDecision:
-    """The decision record of one query image under every method."""
-    return _retrieval_decision(data.key, places_key(places), int(query), float(k), user_theta, data)
-
-
-@st.cache_data(show_spinner=False, max_entries=256)
-def _retrieval_image_answer(key: str, query: int, _data: Loaded) -> retrieval_views.ImageAnswer:
-    return retrieval_views.image_answer(_data.dataset, _data.descriptors, query)
-
-
-def retrieval_image_answer(data: Loaded, query: int) -> retrieval_views.ImageAnswer:
-    """The query's top database image over all of them (the field's image-level answer)."""
-    return _retrieval_image_answer(data.key, int(query), data)
-
-
-@st.cache_data(show_spinner=False, max_entries=256)
-def _retrieval_found(key: str, places: tuple, after: int, kind: str, method: str, k: float, user_theta,
-                     _data: Loaded) -> tuple[int | None, int]:
-    f = _retrieval_fitted(key, places, _data)
-    return retrieval_views.find_query(f, _data.descriptors, after=after, kind=kind, method=method, k=k,
-                                      user_theta=user_theta)
-
-
-def retrieval_find(data: Loaded, places: RetrievalPlaces, *, after: int, kind: str, method: str, k: float = 0.0,
-                   user_theta: float | None = None) -> tuple[int | None, int]:
-    """``database_queries.find_query``: the next query after ``after`` that ``method`` rejected or got wrong."""
-    return _retrieval_found(data.key, places_key(places), int(after), kind, method, float(k), user_theta, data)
-
-
-def _retrieval_evaluation_key(data: Loaded, places: RetrievalPlaces, user_theta: float | None, pr: bool) -> tuple:
+def _queries_evaluation_key(data: Loaded, places: RetrievalPlaces, user_theta: float | None, pr: bool) -> tuple:
     return ("retrieval-evaluation", data.key, places_key(places), user_theta, pr)
 
 
-def retrieval_evaluated(data: Loaded, places: RetrievalPlaces, *, user_theta: float | None = None,
-                        pr: bool = False) -> bool:
-    """True when ``retrieval_evaluation`` would return at once (already run in this server)."""
-    return _memo().get(_retrieval_evaluation_key(data, places, user_theta, pr)) is not None
+def queries_evaluated(data: Loaded, places: RetrievalPlaces, *, user_theta: float | None = None,
+                      pr: bool = False) -> bool:
+    """True when ``queries_evaluation`` would return at once (already run in this server)."""
+    return _memo().get(_queries_evaluation_key(data, places, user_theta, pr)) is not None
 
 
-def retrieval_evaluation(data: Loaded, places: RetrievalPlaces, *, user_theta: float | None = None,
-                         pr: bool = False) -> Evaluation:
-    """The database/queries protocol (``pipeline.evaluate_retrieval``), with a progress bar the first time."""
-    key = _retrieval_evaluation_key(data, places, user_theta, pr)
+def queries_evaluation(data: Loaded, places: RetrievalPlaces, *, user_theta: float | None = None,
+                       pr: bool = False) -> Evaluation:
+    """The database/queries protocol (``pipeline.evaluate_retrieval``) on a dataset value, with a progress bar
+    the first time."""
+    key = _queries_evaluation_key(data, places, user_theta, pr)
     return _memoised(key, "Running the database/queries protocol", lambda progress: evaluate_retrieval(
         data.dataset, data.descriptors, spec=places.spec, metric=places.metric, user_theta=user_theta,
         settings={"descriptor": data.descriptor}, progress=progress, pr=pr))
