@@ -23,6 +23,7 @@ import time
 from vpr_explorer.pipeline import dataset_descriptors, run_protocol
 from vpr_explorer.method.places import PlaceSpec, make_places
 from vpr_explorer.views.report import render
+from vpr_explorer.protocols.options import ProtocolOptions
 from vpr_explorer.protocols.scale import fast_paper_protocol
 from vpr_explorer.settings import data_root
 
@@ -49,8 +50,9 @@ def main() -> None:
     places = make_places(dataset, PlaceSpec(3, 3))
     settings = {"dataset": dataset.name, "places": places.describe(), "descriptor": "pixels"}
     t0 = time.perf_counter()
-    ev = fast_paper_protocol(desc, places.image_place, dataset.image_traversal, places.n_places, runs=args.runs,
-                             seed=args.seed, cross_condition=args.cross_condition, settings=settings)
+    options = ProtocolOptions(runs=args.runs, seed=args.seed, cross_condition=args.cross_condition)
+    ev = fast_paper_protocol(desc, places.image_place, dataset.image_traversal, places.n_places, options,
+                             settings=settings)
     print(f"\npaper protocol, fast path: {time.perf_counter() - t0:.1f} s\n")
     print(render(ev))
 
@@ -58,13 +60,13 @@ def main() -> None:
         from vpr_explorer.protocols.evaluation import paper_protocol
 
         t0 = time.perf_counter()
-        ref = paper_protocol(desc, places.image_place, dataset.image_traversal, places.n_places, runs=args.runs,
-                             seed=args.seed, cross_condition=args.cross_condition, settings=settings)
+        ref = paper_protocol(desc, places.image_place, dataset.image_traversal, places.n_places, options,
+                             settings=settings)
         same = ref.same_numbers(ev)
         print(f"\npaper_protocol (straightforward): {time.perf_counter() - t0:.1f} s; identical tables: {same}")
 
     t0 = time.perf_counter()
-    trav = run_protocol("traversal", dataset, places, desc, database=["summer"], queries="winter",
+    trav = run_protocol("traversal", dataset, places, desc, ProtocolOptions(database=["summer"], queries="winter"),
                         settings={"descriptor": "pixels"})
     print(f"\ntraversal protocol summer → winter: {time.perf_counter() - t0:.1f} s\n")
     print(render(trav))

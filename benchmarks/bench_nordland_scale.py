@@ -57,6 +57,7 @@ import numpy as np
 import vpr_explorer.protocols.scale.protocol as scale_protocol
 from gemm_peak import load_average, measure_peak, share
 from vpr_explorer.method.thresholds import auto_global_threshold, training_pair_scores
+from vpr_explorer.protocols.options import ProtocolOptions
 from vpr_explorer.protocols.scale import fast_paper_protocol
 from vpr_explorer.views.report import render
 
@@ -214,9 +215,10 @@ def main() -> None:
             print(f"  … {what}", file=sys.stderr, flush=True)
 
     def protocol():
-        return fast_paper_protocol(d, labels, trav, places, runs=args.runs, seed=args.seed,
-                                   cross_condition=args.cross_condition, progress=bar,
-                                   settings={"data": "nordland-like synthetic"}, device=args.device)
+        options = ProtocolOptions(runs=args.runs, seed=args.seed, cross_condition=args.cross_condition,
+                                  device=args.device)
+        return fast_paper_protocol(d, labels, trav, places, options, progress=bar,
+                                   settings={"data": "nordland-like synthetic"})
 
     phases = _time_phases() if args.phases else None
     if args.profile:
@@ -282,8 +284,8 @@ def main() -> None:
     if args.check:
         from vpr_explorer.protocols.evaluation import paper_protocol
 
-        ref, w_ref, _ = timed(lambda: paper_protocol(d, labels, trav, places, runs=args.runs, seed=args.seed,
-                                                     cross_condition=args.cross_condition))
+        ref, w_ref, _ = timed(lambda: paper_protocol(d, labels, trav, places, ProtocolOptions(
+            runs=args.runs, seed=args.seed, cross_condition=args.cross_condition)))
         same = ref.same_numbers(ev)
         print(f"\npaper_protocol: {w_ref:.1f} s; identical numbers: {same}")
         if not same:

@@ -39,7 +39,8 @@ import numpy as np
 from bench_nordland_scale import nordland_like
 from gemm_peak import blas_kernel, gemm_rate, load_average
 from vpr_explorer.method.stats import one_blas_thread
-from vpr_explorer.protocols.scale import BLOCK_ROWS, make_layout
+from vpr_explorer.protocols.options import BLOCK_ROWS
+from vpr_explorer.protocols.scale import make_layout
 from vpr_explorer.protocols.scale.blocked_pass import PANEL_ROWS, panels_of
 from vpr_explorer.protocols.scale.layout import as_layout32
 from vpr_explorer.protocols.scale.panel import (
@@ -70,7 +71,7 @@ def side_whole_block(s3: np.ndarray, floor: np.ndarray, axis: int) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--dim", type=int, default=1280)
-    ap.add_argument("--block", type=int, default=BLOCK_ROWS, help="rows per block (scale.BLOCK_ROWS)")
+    ap.add_argument("--block", type=int, default=BLOCK_ROWS, help="rows per block (protocols.options.BLOCK_ROWS)")
     ap.add_argument("--runs", type=int, default=50, help="splits: columns of the query indicators")
     ap.add_argument("--threads", type=int, default=2, help="panels side by side (the pass's threads)")
     ap.add_argument("--panel-rows", type=int, default=PANEL_ROWS, help="rows per panel (scale.blocked_pass.PANEL_ROWS)")

@@ -33,6 +33,7 @@ import vpr_explorer.protocols.scale as now
 from bench_nordland_scale import nordland_like
 from gemm_peak import blas_kernel, gemm_rate, load_average
 from vpr_explorer.protocols.evaluation import draw_splits
+from vpr_explorer.protocols.options import BLOCK_ROWS, TABLE_MEMORY, ProtocolOptions
 from vpr_explorer.protocols.scale.blocked_pass import blocked_pass
 from vpr_explorer.protocols.scale.full_sums import full_set_sums
 from vpr_explorer.protocols.scale.layout import as_layout32
@@ -63,10 +64,10 @@ def run_pass_before(mod, x, labels, places, query_rows, centre, block):
 def run_pass_now(x, labels, places, query_rows, centre, block):
     """Today's pass on the same inputs."""
     lay = now.make_layout(labels, places, block)
-    entries = Entries(lay, now.TABLE_MEMORY, None)
+    entries = Entries(lay, TABLE_MEMORY, None)
     try:
         blocked_pass(PassInputs(x, lay, query_rows, None, (0.0, 0.3), centre), entries, 10,
-                     now.PassOptions(block=block, threads=PASS_THREADS))
+                     ProtocolOptions(block=block, threads=PASS_THREADS))
     finally:
         entries.close()
 
@@ -88,7 +89,7 @@ def main() -> None:
     before = load_before(args.before)
     d, labels, trav = nordland_like(args.places, args.dim, 0)
     splits = draw_splits(labels, args.places, runs=args.runs, seed=0)
-    lay = now.make_layout(labels, args.places, now.BLOCK_ROWS)
+    lay = now.make_layout(labels, args.places, BLOCK_ROWS)
     query_rows = np.stack([lay.row_of_image[sp.queries] for sp in splits])
     centre = full_set_sums(d, lay, query_rows).centre
     x = as_layout32(d, lay)
@@ -103,9 +104,9 @@ def main() -> None:
     results = {}
     for rep in range(args.repeats):
         for name, mod in mods.items():
-            _, t = cpu(lambda: passes[name](x, labels, args.places, query_rows, centre, now.BLOCK_ROWS))
+            _, t = cpu(lambda: passes[name](x, labels, args.places, query_rows, centre, BLOCK_ROWS))
             best_pass[name] = min(best_pass[name], t)
-            results[name], t_run = cpu(lambda: mod.scale_splits(d, labels, trav, args.places, splits, seed=0))
+            results[name], t_run = cpu(lambda: mod.scale_splits(d, labels, trav, args.places, splits))
             best_run[name] = min(best_run[name], t_run)
             print(f"  round {rep + 1}, {name:<6}: pass {t:7.2f} CPU s, whole run {t_run:7.2f} CPU s", flush=True)
     peak = max(peak, gemm_rate(np.float32, 4096, args.dim, 4096, 3, clock=time.process_time))

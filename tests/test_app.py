@@ -21,12 +21,16 @@ from streamlit.testing.v1 import AppTest
 
 from images import write_noisy_route
 from vpr_explorer.app import ENTRY, PAGES as PAGE_FILES
-from vpr_explorer.method.database import explain_query
-from vpr_explorer.protocols.evaluation import Protocol
-from vpr_explorer.pipeline import run_protocol
+from vpr_explorer.protocols.evaluation import PROTOCOL_LABELS, Protocol
+from vpr_explorer.pipeline import evaluate_retrieval, run_protocol
 from vpr_explorer.method.places import PlaceSpec, make_places
 from vpr_explorer.views.report import method_csv
-from vpr_explorer.views.traversal import place_detail, regroup, top_candidates
+from vpr_explorer.data.aligned import database_queries, value_rows
+from vpr_explorer.method.places import PlaceGeometry
+from vpr_explorer.views.database_queries import RetrievalPlaces, fit_retrieval, overview, place_detail
+from vpr_explorer.views.database_queries import database_label, describe_answer, find_query, image_answer
+from vpr_explorer.views.database_queries import explain_query
+from vpr_explorer.views.traversal import regroup, top_candidates
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -175,33 +179,109 @@ def test_a_broken_models_settings_file_is_an_error_not_a_crash(app, tmp_path, mo
     assert at.radio(key="w_descriptor").value == "pixels"  # the built-ins still work
 
 
-def test_playback_page_records_the_demo(app):
+@pytest.mark.parametrize("layout", ["demo", pytest.param("database-queries", marks=pytest.mark.realdata)])
+def test_playback_page_records_every_query_as_the_library_decides(app, layout, request, tmp_path):
+    """The demo route (aligned traversals: snow's frames against day and night) and GardensPoint as a
+    database/queries layout: the page's counts are the inspector's decisions of every query."""
+    from collections import Counter
+
+    from vpr_explorer.method.database import Verdict
+    from vpr_explorer.method.retrieval import METHODS_BY_KEY
+    from vpr_explorer.pipeline import dataset_descriptors, open_dataset, resolve_dataset
+    from vpr_explorer.views.database_queries import BETWEEN, UNKNOWN
+
+    if layout == "demo":
+        dataset = resolve_dataset("demo")
+        value = database_queries(dataset, "snow")
+        d, rows = dataset_descriptors(dataset, "pixels"), value_rows(value)
+        d = d if rows is None else d[rows]
+    else:
+        from vpr_explorer.data.example_layouts import write_gardens_point_layouts
+
+        path = write_gardens_point_layouts(request.getfixturevalue("data_root") / "GardensPointWalking",
+                                           tmp_path)[layout]
+        app.query_params.update(source=str(path), descriptor="pixels")
+        value = open_dataset(path)
+        d = dataset_descriptors(value, "pixels")
     at = page(app.run(), "playback")
     assert_clean(at)
     assert at.title[0].value == "Playback"
     at.button[0].click().run()
     assert_clean(at)
-    frames = [e for e in at.get("iframe")]
-    assert frames, "no viewer embedded after recording"
+    assert at.get("iframe"), "no viewer embedded after recording"
     assert at.get("download_button"), "no .rrd download offered"
+    playback = at.session_state["playback"]
+    assert playback.n_queries == value.n_queries
+    fitted = fit_retrieval(d, value, playback.decisions.fitted.places)
+    counts = {key: Counter() for key in ("margin-weighted", "place-baseline")}
+    for q in range(value.n_queries):
+        dec, status = explain_query(fitted, d, q), fitted.query_status(q)
+        for key, c in counts.items():
+            o = dec.outcomes[key]
+            c[Verdict.BETWEEN if status == BETWEEN else
+              (Verdict.WRONG_ACCEPT if o.accepted[0] else Verdict.RIGHT) if status == UNKNOWN else
+              Verdict.RIGHT if o.right[0] else Verdict.WRONG_ACCEPT if o.accepted[0] else Verdict.WRONG_REJECT] += 1
+    table = next(m.value for m in at.markdown if m.value.startswith("| method |"))
+    for key, c in counts.items():
+        assert (f"| {METHODS_BY_KEY[key].label} | {c[Verdict.RIGHT]} | {c[Verdict.WRONG_ACCEPT]} | "
+                f"{c[Verdict.WRONG_REJECT]} | {c[Verdict.BETWEEN]} |") in table
+    at.number_input(key="w_playback_frame").set_value(17).run()
+    opened = at.button(key="w_playback_inspect")
+    assert "17 in the Query inspector" in opened.label
+    opened.click().run()
+    assert at.title[0].value == "Query inspector" and at.session_state["view"].frame == 17
 
 
 # --------------------------------------------------------------------------- places
 
 
-def test_places_live_numbers_are_the_library_regroup(app, demo, demo_pixels):
+def fitted_value(dataset, descriptors, spec: PlaceSpec, query: str | None = None):
+    """Aligned traversals as the app reads them (``aligned.database_queries``, descriptors in the value's order),
+    fitted with group/step ``spec`` in frames: ``(fitted, descriptors)``."""
+    value = database_queries(dataset, query)
+    rows = value_rows(value)
+    d = descriptors if rows is None else descriptors[rows]
+    return fit_retrieval(d, value, RetrievalPlaces(PlaceGeometry.FRAMES, spec=spec)), d
+
+
+def test_places_live_numbers_are_the_library_overview(app, demo, demo_pixels):
     at = page(app.run(), "places")
-    r = regroup(demo_pixels, demo, DEMO_SPEC)
-    assert metric(at, "places") == str(r.places.n_places) == "12"
-    assert metric(at, "place-level R@1") == f"{r.recall1['place-baseline']:.0%}"
-    assert metric(at, "margin, weighted θ R@1") == f"{r.recall1['margin-weighted']:.0%}"
+    f, d = fitted_value(demo, demo_pixels, DEMO_SPEC)
+    ov = overview(f, d)
+    assert metric(at, "places") == str(f.n_places) == "12"
+    assert metric(at, "database images per place") == "6"  # 3 frames × the 2 database traversals
+    assert metric(at, "place-level R@1") == f"{ov.recall1['place-baseline']:.0%}"
+    assert metric(at, "margin, weighted θ R@1") == f"{ov.recall1['margin-weighted']:.0%}"
+    assert metric(at, "raw, weighted θ R@1") == f"{ov.recall1['raw-weighted']:.0%}"
+    assert "unknown rejected" not in [m.label for m in at.metric]  # every query has a right database image
     hist = figure(at, "theta_hist")
-    np.testing.assert_allclose(trace(hist, "θ_p weighted")["x"], r.model.theta["weighted"])
-    assert trace(hist, "global θ, automatic")["x"][0] == pytest.approx(r.model.auto)
+    np.testing.assert_allclose(trace(hist, "θ_p weighted")["x"], f.model.theta["weighted"])
+    assert trace(hist, "global θ, automatic")["x"][0] == pytest.approx(f.model.auto)
     bars = trace(figure(at, "recall_live"), "recall1")
-    np.testing.assert_allclose(bars["y"], [r.recall1[k] for k in bars["customdata"]])
+    np.testing.assert_allclose(bars["y"], [ov.recall1[k] for k in bars["customdata"]])
     stride = figure(at, "route_stride")
-    np.testing.assert_array_equal(trace(stride, "places snow")["x"], np.flatnonzero(r.places.frame_place >= 0))
+    np.testing.assert_array_equal(trace(stride, "places snow")["x"],
+                                  np.flatnonzero(f.database_place[:demo.n_frames] >= 0))
+    spec = figure(at, "layout_map")  # the demo has positions: the database frames by place, the query frames
+    assert list(trace(spec, "database places")["text"]) == [f"P{p}" for p in f.database_place[f.database_place >= 0]]
+    assert len(trace(spec, "queries")["x"]) == demo.n_frames
+
+
+def test_places_query_traversal_changes_the_numbers(app, demo, demo_pixels):
+    at = page(app.run(), "places")
+    at.selectbox(key="w_query").set_value("day").run()  # database: night + snow
+    assert_clean(at)
+    assert at.query_params["query"] == "day"
+    f, d = fitted_value(demo, demo_pixels, DEMO_SPEC, "day")
+    ov = overview(f, d)
+    snow, snow_d = fitted_value(demo, demo_pixels, DEMO_SPEC)
+    assert f.model.theta["weighted"] != pytest.approx(snow.model.theta["weighted"])
+    assert ov.recall1 != overview(snow, snow_d).recall1
+    assert metric(at, "place-level R@1") == f"{ov.recall1['place-baseline']:.0%}"
+    assert metric(at, "margin, weighted θ R@1") == f"{ov.recall1['margin-weighted']:.0%}"
+    np.testing.assert_allclose(trace(figure(at, "theta_hist"), "θ_p weighted")["x"], f.model.theta["weighted"])
+    bars = trace(figure(at, "recall_live"), "recall1")
+    np.testing.assert_allclose(bars["y"], [ov.recall1[k] for k in bars["customdata"]])
 
 
 def test_places_slider_moves_recompute_and_go_into_the_url(app, demo, demo_pixels):
@@ -209,10 +289,10 @@ def test_places_slider_moves_recompute_and_go_into_the_url(app, demo, demo_pixel
     at.slider(key="w_group").set_value(2).run()
     at.slider(key="w_step").set_value(4).run()
     assert_clean(at)
-    r = regroup(demo_pixels, demo, PlaceSpec(2, 4))
-    assert metric(at, "places") == str(r.places.n_places) == "15"
-    assert metric(at, "images per place") == "6"
-    np.testing.assert_allclose(trace(figure(at, "theta_hist"), "θ_p simple")["x"], r.model.theta["simple"])
+    f, _ = fitted_value(demo, demo_pixels, PlaceSpec(2, 4))
+    assert metric(at, "places") == str(f.n_places) == "15"
+    assert metric(at, "database images per place") == "4"
+    np.testing.assert_allclose(trace(figure(at, "theta_hist"), "θ_p simple")["x"], f.model.theta["simple"])
     assert at.query_params["group"] == "2" and at.query_params["step"] == "4"
     at.radio(key="w_reading").set_value("skip").run()
     assert_clean(at)
@@ -263,20 +343,31 @@ def test_places_stride_overlap_is_refused_with_the_fix(app):
 
 def test_thresholds_figure_lines_are_the_computed_thresholds(app, demo, demo_pixels):
     at = page(app.run(), "thresholds")
-    r = regroup(demo_pixels, demo, DEMO_SPEC)
+    f, d = fitted_value(demo, demo_pixels, DEMO_SPEC)
     p = at.selectbox(key="w_place").value
     spec = figure(at, "mixture")
-    assert trace(spec, "θ_p weighted")["x"][0] == pytest.approx(r.model.theta["weighted"][p])
-    assert trace(spec, "θ_p simple")["x"][0] == pytest.approx(r.model.theta["simple"][p])
-    assert trace(spec, "global θ, automatic")["x"][0] == pytest.approx(r.model.auto)
-    d = place_detail(r.model, demo_pixels, demo, r.places, p, "snow")
+    assert trace(spec, "θ_p weighted")["x"][0] == pytest.approx(f.model.theta["weighted"][p])
+    assert trace(spec, "θ_p simple")["x"][0] == pytest.approx(f.model.theta["simple"][p])
+    assert trace(spec, "global θ, automatic")["x"][0] == pytest.approx(f.model.auto)
+    detail = place_detail(f, d, p)
     mix = trace(spec, "mixture")
     from vpr_explorer.method.stats import mixture_pdf
 
-    np.testing.assert_allclose(mix["y"], mixture_pdf(mix["x"], d.mu, d.sigma, d.weight))
+    np.testing.assert_allclose(mix["y"], mixture_pdf(mix["x"], detail.mu, detail.sigma, detail.weight))
+    raw = trace(spec, "query_raw")  # the place's query frames (snow) and their raw_p
+    np.testing.assert_array_equal(raw["customdata"], detail.query_images)
+    np.testing.assert_allclose(raw["x"], detail.query_raw)
+    first = 5 * p  # place p of group 3, step 5 holds frames 5p .. 5p + 2
+    np.testing.assert_array_equal(detail.query_images - f.dataset.n_database, first + np.arange(3))
     overview = trace(figure(at, "overview"), "theta")
-    np.testing.assert_allclose(overview["y"], np.sort(r.model.theta["weighted"]))
+    np.testing.assert_allclose(overview["y"], np.sort(f.model.theta["weighted"]))
     assert any("normalised" in i.value for i in at.info)
+    captions = [img.caption for element in at.image for img in element.proto.imgs]
+    assert captions[:3] == [f"day · frame {first + i} (database)" for i in range(3)]
+    assert captions[-3:] == [f"snow · frame {first + i} (query, raw_p {r:.3f})" for i, r in
+                             enumerate(detail.query_raw)]
+    dropped = detail.share_queries_below(detail.theta["weighted"])
+    assert metric(at, "own queries dropped at θ_p(k=0)") == f"{dropped:.0%}"
 
 
 def test_thresholds_place_k_and_user_theta_move_the_lines(app, demo, demo_pixels):
@@ -286,14 +377,14 @@ def test_thresholds_place_k_and_user_theta_move_the_lines(app, demo, demo_pixels
     at.checkbox(key="w_user_on").check().run()
     at.number_input(key="w_user_theta").set_value(0.42).run()
     assert_clean(at)
-    r = regroup(demo_pixels, demo, DEMO_SPEC)
+    f, _ = fitted_value(demo, demo_pixels, DEMO_SPEC)
     spec = figure(at, "mixture")
     assert "Place 7" in spec["layout"]["title"]["text"]
-    assert trace(spec, "θ_p(k)")["x"][0] == pytest.approx(r.model.thresholds(1.5)["weighted"][7])
+    assert trace(spec, "θ_p(k)")["x"][0] == pytest.approx(f.model.thresholds(1.5)["weighted"][7])
     assert trace(spec, "global θ, user value")["x"][0] == pytest.approx(0.42)
     assert at.query_params["place"] == "7" and at.query_params["k"] == "1.5"
     at.radio(key="w_method").set_value("simple").run()
-    assert trace(figure(at, "mixture"), "θ_p(k)")["x"][0] == pytest.approx(r.model.thresholds(1.5)["simple"][7])
+    assert trace(figure(at, "mixture"), "θ_p(k)")["x"][0] == pytest.approx(f.model.thresholds(1.5)["simple"][7])
 
 
 # --------------------------------------------------------------------------- query inspector
@@ -303,8 +394,8 @@ def test_inspector_bars_are_raw_p_with_thresholds_and_the_answer_in_words(app, d
     at = page(app.run(), "inspector")
     at.slider(key="w_frame").set_value(31).run()
     assert_clean(at)
-    r = regroup(demo_pixels, demo, DEMO_SPEC)
-    dec = explain_query(r.model, demo_pixels, demo, r.places, demo.image_index("snow", 31))
+    f, d = fitted_value(demo, demo_pixels, DEMO_SPEC)
+    dec = explain_query(f, d, 31)  # query 31 of the value: snow frame 31
     cands = top_candidates(dec, 8)
     for key, threshold in (("place-baseline", None), ("margin-weighted", "weighted"), ("raw-simple", "simple"),
                            ("global-auto", "auto")):
@@ -314,8 +405,13 @@ def test_inspector_bars_are_raw_p_with_thresholds_and_the_answer_in_words(app, d
         np.testing.assert_allclose(bars["y"], dec.raw[cands])
         if threshold:
             np.testing.assert_allclose(trace(spec, "theta")["y"], dec.thresholds[threshold][cands])
+        assert describe_answer(f, dec, key, 31) == dec.describe(key)  # a query with a right place
         assert any(c.value == dec.describe(key) for c in at.caption), key
     assert at.query_params["frame"] == "31"
+    text = " ".join(md.value for md in at.markdown)
+    assert "**Right place(s):** P6" in text  # place 6 of group 3, step 5 holds frames 30-32
+    answer = image_answer(f.dataset, d, 31)
+    assert f"its most similar database image is {database_label(f.dataset, answer.image)}" in text
 
 
 def test_inspector_jumps_to_a_rejected_query(app, demo, demo_pixels):
@@ -324,11 +420,13 @@ def test_inspector_jumps_to_a_rejected_query(app, demo, demo_pixels):
     at.button(key="w_find_next").click().run()
     assert_clean(at)
     frame = at.slider(key="w_frame").value
-    r = regroup(demo_pixels, demo, DEMO_SPEC)
-    assert r.decisions.outcomes["global-auto"].answer_place[frame] < 0
-    dec = explain_query(r.model, demo_pixels, demo, r.places, demo.image_index("snow", frame))
-    assert dec.describe("global-auto").startswith("rejected")
-    assert any(c.value.startswith("rejected") for c in at.caption)
+    f, d = fitted_value(demo, demo_pixels, DEMO_SPEC)
+    found, _ = find_query(f, d, after=0, kind="rejected", method="global-auto")
+    assert frame == found == at.number_input(key="w_frame_number").value
+    dec = explain_query(f, d, frame)
+    assert dec.answer("global-auto") == -1
+    said = describe_answer(f, dec, "global-auto", frame)
+    assert said.startswith("rejected") and any(c.value == said for c in at.caption)
 
 
 def test_inspector_jump_with_none_found_says_so(app):
@@ -338,19 +436,33 @@ def test_inspector_jump_with_none_found_says_so(app):
     at.button(key="w_find_next").click().run()
     assert_clean(at)
     assert at.slider(key="w_frame").value == frame
-    assert any("no query frame was rejected" in i.value for i in at.info)
+    assert any("no query was rejected" in i.value for i in at.info)
 
 
 def test_inspector_opens_a_pair_picked_in_the_similarity_matrix(app, demo):
     """What a heatmap click does (see ``pages/evaluation.py``'s callback): the pair opens in the inspector."""
+    value = database_queries(demo)  # database: day then night; queries: snow
+    night = value.database_traversal == demo.traversal_index("night")
+    db = int(np.flatnonzero(night & (value.database_frame == 13))[0])
     at = app.run()
-    q, db = demo.image_index("snow", 12), demo.image_index("night", 13)
-    at.session_state["picked_pair"] = (q, db)
+    at.session_state["picked_pair"] = (12, db)
     at.session_state["view"] = at.session_state["view"].__class__(frame=12)
     page(at, "inspector")
     assert_clean(at)
     assert at.slider(key="w_frame").value == 12
     assert any("Opened from the similarity matrix" in c.value and "night · frame 13" in c.value for c in at.caption)
+
+
+def test_inspector_query_traversal_and_file_name_pick_the_query(app, demo, demo_pixels):
+    at = page(app.run(), "inspector")
+    at.selectbox(key="w_query").set_value("night").run()  # database: day + snow
+    at.text_input(key="w_query_name").input(demo.paths[demo.traversal_index("night")][17].name).run()
+    assert_clean(at)
+    assert at.query_params["query"] == "night" and at.slider(key="w_frame").value == 17
+    f, d = fitted_value(demo, demo_pixels, DEMO_SPEC, "night")
+    dec = explain_query(f, d, 17)
+    np.testing.assert_allclose(trace(figure(at, "bars_margin-weighted"), "raw_p")["y"], dec.raw[top_candidates(dec, 8)])
+    assert any(c.value == describe_answer(f, dec, "raw-weighted", 17) for c in at.caption)
 
 
 # --------------------------------------------------------------------------- evaluation
@@ -401,12 +513,28 @@ def test_evaluation_open_set_and_traversal_protocols(app, demo, demo_pixels):
     at.radio(key="w_protocol").set_value("traversal")
     at.multiselect(key="w_database").set_value(["day"])
     at.selectbox(key="w_eval_query").set_value("night")
+    at.number_input(key="w_tolerance").set_value(1)
     at.button[0].click()
     at = at.run()
     assert_clean(at)
-    ev = run_protocol(Protocol.TRAVERSAL, demo, make_places(demo, DEMO_SPEC), demo_pixels, database=["day"],
-                      queries="night")
-    np.testing.assert_allclose(at.dataframe[0].value["R@1"], [100 * r.recall[1][0] for r in ev.rows])
+    ev = evaluated_value(demo, demo_pixels, DEMO_SPEC, "night", ["day"], 1)  # the database/queries protocol
+    table = at.dataframe[0].value
+    assert list(table["method"]) == [r.label for r in ev.rows]
+    for k in ev.ks:
+        np.testing.assert_allclose(table[f"R@{k}"], [100 * r.recall[k][0] for r in ev.rows])
+    np.testing.assert_allclose(table["precision"], [100 * r.precision[0] for r in ev.rows])
+    caption = " ".join(c.value for c in at.caption)
+    assert "database: day (60 images) · queries: night (60)" in caption
+    assert "ground truth: within ±1 frames" in caption
+    assert at.subheader[0].value.startswith("traversal: a database traversal against a query traversal")
+
+
+def evaluated_value(dataset, descriptors, spec, query=None, database=None, tolerance=0, **options):
+    """The database/queries protocol on aligned traversals' value (``aligned.database_queries``), as the
+    Evaluation page's traversal protocol runs it."""
+    value = database_queries(dataset, query, database, tolerance)
+    rows = value_rows(value)
+    return evaluate_retrieval(value, descriptors if rows is None else descriptors[rows], spec=spec, **options)
 
 
 def test_evaluation_bad_protocol_setting_shows_an_error(app):
@@ -417,18 +545,26 @@ def test_evaluation_bad_protocol_setting_shows_an_error(app):
     at.button[0].click()
     at = at.run()
     assert_clean(at, errors=True)
-    assert any("also a database traversal" in e.value for e in at.error)
+    assert any("traversal 'snow' is both the query and in the database" in e.value for e in at.error)
+    assert at.get("plotly_chart")  # the similarity matrix below still shows
 
 
 def test_evaluation_similarity_matrix_is_the_library_grid(app, demo, demo_pixels):
-    from vpr_explorer.views.traversal import similarity_grid
+    from vpr_explorer.views.database_queries import similarity_grid
 
     at = page(app.run(), "evaluation")
-    grid = similarity_grid(demo_pixels, demo, ("day", "night"), "snow")
+    value = database_queries(demo)
+    assert value_rows(value) is None  # snow, the last traversal, queries: the traversals' own order
+    d = demo_pixels
+    grid = similarity_grid(value, d)  # 60 snow queries × 120 database images (day, then night)
+    assert grid.z.shape == (60, 120) and not grid.sampled
+    np.testing.assert_allclose(grid.z, d[120:] @ d[:120].T, rtol=1e-5)
     spec = figure(at, "simgrid")
     np.testing.assert_allclose(trace(spec, "similarity")["z"], grid.z, rtol=1e-6)
     pairs = trace(spec, "cells")["customdata"]
     np.testing.assert_array_equal(pairs[:, 0], grid.query_image.ravel())
+    np.testing.assert_array_equal(pairs[:, 1], grid.db_image.ravel())
+    assert "60 queries (snow) × 120 database images" in spec["layout"]["title"]["text"]
 
 
 # --------------------------------------------------------------------------- big datasets
@@ -438,27 +574,27 @@ def test_evaluation_similarity_matrix_is_the_library_grid(app, demo, demo_pixels
 
 
 def test_places_over_the_pair_budget_decides_a_sample_and_says_so(app, demo, demo_pixels, monkeypatch):
-    from vpr_explorer.views import traversal as views
+    from vpr_explorer.views import database_queries as views
 
     monkeypatch.setattr(views, "PAIR_BUDGET", 1000)
     at = page(app.run(), "places")
     assert_clean(at)
-    r = regroup(demo_pixels, demo, DEMO_SPEC, pair_budget=1000)
-    assert r.sampled
-    assert any(f"seeded random sample of **{len(r.frames)} of the 60 frames**" in c.value for c in at.caption)
-    assert metric(at, "place-level R@1") == f"{r.recall1['place-baseline']:.0%}"
+    ov = overview(*fitted_value(demo, demo_pixels, DEMO_SPEC), pair_budget=1000)
+    assert ov.sampled
+    assert any(f"seeded random sample of **{len(ov.queries)} of the 60 queries**" in c.value for c in at.caption)
+    assert metric(at, "place-level R@1") == f"{ov.recall1['place-baseline']:.0%}"
     bars = trace(figure(at, "recall_live"), "recall1")
-    np.testing.assert_allclose(bars["y"], [r.recall1[k] for k in bars["customdata"]])
+    np.testing.assert_allclose(bars["y"], [ov.recall1[k] for k in bars["customdata"]])
 
 
 def test_inspector_search_over_the_budget_moves_on_and_says_to_press_again(app, monkeypatch):
-    from vpr_explorer.views import traversal as views
+    from vpr_explorer.views import database_queries as views
 
     at = page(app.run(), "inspector")
     at.selectbox(key="w_find_method").set_value("place-baseline").run()  # never rejects: searches everything
     frame = at.slider(key="w_frame").value
     n_db = 12 * 3 * 2  # 12 places x 3 frames x 2 database traversals
-    monkeypatch.setattr(views, "PAIR_BUDGET", 5 * n_db)  # five frames per press
+    monkeypatch.setattr(views, "PAIR_BUDGET", 5 * n_db)  # five queries per press
     at.button(key="w_find_next").click().run()
     assert_clean(at)
     assert at.slider(key="w_frame").value == frame + 5
@@ -466,17 +602,18 @@ def test_inspector_search_over_the_budget_moves_on_and_says_to_press_again(app, 
 
 
 def test_evaluation_over_the_auto_run_size_waits_for_run(app, demo, demo_pixels, monkeypatch):
-    from vpr_explorer.views import traversal as views
+    from vpr_explorer.views import database_queries as views, traversal
 
-    monkeypatch.setattr(views, "AUTO_RUN_PAIRS", 100)
+    monkeypatch.setattr(traversal, "AUTO_RUN_PAIRS", 100)
     monkeypatch.setattr(views, "PAIR_BUDGET", 1000)
     at = page(app.run(), "evaluation")
     assert_clean(at)
     assert any("does not start by itself" in i.value for i in at.info)
     assert not at.dataframe  # nothing ran
-    assert any("each row is one query frame" in c.value for c in at.caption)
-    grid = views.similarity_grid(demo_pixels, demo, ("day", "night"), "snow")
-    assert grid.sampled
+    assert any("each row is one query (the centre of its block" in c.value for c in at.caption)
+    value = database_queries(demo)
+    grid = views.similarity_grid(value, demo_pixels)  # snow queries: the traversals' own order
+    assert grid.sampled and grid.z.shape[0] * value.n_database <= 1000
     np.testing.assert_allclose(trace(figure(at, "simgrid"), "similarity")["z"], grid.z, rtol=1e-6)
     at.slider(key="w_runs").set_value(2)
     at.button[0].click()  # the form's submit button
@@ -542,7 +679,7 @@ def test_a_url_query_traversal_the_dataset_lacks_is_replaced_with_a_warning(app)
 
 @pytest.mark.parametrize("name, param, value, said", [
     ("thresholds", "place", "999", "place=999 is not a place here (12 places, 0 to 11)"),
-    ("inspector", "frame", "999", "frame=999 is not a frame of 'demo' (0 to 59)"),
+    ("inspector", "frame", "999", "frame=999 is not a query of 'demo' (0 to 59)"),
 ])
 def test_a_url_place_or_frame_out_of_range_says_what_is_shown_instead(app, name, param, value, said):
     app.query_params.update({param: value})
@@ -670,27 +807,45 @@ def test_gardens_point_pages_show_the_library_numbers(app, data_root, gardens_po
     assert at.session_state["view"].source == gp
     page(at, "places")
     assert_clean(at)
-    r = regroup(gp_pixels, gardens_point, PlaceSpec(3, 10))
-    assert metric(at, "places") == "20" and metric(at, "images per place") == "9"
-    assert metric(at, "place-level R@1") == f"{r.recall1['place-baseline']:.0%}"
-    np.testing.assert_allclose(trace(figure(at, "theta_hist"), "θ_p weighted")["x"], r.model.theta["weighted"])
+    f, d = fitted_value(gardens_point, gp_pixels, PlaceSpec(3, 10))
+    ov = overview(f, d)
+    assert metric(at, "places") == "20" and metric(at, "database images per place") == "6"
+    assert metric(at, "place-level R@1") == f"{ov.recall1['place-baseline']:.0%}"
+    assert metric(at, "margin, weighted θ R@1") == f"{ov.recall1['margin-weighted']:.0%}"
+    np.testing.assert_allclose(trace(figure(at, "theta_hist"), "θ_p weighted")["x"], f.model.theta["weighted"])
     at.selectbox(key="w_query").set_value("day_right").run()  # database: day_left + night_right
     assert_clean(at)
-    r2 = regroup(gp_pixels, gardens_point, PlaceSpec(3, 10), "day_right")
-    assert metric(at, "place-level R@1") == f"{r2.recall1['place-baseline']:.0%}"
+    f2, d2 = fitted_value(gardens_point, gp_pixels, PlaceSpec(3, 10), "day_right")
+    assert metric(at, "place-level R@1") == f"{overview(f2, d2).recall1['place-baseline']:.0%}"
     at.selectbox(key="w_query").set_value("night_right").run()
     page(at, "thresholds")
     assert_clean(at)
     p = at.selectbox(key="w_place").value
-    assert trace(figure(at, "mixture"), "θ_p weighted")["x"][0] == pytest.approx(r.model.theta["weighted"][p])
+    assert trace(figure(at, "mixture"), "θ_p weighted")["x"][0] == pytest.approx(f.model.theta["weighted"][p])
+    detail = place_detail(f, d, p)
+    assert metric(at, "negative scores ≥ θ_p weighted") == \
+        f"{detail.share_negatives_above(detail.theta['weighted']):.0%}"
+    dropped = detail.share_queries_below(detail.theta["weighted"])
+    assert metric(at, "own queries dropped at θ_p(k=0)") == f"{dropped:.0%}"
     page(at, "inspector")
     at.slider(key="w_frame").set_value(101).run()
     assert_clean(at)
-    dec = explain_query(r.model, gp_pixels, gardens_point, r.places, gardens_point.image_index("night_right", 101))
+    dec = explain_query(f, d, 101)  # query 101: night_right frame 101
     np.testing.assert_allclose(trace(figure(at, "bars_margin-weighted"), "raw_p")["y"],
                                dec.raw[top_candidates(dec, 8)])
+    assert any(c.value == describe_answer(f, dec, "margin-weighted", 101) for c in at.caption)
     page(at, "evaluation")
     assert_clean(at)
+    offered = [PROTOCOL_LABELS[Protocol(p)] for p in ("paper", "traversal", "open-set")]
+    assert at.radio(key="w_protocol").options == offered
+    ev = run_protocol(Protocol.PAPER, gardens_point, make_places(gardens_point, PlaceSpec(3, 10)), gp_pixels, runs=20,
+                      seed=0)
+    np.testing.assert_allclose(at.dataframe[0].value["R@1"], [100 * r.recall[1][0] for r in ev.rows])
+    at.radio(key="w_protocol").set_value("traversal")
+    at.button(key="w_run").click().run()
+    assert_clean(at)
+    ev = evaluated_value(gardens_point, gp_pixels, PlaceSpec(3, 10))  # day_left + day_right against night_right
+    np.testing.assert_allclose(at.dataframe[0].value["R@1"], [100 * r.recall[1][0] for r in ev.rows])
 
 
 def test_query_and_ref_folders_query_with_query(app, tmp_path):
@@ -705,7 +860,6 @@ def test_query_and_ref_folders_query_with_query(app, tmp_path):
     at.button[0].click()
     at = at.run()
     assert_clean(at)
-    caption = next(c.value for c in at.caption if c.value.startswith("dataset:"))
-    assert "database: ['ref']" in caption and "queries: query" in caption
-    assert "direction: default, recognised from the traversal names" in caption
-    assert "places: 4 places × 3 database images" in caption  # group 3 of the 18 frames, ref's images only
+    caption = next(c.value for c in at.caption if c.value.startswith("database:"))
+    assert "database: ref (18 images) · queries: query (18)" in caption
+    assert "12 of 18 database images in 4 places" in caption  # group 3, step 5 of the 18 frames, ref's images only

@@ -1,5 +1,5 @@
 """The Evaluation page under AppTest: settings in the URL, results that belong to the controls, precision–recall,
-runs side by side, and the walk-through's defects (issue 12 §4), each reproduced.
+runs side by side, and the page's defects a walk-through found, each reproduced.
 
 The demo route with pixel descriptors keeps each test to a few seconds; the automatic-θ
 defect needs efficientnet-lite0 on GardensPoint (``realdata``).
@@ -19,7 +19,8 @@ from test_app import DEMO_SPEC, assert_clean, downloads, figure, navigation_mode
 from vpr_explorer.protocols import compare
 from vpr_explorer.app import ENTRY
 from vpr_explorer.protocols.evaluation import Protocol
-from vpr_explorer.pipeline import run_protocol
+from vpr_explorer.data.aligned import database_queries, value_rows
+from vpr_explorer.pipeline import evaluate_retrieval, run_protocol
 from vpr_explorer.method.places import PlaceSpec, make_places
 
 
@@ -105,7 +106,7 @@ def test_a_bad_link_value_is_refused_naming_it_and_what_is_used(app, param, valu
 
 
 def test_leaving_and_coming_back_keeps_the_controls_with_their_results(app, demo, demo_pixels):
-    """Issue 12 §4: traversal → Run → Dataset page → Evaluation showed 'paper' above the traversal's results."""
+    """Traversal → Run → Dataset page → Evaluation shows the traversal protocol above its results, not 'paper'."""
     at = page(app.run(), "evaluation")
     at = run_form(at, w_protocol="traversal", w_database=["day"], w_eval_query="night")
     assert subheaders(at)[0].startswith("traversal")
@@ -114,7 +115,7 @@ def test_leaving_and_coming_back_keeps_the_controls_with_their_results(app, demo
     at = page(at, "places")
     at = page(at, "evaluation")
     assert_clean(at)
-    assert at.radio(key="w_protocol").value == "traversal"  # was "paper"
+    assert at.radio(key="w_protocol").value == "traversal"
     assert at.multiselect(key="w_database").value == ["day"] and at.selectbox(key="w_eval_query").value == "night"
     assert subheaders(at)[0].startswith("traversal")
     ev = run_protocol(Protocol.TRAVERSAL, demo, make_places(demo, DEMO_SPEC), demo_pixels, database=["day"],
@@ -133,6 +134,42 @@ def test_results_follow_a_changed_view_not_the_old_run(app, demo, demo_pixels):
     ev = run_protocol(Protocol.TRAVERSAL, demo, make_places(demo, spec), demo_pixels, database=["day"],
                       queries="night")
     np.testing.assert_allclose(at.dataframe[0].value["R@1"], [100 * r.recall[1][0] for r in ev.rows])
+
+
+@pytest.mark.parametrize("query, database, tolerance", [("snow", None, 0), ("night", ("day",), 1),
+                                                      ("day", ("snow", "night"), 2)])
+def test_the_database_queries_table_of_aligned_traversals_is_the_traversal_protocol(demo, demo_pixels, query,
+                                                                                    database, tolerance):
+    """What the page runs for the traversal protocol (``evaluate_retrieval`` on the value, ``cache.queries_evaluation``)
+    is ``pipeline.run_protocol("traversal")``: the same rows and the same precision–recall curves."""
+    value = database_queries(demo, query, database, tolerance)
+    rows = value_rows(value)
+    ev = evaluate_retrieval(value, demo_pixels if rows is None else demo_pixels[rows], spec=DEMO_SPEC, pr=True)
+    want = run_protocol(Protocol.TRAVERSAL, demo, make_places(demo, DEMO_SPEC), demo_pixels, queries=query,
+                        database=database or tuple(t for t in demo.traversals if t != query), tolerance=tolerance,
+                        pr=True)
+    assert ev.same_numbers(want) and [r.key for r in ev.rows] == [r.key for r in want.rows]
+    assert [(r.key, r.auc, r.max_f1) for r in ev.pr] == [(r.key, r.auc, r.max_f1) for r in want.pr]
+
+
+def test_the_traversal_table_on_the_page_is_the_traversal_protocol(app, demo, demo_pixels, downloads):
+    at = page(app.run(), "evaluation")
+    at = run_form(at, w_protocol="traversal", w_database=["night", "day"], w_eval_query="snow", w_tolerance=2,
+                  w_pr="on")
+    assert_clean(at)
+    ev = run_protocol(Protocol.TRAVERSAL, demo, make_places(demo, DEMO_SPEC), demo_pixels, database=["night", "day"],
+                      queries="snow", tolerance=2, pr=True)
+    table = at.dataframe[0].value
+    assert list(table["method"]) == [r.label for r in ev.rows]
+    for k in ev.ks:
+        np.testing.assert_allclose(table[f"R@{k}"], [100 * r.recall[k][0] for r in ev.rows])
+    np.testing.assert_allclose(table["accepted"], [100 * r.accepted[0] for r in ev.rows])
+    np.testing.assert_allclose(frame(at, "curve").value["AUC"], [r.auc for r in ev.pr])
+    assert any("database: night + day (120 images) · queries: snow (60)" in c.value for c in at.caption)
+    served = json.loads(downloads(next(b for b in at.get("download_button") if b.proto.label == "Download JSON")))
+    assert served["protocol"] == "traversal" and [m["key"] for m in served["methods"]] == [r.key for r in ev.rows]
+    kept = at.session_state["eval_kept_runs"][-1].settings
+    assert (kept["protocol"], kept["database"], kept["query"]) == ("traversal", "night+day", "snow")
 
 
 # --------------------------------------------------------------------------- precision–recall

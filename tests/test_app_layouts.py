@@ -22,16 +22,21 @@ from test_app import assert_clean, figure, fresh_caches, metric, navigation_mode
 from vpr_explorer.app import ENTRY
 from vpr_explorer.descriptors.imported import write_descriptor_file
 from vpr_explorer.data.example_layouts import utm_name, write_gardens_point_layouts
+from vpr_explorer.data.aligned import database_queries
 from vpr_explorer.pipeline import dataset_descriptors, evaluate_retrieval, open_dataset
 from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec
 from vpr_explorer.views.database_queries import (
     DEFAULT_GROUP_M,
     DEFAULT_STEP_M,
     RetrievalPlaces,
+    database_label,
     explain_query,
     find_query,
     fit_retrieval,
+    image_answer,
     overview,
+    place_detail,
+    place_queries,
     query_label,
 )
 from vpr_explorer.views.traversal import evaluation_rows
@@ -182,13 +187,13 @@ def test_every_layout_opens_with_its_ground_truth(layouts, layout, says):
 
 
 def test_a_big_protocol_waits_for_run(layouts, npz, monkeypatch):
-    from vpr_explorer.app.ui import retrieval_eval
+    from vpr_explorer.views import traversal
 
-    monkeypatch.setattr(retrieval_eval, "AUTO_RUN_PAIRS", 1000)  # GardensPoint's 200 × 200 counts as big
+    monkeypatch.setattr(traversal, "AUTO_RUN_PAIRS", 1000)  # GardensPoint's 200 × 200 counts as big
     at = page(opened(layouts["database-queries"], npz), "evaluation")
     assert_clean(at)
     assert not at.dataframe and any("does not start by itself" in i.value for i in at.info)
-    at.button(key="w_retrieval_run").click().run()
+    at.button(key="w_run").click().run()
     assert_clean(at)
     assert at.dataframe and at.dataframe[0].value["method"].tolist()[0] == "image-level baseline"
     page(at, "places")
@@ -386,7 +391,48 @@ def test_a_click_on_a_query_selects_it(layouts, npz, dq):
     assert any(query_label(dq, 42) in md.value for md in at.markdown)
     at.button(key="w_map_inspect").click().run()
     assert_clean(at)
-    assert at.title[0].value == "Query inspector" and at.number_input(key="w_query_number").value == 42
+    assert at.title[0].value == "Query inspector" and at.number_input(key="w_frame_number").value == 42
+
+
+# --------------------------------------------------------------------------- thresholds
+
+
+def test_the_thresholds_page_shows_the_librarys_place_detail(layouts, npz, dq, dq_effnet):
+    at = page(opened(layouts["database-queries"], npz, place=7), "thresholds")
+    assert_clean(at)
+    f = fit_retrieval(dq_effnet, dq, places())
+    d = place_detail(f, dq_effnet, 7)
+    assert len(d.query_images) and set(d.query_images - dq.n_database) == {
+        q for q in range(dq.n_queries) if f.right_places([q])[0, 7]}
+    spec = figure(at, "mixture")
+    assert trace(spec, "θ_p weighted")["x"][0] == pytest.approx(f.model.theta["weighted"][7])
+    assert trace(spec, "global θ, automatic")["x"][0] == pytest.approx(f.model.auto)
+    raw = trace(spec, "query_raw")
+    np.testing.assert_array_equal(raw["customdata"], d.query_images)
+    np.testing.assert_allclose(raw["x"], d.query_raw)
+    for label, value in (("negative scores ≥ θ_p weighted", d.share_negatives_above(d.theta["weighted"])),
+                         ("same-place scores < θ_p weighted", d.share_positives_below(d.theta["weighted"])),
+                         ("own queries dropped at θ_p(k=0)", d.share_queries_below(d.theta["weighted"]))):
+        assert metric(at, label) == ("—" if np.isnan(value) else f"{value:.0%}"), label
+    assert any(f"**Place 7**: {len(d.images)} database images and {len(d.query_images)} queries" in md.value
+               for md in at.markdown)
+    captions = image_captions(at)
+    assert captions[:len(d.images)] == [f"{database_label(dq, i)} (database)" for i in d.images]
+    assert captions[len(d.images):] == [f"{query_label(dq, i - dq.n_database)} (query, raw_p {r:.3f})"
+                                        for i, r in zip(d.query_images, d.query_raw)]
+
+
+def test_a_place_without_queries_shows_dashes(data_root, tmp_path):
+    root = unknown_layout(tmp_path / "open_set", data_root / "GardensPointWalking", range(150, 200))
+    at = page(opened(root, descriptor="pixels"), "thresholds")
+    assert_clean(at)
+    ds = open_dataset(root)
+    f = fit_retrieval(np.asarray(dataset_descriptors(ds, "pixels")), ds, places())
+    lonely = next(p for p in range(f.n_places) if not len(place_queries(f, p)))  # its queries were moved away
+    at.selectbox(key="w_place").set_value(lonely).run()
+    assert_clean(at)
+    assert metric(at, "own queries dropped at θ_p(k=0)") == "—"
+    assert any(f"**Place {lonely}**" in md.value and "and 0 queries" in md.value for md in at.markdown)
 
 
 # --------------------------------------------------------------------------- query inspector
@@ -399,7 +445,7 @@ def test_the_inspector_opens_a_rejected_query_with_its_right_place(layouts, npz,
     assert_clean(at)
     f = fit_retrieval(dq_effnet, dq, places())
     found, _ = find_query(f, dq_effnet, after=0, kind="rejected", method="margin-weighted")
-    assert at.number_input(key="w_query_number").value == found == at.slider(key="w_query_image").value
+    assert at.number_input(key="w_frame_number").value == found == at.slider(key="w_frame").value
     dec = explain_query(f, dq_effnet, found)
     assert dec.answer("margin-weighted") == -1
     right = f.right_places([found])[0]
@@ -415,7 +461,7 @@ def test_the_inspector_finds_a_query_by_its_file_name(layouts, npz, dq):
     at = page(opened(layouts["database-queries"], npz), "inspector")
     at.text_input(key="w_query_name").input(Path(dq.query_paths[17]).name).run()
     assert_clean(at)
-    assert at.number_input(key="w_query_number").value == 17
+    assert at.number_input(key="w_frame_number").value == 17
     at.text_input(key="w_query_name").input("no-such-image.jpg").run()
     assert_clean(at, errors=True)
     assert "query file name 'no-such-image.jpg': no query image" in errors(at)
@@ -489,18 +535,43 @@ def test_the_evaluation_page_runs_the_database_queries_protocol(layouts, npz, dq
     np.testing.assert_allclose(bars["y"], [r.recall[1][0] for r in ev.rows])
 
 
+def test_the_protocols_of_aligned_traversals_are_refused_by_name(layouts, npz, dq, dq_effnet):
+    from vpr_explorer.protocols.evaluation import PROTOCOL_LABELS, Protocol
+
+    at = page(opened(layouts["database-queries"], npz, eval_protocol="paper", eval_runs=3), "evaluation")
+    assert_clean(at)
+    said = [w.value for w in at.warning]
+    assert any("eval_protocol='paper': the random split needs aligned traversals ('database-queries' is read in "
+               "the database-queries layout); using the default (database-queries)" in w for w in said), said
+    assert any(w.startswith("eval_runs='3': applies to aligned traversals") for w in said), said
+    assert at.radio(key="w_protocol").options == [PROTOCOL_LABELS[Protocol.DATABASE]]
+    assert at.radio(key="w_protocol").value == "database-queries"
+    assert at.query_params["eval_protocol"] == "database-queries" and "eval_runs" not in at.query_params
+    ev = evaluate_retrieval(dq, dq_effnet, metric=places().metric)
+    assert at.dataframe[0].value["R@1"].tolist() == pytest.approx([r["R@1"] for r in evaluation_rows(ev)])
+    at = page(opened(layouts["database-queries"], npz, eval_protocol="traversal"), "evaluation")  # the same protocol
+    assert_clean(at)
+    assert not any("eval_protocol" in w.value for w in at.warning)
+    assert at.radio(key="w_protocol").value == "database-queries"
+
+
 # --------------------------------------------------------------------------- the traversal pages' fixes
 
 
-def test_the_traversal_inspector_has_a_frame_entry_and_names_images_by_frame():
+def test_the_traversal_inspector_has_a_frame_entry_and_names_images_by_frame(demo, demo_pixels):
     at = AppTest.from_file(str(ENTRY), default_timeout=TIMEOUT).run()
     at = page(at, "inspector")
     at.number_input(key="w_frame_number").set_value(31).run()
     assert_clean(at)
     assert at.slider(key="w_frame").value == 31 and at.query_params["frame"] == "31"
-    assert "query: snow · frame 31" in image_captions(at)
+    assert "query 31: snow · frame 31" in image_captions(at)
+    value = database_queries(demo)  # snow queries, day + night database: the traversals' own order
+    answer = image_answer(value, demo_pixels, 31)
+    assert database_label(value, answer.image) in ("day · frame 31", "night · frame 31")  # the same spot
     text = " ".join(md.value for md in at.markdown) + " ".join(c.value for c in at.caption)
-    assert "accepted as image" not in text and "accepted as day · frame" in text or "accepted as night · frame" in text
+    assert f"its most similar database image is {database_label(value, answer.image)}" in text
+    assert "Right database images: day · frame 31, night · frame 31." in text
+    assert "accepted as image" not in text
 
 
 def test_the_traversal_places_page_offers_to_move_step_along():
@@ -515,10 +586,7 @@ def test_the_traversal_places_page_offers_to_move_step_along():
 
 
 def test_pages_that_show_traversals_only_say_where_the_layout_opens(layouts, npz):
-    at = page(opened(layouts["database-queries"], npz), "thresholds")
-    assert_clean(at, errors=True)
-    assert "database-queries layout" in errors(at) and "**Query inspector**" in errors(at)
-    at = page(at, "playback")
+    at = page(opened(layouts["database-queries"], npz), "playback")
     assert_clean(at, errors=True)
     assert "database-queries layout" in errors(at)
 

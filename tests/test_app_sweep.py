@@ -1,5 +1,6 @@
-"""The Group/step sweep page under Streamlit's AppTest: a link's settings, a refused one, bad form input, and a
-large dataset that waits for the button (``tests/test_browser_sweep.py`` clicks a cell in Chromium)."""
+"""The Group/step sweep page under Streamlit's AppTest: a link's settings, a refused one, bad form input, a
+large dataset that waits for the button, and the database/queries layouts GardensPoint is written in (frames,
+metres along the route, places the layout names) (``tests/test_browser_sweep.py`` clicks a cell in Chromium)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,9 @@ import pytest
 import streamlit as st
 from streamlit.testing.v1 import AppTest
 
+from test_app import decode
 from vpr_explorer.app import ENTRY, PAGES
+from vpr_explorer.method.places import MetricPlaceSpec, PlaceSpec
 
 pytestmark = pytest.mark.realdata
 
@@ -85,3 +88,63 @@ def test_a_large_sweep_states_its_cost_and_waits_for_the_button(data_root):
     assert any("does not start by itself" in w.value and "image pairs" in w.value for w in at.warning)
     assert any("1 cell, 1 with valid places, 1 protocol run to do on 7,152 images" in c.value for c in at.caption)
     assert not at.get("plotly_chart")  # nothing ran
+
+
+# --------------------------------------------------------------------------- the layouts GardensPoint is written in
+
+
+@pytest.fixture(scope="module")
+def layouts(data_root, tmp_path_factory):
+    from vpr_explorer.data.example_layouts import write_gardens_point_layouts
+
+    return write_gardens_point_layouts(data_root / "GardensPointWalking", tmp_path_factory.mktemp("sweep_page"))
+
+
+def heat(at: AppTest, reading: str) -> dict:
+    spec = json.loads(chart(at, f"sweep_{reading}").proto.spec)
+    return {"values": next(t for t in spec["data"] if t.get("meta") == "values"), "layout": spec["layout"]}
+
+
+@pytest.mark.parametrize("layout, params, places", [
+    ("vpr-bench", {"sweep_groups": "3 2", "sweep_steps": "5 10"}, lambda g, s: {"spec": PlaceSpec(g, s)}),
+    ("database-queries", {"sweep_groups": "25 50.5", "sweep_steps": "100"},
+     lambda g, s: {"metric": MetricPlaceSpec(g, s, "stride", "route")}),
+])
+def test_a_database_queries_layout_sweeps_the_database_queries_protocol(layouts, layout, params, places):
+    """Frames where the layout has no positions, metres along the route (its default geometry) where it has:
+    every heatmap cell is the database/queries protocol's R@1 of those places."""
+    from vpr_explorer.pipeline import dataset_descriptors, evaluate_retrieval, open_dataset
+
+    at = sweep_page({"source": str(layouts[layout]), "descriptor": "pixels", "sweep_readings": "stride", **params})
+    assert not at.exception and not at.error, [e.value for e in at.exception]
+    assert at.radio(key="w_sweep_protocol").value == "database-queries"
+    assert len(at.radio(key="w_sweep_protocol").options) == 1
+    assert any("no unknown-place query" in c.value for c in at.caption)  # why the rejection grid is empty
+    value = open_dataset(layouts[layout])
+    d = dataset_descriptors(value, "pixels")
+    shown = heat(at, "stride")
+    unit = "frames" if "spec" in places(1, 1) else "m"
+    assert shown["layout"]["xaxis"]["title"]["text"] == f"step ({unit})"
+    z = decode(shown["values"]["z"])
+    for i, g in enumerate(shown["values"]["y"]):
+        for j, s in enumerate(shown["values"]["x"]):
+            g_, s_ = (float(x) if "." in x else int(x) for x in (g, s))
+            ev = evaluate_retrieval(value, d, **places(g_, s_))
+            assert z[i][j] == pytest.approx(100 * ev.row("place-baseline").recall[1][0], abs=1e-9), (g, s)
+
+
+def test_a_link_to_a_protocol_of_aligned_traversals_is_refused_by_name(layouts):
+    at = sweep_page({"source": str(layouts["vpr-bench"]), "descriptor": "pixels", "sweep_groups": "2",
+                     "sweep_steps": "5", "sweep_protocol": "paper", "sweep_readings": "stride"})
+    assert not at.exception and not at.error
+    assert any("sweep_protocol='paper'" in w.value and "it needs aligned traversals" in w.value for w in at.warning)
+    got = at.query_params["sweep_protocol"]
+    assert (got[0] if isinstance(got, list) else got) == "database-queries"
+    assert len(at.get("plotly_chart")) == 1
+
+
+def test_places_the_layout_names_leave_nothing_to_sweep(layouts):
+    at = sweep_page({"source": str(layouts["manifest"]), "descriptor": "pixels"})
+    assert not at.exception and not at.error
+    assert any("Group/step do not apply: the layout names its places" in i.value for i in at.info)
+    assert not at.get("plotly_chart")

@@ -142,7 +142,7 @@ def test_walk_gardens_point_in_a_real_browser(browser, data_root, gp_effnet):
 
         # Places: the paper's group 3 / step 10 gives 20 places; move both sliders and back.
         go(page, "Places")
-        assert metric(page, "places") == "20" and metric(page, "images per place") == "9"
+        assert metric(page, "places") == "20" and metric(page, "database images per place") == "6"
         press(page, slider(page, "group: frames per place"), "ArrowRight")  # group 4
         press(page, slider(page, "step: frames from one place"), "ArrowLeft", 2)  # step 8
         assert_no_exception(page, "places after slider moves")

@@ -1,8 +1,9 @@
-"""Two of the walk-through's defects (issue 12 §4), walked in Debian's Chromium against ``streamlit run app.py``.
+"""Two defects a walk-through found, walked in Debian's Chromium against ``streamlit run app.py``.
 
 - Nordland 64x32, winter frame 0: the margin rule answers a place far down the raw_p
   order; every method's chart in the Query inspector must still carry its answer
-  (outlined) and the right place (starred). Expected from ``explain_query`` directly.
+  (outlined) and the right place (starred). Expected from ``database_queries.explain_query``
+  on the dataset value directly.
 - Playback: a recorded frame opens in the Query inspector on the same query traversal
   and frame.
 """
@@ -18,10 +19,11 @@ import pytest
 from streamlit_server import streamlit_server
 from test_browser import assert_no_exception, browser, settle  # noqa: F401  (browser: the fixture)
 
-from vpr_explorer.method.database import explain_query
-from vpr_explorer.method.places import PlaceSpec
+from vpr_explorer.data.aligned import database_queries, value_rows
+from vpr_explorer.method.places import PlaceGeometry, PlaceSpec
 from vpr_explorer.method.retrieval import METHODS_BY_KEY
-from vpr_explorer.views.traversal import LIVE_METHODS, fit
+from vpr_explorer.views.database_queries import RetrievalPlaces, explain_query, fit_retrieval
+from vpr_explorer.views.traversal import LIVE_METHODS
 
 pytestmark = [pytest.mark.browser, pytest.mark.realdata]
 sync_api = pytest.importorskip("playwright.sync_api")
@@ -53,8 +55,11 @@ def charts(page) -> dict[str, dict]:
 
 def test_nordland_inspector_bars_carry_every_answer(browser, data_root, nordland_pixels):
     ds, d = nordland_pixels
-    f = fit(d, ds, PlaceSpec(3, 10), "winter")
-    dec = explain_query(f.model, d, ds, f.places, ds.image_index("winter", 0))
+    value = database_queries(ds, "winter")  # the app's value: summer against winter, query q is winter frame q
+    rows = value_rows(value)
+    d = d if rows is None else d[rows]
+    f = fit_retrieval(d, value, RetrievalPlaces(PlaceGeometry.FRAMES, spec=PlaceSpec(3, 10)))
+    dec = explain_query(f, d, 0)
     assert dec.answer("margin-weighted") not in np.argsort(-dec.raw, kind="stable")[:8]  # the case at issue
     source = quote(str(data_root / "Nordland_64x32"))
     with streamlit_server("app.py") as url:

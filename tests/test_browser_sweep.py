@@ -3,7 +3,8 @@
 Opens the sweep page from a link carrying the sweep's settings, runs a small sweep from
 the form (pixel descriptors, the traversal protocol: one run a cell), switches the
 metric, clicks a heatmap cell of the skip reading, and checks that group/step and the
-reading moved into the URL and onto the Places page. Saves ``sweep.png`` (the README's
+reading moved into the URL and onto the Places page. Then the same on GardensPoint as a
+database/queries layout, whose sweep is of metres along its route. Saves ``sweep.png`` (the README's
 screenshot with ``VPR_EXPLORER_SCREENSHOTS=docs``, as ``tests/test_browser.py``).
 """
 
@@ -82,4 +83,29 @@ def test_sweep_click_sets_group_and_step_everywhere(browser, data_root, gp_pixel
         assert metric(page, "places") == str((200 - 3) // 9 + 1)  # skip 3/6: a place every 9 frames
         assert page.get_by_text("— in use").count() == 1
         assert param(page, "group") == "3" and param(page, "step") == "6" and param(page, "reading") == "skip"
+        assert not errors, errors
+
+
+def test_sweep_of_metres_on_a_database_queries_layout_sets_metres(browser, data_root, tmp_path):
+    """GardensPoint as database/ + queries/ with positions: the sweep runs the database/queries protocol over
+    group/step in metres along the route (the layout's default geometry), and a click sets group_m/step_m."""
+    from vpr_explorer.data.example_layouts import write_gardens_point_layouts
+
+    source = write_gardens_point_layouts(data_root / "GardensPointWalking", tmp_path)["database-queries"]
+    with streamlit_server("app.py") as url:
+        page = browser.new_page(viewport={"width": WIDTH, "height": 1100})
+        errors: list[str] = []
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+        page.goto(f"{url}/sweep?source={quote(str(source))}&descriptor=pixels&sweep_groups=25+50"
+                  "&sweep_steps=100+200&sweep_readings=stride")
+        shown(page, "In use: group 25 m, step 100 m (stride)")
+        assert_no_exception(page, "sweep of metres from a link")
+        assert page.get_by_text("4 cells, 4 with valid places, 4 protocol runs").count() == 1
+        chart = page.locator('[data-testid="stPlotlyChart"]').first
+        click_plot_point(page, chart, 1, 1)  # category axes: step 200 is column 1, group 50 row 1
+        settle(page)
+        assert_no_exception(page, "sweep of metres after a cell click")
+        assert float(param(page, "group_m")) == 50 and float(param(page, "step_m")) == 200
+        assert param(page, "reading") is None and param(page, "sweep_groups") == "25+50"  # stride: the default
+        assert page.get_by_text("group 50 m, step 200 m (stride reading) is now in use on every page").count() == 1
         assert not errors, errors

@@ -35,8 +35,8 @@ from vpr_explorer.method.database import (
     explain_query,
     query_verdict,
 )
-from vpr_explorer.protocols.evaluation import traversal_protocol
-from vpr_explorer.pipeline import dataset_descriptors
+from vpr_explorer.protocols.options import ProtocolOptions
+from vpr_explorer.pipeline import dataset_descriptors, run_protocol
 from vpr_explorer.method.places import BETWEEN_PLACES_RULE, PlaceSpec, between_places, right_places
 from vpr_explorer.recording import TITLE_CHARS, _summary, frame_verdicts, playback_blueprint
 from vpr_explorer.views.traversal import LIVE_METHODS, fit, place_detail, regroup, similarity_grid, top_candidates
@@ -132,9 +132,8 @@ def test_every_page_scores_the_same_frames_the_same_way(gardens_point, gp_pixels
     expected = between_places(right_places(np.arange(ds.n_frames), f.places.frame_place, tolerance))
     assert 0 < expected.sum() < ds.n_frames
     rec = decide_traversal(f.model, gp_pixels, ds, f.places, f.query, tolerance=tolerance)
-    ev = traversal_protocol(gp_pixels, f.places.image_place, ds.image_traversal, ds.image_frame,
-                            f.places.frame_place, database=[ds.traversal_index(t) for t in f.database], query=q,
-                            tolerance=tolerance)
+    ev = run_protocol("traversal", ds, f.places, gp_pixels,
+                      ProtocolOptions(database=f.database, queries=f.query, tolerance=tolerance))
     assert ev.settings["queries_between_places"] == int(expected.sum())
     assert ev.settings["queries_scored"] == int((~expected).sum())
     for key in ("margin-weighted", "place-baseline"):

@@ -10,9 +10,10 @@ from vpr_explorer.protocols.evaluation import (
     oracle_global_threshold,
     open_set_protocol,
     paper_protocol,
+    retrieval_protocol,
     run_split,
-    traversal_protocol,
 )
+from vpr_explorer.protocols.options import RUNS, ProtocolOptions
 from vpr_explorer.method.places import PlaceSpec, make_places
 from vpr_explorer.method.retrieval import similarity
 
@@ -56,7 +57,7 @@ def _reference_recall(d, labels, trav, n_places, splits, rule, theta_name, ks=(1
 ])
 def test_paper_protocol_equals_loop_reference(key, rule, theta):
     d, labels, trav = _synthetic()
-    ev = paper_protocol(d, labels, trav, 12, runs=6, seed=3)
+    ev = paper_protocol(d, labels, trav, 12, ProtocolOptions(runs=6, seed=3))
     splits = draw_splits(labels, 12, runs=6, seed=3)
     mean, std = _reference_recall(d, labels, trav, 12, splits, rule, theta)
     row = ev.row(key)
@@ -66,7 +67,7 @@ def test_paper_protocol_equals_loop_reference(key, rule, theta):
 
 def test_open_set_known_recall_equals_loop_reference():
     d, labels, trav = _synthetic(seed=1)
-    ev = open_set_protocol(d, labels, trav, 12, runs=5, seed=2, unknown_share=0.25, k_grid=(0.0, 1.0))
+    ev = open_set_protocol(d, labels, trav, 12, ProtocolOptions(runs=5, seed=2, unknown_share=0.25, k_grid=(0.0, 1.0)))
     splits = draw_splits(labels, 12, runs=5, seed=2, unknown_share=0.25)
     assert all(sp.unknown.sum() == 3 for sp in splits)
     mean, _ = _reference_recall(d, labels, trav, 12, splits, "margin", "weighted")
@@ -84,14 +85,38 @@ def test_splits_hold_out_one_query_per_place_and_never_train_on_it():
     a = draw_splits(labels, 5, runs=3, seed=7)
     b = draw_splits(labels, 5, runs=3, seed=7)
     assert all(np.array_equal(x.queries, y.queries) for x, y in zip(a, b))
-    assert any(not np.array_equal(x.queries, y.queries) for x, y in zip(a, draw_splits(labels, 5, runs=3, seed=8)))
+    c = draw_splits(labels, 5, runs=3, seed=8)
+    assert any(not np.array_equal(x.queries, y.queries) for x, y in zip(a, c))
 
 
-def test_seed_out_of_range_is_named():
-    labels = np.repeat(np.arange(5), 3)
-    for seed in (-1, 2**63, 1.5):
-        with pytest.raises(VPRInputError, match="seed="):
-            draw_splits(labels, 5, runs=1, seed=seed)
+@pytest.mark.parametrize("field, value, fragments", [
+    ("seed", -1, ["seed=-1", "0 or more"]),
+    ("seed", 2**63, [f"seed={2**63}", "or less"]),
+    ("seed", 1.5, ["seed=1.5", "whole number"]),
+    ("runs", 0, ["runs=0", "1 or more"]),
+    ("runs", 1001, ["runs=1001", "1,000 or less", f"the paper uses {RUNS}"]),
+    ("unknown_share", 1.5, ["unknown_share=1.5", "between 0 and 1"]),
+    ("k_grid", (), ["k: give at least one value"]),
+    ("k_grid", (0.0, float("nan")), ["k=nan", "finite"]),
+    ("ks", (1, 0), ["ks=0", "K >= 1"]),
+    ("user_theta", float("inf"), ["theta=inf", "finite"]),
+    ("tolerance", -1, ["tolerance=-1", "0 or more"]),
+    ("block", 0, ["block=0", "1 or more"]),
+    ("threads", 0, ["threads=0", "1 or more"]),
+])
+def test_options_are_checked_once_when_made_naming_the_field(field, value, fragments):
+    with pytest.raises(VPRInputError) as err:
+        ProtocolOptions(**{field: value})
+    assert all(f in str(err.value) for f in fragments), str(err.value)
+
+
+def test_options_read_back_in_their_normal_form():
+    o = ProtocolOptions(k_grid=[0, 1], ks=[1, 5], database="day", user_theta=1, threads=None)
+    assert (o.k_grid, o.ks, o.database, o.user_theta) == ((0.0, 1.0), (1, 5), ("day",), 1.0)
+    assert isinstance(o.threads, int) and o.threads >= 1
+    assert o == ProtocolOptions(k_grid=(0.0, 1.0), ks=(1, 5), database=("day",), user_theta=1.0, threads=o.threads)
+    assert ProtocolOptions().runs == RUNS == 50  # the paper's R
+    hash(o)  # a cache key
 
 
 def test_unknown_places_leave_training_entirely():
@@ -120,11 +145,11 @@ def test_thresholds_come_from_training_only():
 
 def test_cross_condition_never_matches_own_traversal():
     d, labels, trav = _synthetic(seed=3)
-    ev = paper_protocol(d, labels, trav, 12, runs=5, seed=0, cross_condition=True)
+    ev = paper_protocol(d, labels, trav, 12, ProtocolOptions(runs=5, seed=0, cross_condition=True))
     for r in ev.rows:
         if r.own_traversal is not None and not np.isnan(r.own_traversal[0]):
             assert r.own_traversal[0] == 0.0
-    plain = paper_protocol(d, labels, trav, 12, runs=5, seed=0)
+    plain = paper_protocol(d, labels, trav, 12, ProtocolOptions(runs=5, seed=0))
     assert plain.row("place-baseline").own_traversal[0] > 0
 
 
@@ -140,7 +165,7 @@ def test_oracle_global_threshold_hand_case():
 
 def test_open_set_tradeoff_is_monotone_in_k():
     d, labels, trav = _synthetic(seed=4, noise=1.2)
-    ev = open_set_protocol(d, labels, trav, 12, runs=8, seed=0, k_grid=(-1, 0, 1, 2, 3))
+    ev = open_set_protocol(d, labels, trav, 12, ProtocolOptions(runs=8, seed=0, k_grid=(-1, 0, 1, 2, 3)))
     rows = [t for t in ev.tradeoff if t.series == "θ_p(k) weighted" and t.rule == "margin"]
     rejection = [t.unknown_rejection[0] for t in rows]
     accepted = [t.accepted[0] for t in rows]
@@ -151,22 +176,23 @@ def test_open_set_tradeoff_is_monotone_in_k():
 def test_bad_parameters():
     d, labels, trav = _synthetic()
     with pytest.raises(VPRInputError, match="runs=0"):
-        paper_protocol(d, labels, trav, 12, runs=0)
-    with pytest.raises(VPRInputError, match="unknown share 1.5"):
-        open_set_protocol(d, labels, trav, 12, runs=1, unknown_share=1.5)
+        paper_protocol(d, labels, trav, 12, ProtocolOptions(runs=0))
+    with pytest.raises(VPRInputError, match="unknown_share=1.5"):
+        open_set_protocol(d, labels, trav, 12, ProtocolOptions(runs=1, unknown_share=1.5))
     single = np.arange(12)  # one image per place
     with pytest.raises(VPRInputError, match="have a single image"):
-        paper_protocol(d[:12], single, trav[:12], 12, runs=1)
+        paper_protocol(d[:12], single, trav[:12], 12, ProtocolOptions(runs=1))
     with pytest.raises(VPRInputError, match="3 rows"):
-        paper_protocol(d[:3], labels, trav, 12, runs=1)
+        paper_protocol(d[:3], labels, trav, 12, ProtocolOptions(runs=1))
     with pytest.raises(VPRInputError, match="cross_condition needs at least 2 traversals"):
-        paper_protocol(d, labels, np.zeros_like(trav), 12, runs=1, cross_condition=True)
+        paper_protocol(d, labels, np.zeros_like(trav), 12, ProtocolOptions(runs=1, cross_condition=True))
 
 
 @pytest.mark.realdata
 def test_gardens_point_paper_protocol_effnet(gardens_point, gp_effnet):
     places = make_places(gardens_point, PlaceSpec(3, 10))
-    ev = paper_protocol(gp_effnet, places.image_place, gardens_point.image_traversal, places.n_places, runs=50)
+    ev = paper_protocol(gp_effnet, places.image_place, gardens_point.image_traversal, places.n_places,
+                        ProtocolOptions(runs=50))
     r1 = {r.key: r.recall[1][0] for r in ev.rows}
     print({k: round(v, 3) for k, v in r1.items()})
     assert ev.settings["queries_per_run"] == 20
@@ -180,20 +206,49 @@ def test_gardens_point_paper_protocol_effnet(gardens_point, gp_effnet):
 @pytest.mark.realdata
 def test_gardens_point_traversal_protocol_effnet(gardens_point, gp_effnet):
     # every frame its own place, ±2 frames: the retrieval figure quoted for this descriptor (about 0.6)
+    from vpr_explorer.pipeline import run_protocol
+
     places = make_places(gardens_point, PlaceSpec(1, 1))
-    ev = traversal_protocol(gp_effnet, places.image_place, gardens_point.image_traversal, gardens_point.image_frame,
-                            places.frame_place, database=[1], query=2, tolerance=2)
+    ev = run_protocol("traversal", gardens_point, places, gp_effnet,
+                      ProtocolOptions(database=["day_right"], queries="night_right", tolerance=2))
     r1 = ev.row("image-baseline").recall[1][0]
     print("night_right -> day_right R@1 (±2):", r1)
     assert 0.45 < r1 < 0.8
     assert ev.settings["queries_scored"] == 200
 
 
+@pytest.mark.realdata
+@pytest.mark.parametrize("spec, tolerance, database", [
+    (PlaceSpec(3, 10), 0, ("day_right",)), (PlaceSpec(3, 3), 2, ("day_left", "day_right")),
+])
+def test_the_traversal_protocol_is_the_database_queries_protocol_on_the_value(gardens_point, gp_pixels, spec,
+                                                                              tolerance, database):
+    """Its table is ``retrieval_protocol``'s on the value's rows; its settings name the traversals, as they did."""
+    from vpr_explorer.data.aligned import database_queries, value_rows
+    from vpr_explorer.pipeline import run_protocol
+
+    places = make_places(gardens_point, spec)
+    options = ProtocolOptions(database=database, queries="night_right", tolerance=tolerance)
+    ev = run_protocol("traversal", gardens_point, places, gp_pixels, options)
+    value = database_queries(gardens_point, query="night_right", database=database, tolerance=tolerance)
+    rows = value_rows(value)
+    d = gp_pixels if rows is None else gp_pixels[rows]
+    want = retrieval_protocol(d[:value.n_database], d[value.n_database:], places.frame_place[value.database_frame],
+                              places.n_places, value.ground_truth, options)
+    assert ev.protocol.value == "traversal" and ev.same_numbers(want) and ev.notes == want.notes
+    between = int(sum(places.frame_place[max(0, f - tolerance):f + tolerance + 1].max() < 0 for f in range(200)))
+    assert {k: ev.settings[k] for k in ("database", "queries", "tolerance", "queries_scored",
+                                        "queries_between_places")} == {
+        "database": list(database), "queries": "night_right", "tolerance": tolerance,
+        "queries_scored": 200 - between, "queries_between_places": between}
+    assert "ground_truth" not in ev.settings and ev.settings["places"].endswith(")")
+
+
 def test_to_dict_is_strict_json_when_nothing_is_accepted():
     import json
 
     d, labels, trav = _synthetic(seed=5)
-    ev = open_set_protocol(d, labels, trav, 12, runs=2, seed=0, user_theta=2.0, k_grid=(0.0,))
+    ev = open_set_protocol(d, labels, trav, 12, ProtocolOptions(runs=2, seed=0, user_theta=2.0, k_grid=(0.0,)))
     assert np.isnan(ev.row("global-user").precision[0])  # θ above every score: nothing accepted
     data = json.loads(json.dumps(ev.to_dict(), allow_nan=False))
     user = next(m for m in data["methods"] if m["key"] == "global-user")
@@ -206,9 +261,9 @@ def test_same_numbers_compares_every_row_exactly_with_nan_equal_to_nan():
     import dataclasses
 
     d, labels, trav = _synthetic(seed=5)
-    ev = paper_protocol(d, labels, trav, 12, runs=2, seed=0, user_theta=2.0)
+    ev = paper_protocol(d, labels, trav, 12, ProtocolOptions(runs=2, seed=0, user_theta=2.0))
     assert np.isnan(ev.row("global-user").precision[0])  # nothing accepted: NaN equals NaN
-    again = paper_protocol(d, labels, trav, 12, runs=2, seed=0, user_theta=2.0)
+    again = paper_protocol(d, labels, trav, 12, ProtocolOptions(runs=2, seed=0, user_theta=2.0))
     assert ev.same_numbers(again)
     first = ev.rows[0]
     nudged = dataclasses.replace(first, recall={**first.recall, 1: (first.recall[1][0] + 1e-12, first.recall[1][1])})
@@ -238,7 +293,7 @@ def test_pooled_truth_hand_case_is_symmetric():
     lab = np.flatnonzero(gap >= 0)
     assert pooled_truth(gap[lab], lab, gap, 2, 3) is None
     with pytest.raises(VPRInputError, match="tolerance=-1"):
-        pooled_truth(image_place, image_frame, frame_place, -1, 3)
+        ProtocolOptions(tolerance=-1)
 
 
 def test_tolerance_counts_neighbouring_places_as_right(demo, demo_pixels):
@@ -247,23 +302,24 @@ def test_tolerance_counts_neighbouring_places_as_right(demo, demo_pixels):
     places = make_places(demo, PlaceSpec(3, 3))
     args = (demo_pixels, places.image_place, demo.image_traversal, places.n_places)
     frames = dict(image_frame=demo.image_frame, frame_place=places.frame_place)
-    exact = paper_protocol(*args, runs=5, seed=0)
-    loose = paper_protocol(*args, runs=5, seed=0, tolerance=2, **frames)
+    exact = paper_protocol(*args, ProtocolOptions(runs=5, seed=0))
+    loose = paper_protocol(*args, ProtocolOptions(runs=5, seed=0, tolerance=2), **frames)
     assert loose.settings["tolerance"] == 2 and exact.settings["tolerance"] == 0
     # more right places: a rank can only improve, and on this route it does
     for a, b in zip(exact.rows, loose.rows):
         assert b.recall[1][0] >= a.recall[1][0], a.key
     assert loose.row("place-baseline").recall[1][0] > exact.row("place-baseline").recall[1][0]
     # the fast path hands such a run to the straightforward protocol, and says so
-    fast = fast_paper_protocol(*args, runs=5, seed=0, tolerance=2, **frames)
+    fast = fast_paper_protocol(*args, ProtocolOptions(runs=5, seed=0, tolerance=2), **frames)
     assert fast.same_numbers(loose) and any("frame tolerance of 2" in n for n in fast.notes)
     # where places are further apart than the tolerance, nothing changes but the setting
     apart = make_places(demo, PlaceSpec(3, 10))
     args = (demo_pixels, apart.image_place, demo.image_traversal, apart.n_places)
-    fast = fast_paper_protocol(*args, runs=3, tolerance=2, image_frame=demo.image_frame, frame_place=apart.frame_place)
-    assert fast.same_numbers(paper_protocol(*args, runs=3)) and fast.settings["tolerance"] == 2
-    opened = open_set_protocol(*args, runs=3, tolerance=2, image_frame=demo.image_frame, frame_place=apart.frame_place)
-    assert opened.same_numbers(open_set_protocol(*args, runs=3))
+    frames = dict(image_frame=demo.image_frame, frame_place=apart.frame_place)
+    fast = fast_paper_protocol(*args, ProtocolOptions(runs=3, tolerance=2), **frames)
+    assert fast.same_numbers(paper_protocol(*args, ProtocolOptions(runs=3))) and fast.settings["tolerance"] == 2
+    opened = open_set_protocol(*args, ProtocolOptions(runs=3, tolerance=2), **frames)
+    assert opened.same_numbers(open_set_protocol(*args, ProtocolOptions(runs=3)))
 
 
 # --------------------------------------------------------------------------- every row against plain loops
@@ -292,19 +348,20 @@ KEYS = ("image-baseline", "place-baseline", "margin-simple", "margin-weighted", 
 @pytest.mark.parametrize("cross_condition", [False, True])
 def test_every_row_of_the_paper_protocol_equals_plain_loops(cross_condition):
     d, labels, trav = _hard()
-    ev = paper_protocol(d, labels, trav, 10, runs=6, seed=3, cross_condition=cross_condition)
+    ev = paper_protocol(d, labels, trav, 10, ProtocolOptions(runs=6, seed=3, cross_condition=cross_condition))
     r1 = ev.row("place-baseline").recall[1][0]
     assert 0.3 < r1 < 0.95, r1  # the numbers can tell a wrong rule from a right one
     margin, raw = ev.row("margin-weighted").recall[1][0], ev.row("raw-weighted").recall[1][0]
     assert margin != raw  # the margin and raw rules differ on this data
-    ref = loop_protocol(d, labels, trav, 10, draw_splits(labels, 10, runs=6, seed=3), cross_condition=cross_condition)
+    ref = loop_protocol(d, labels, trav, 10, draw_splits(labels, 10, runs=6, seed=3),
+                        cross_condition=cross_condition)
     _assert_rows_equal_loops(ev, ref, KEYS)
 
 
 def test_every_row_of_the_open_set_and_its_tradeoff_equals_plain_loops():
     d, labels, trav = _hard(seed=4)
     ks_family = (-0.5, 0.0, 2.0, 3.5)
-    ev = open_set_protocol(d, labels, trav, 10, runs=5, seed=2, unknown_share=0.3, k_grid=ks_family)
+    ev = open_set_protocol(d, labels, trav, 10, ProtocolOptions(runs=5, seed=2, unknown_share=0.3, k_grid=ks_family))
     splits = draw_splits(labels, 10, runs=5, seed=2, unknown_share=0.3)
     ref = loop_protocol(d, labels, trav, 10, splits, ks_family=ks_family)
     r1 = ev.row("place-baseline").recall[1][0]

@@ -22,6 +22,7 @@ from vpr_explorer.descriptors.imported import (
 )
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.protocols.evaluation import paper_protocol
+from vpr_explorer.protocols.options import ProtocolOptions
 from vpr_explorer.method.places import PlaceSpec, make_places
 
 pytestmark = pytest.mark.realdata
@@ -374,6 +375,6 @@ def test_paper_protocol_on_imported_descriptors_gives_the_same_numbers(tmp_path,
     got = load(write_h5(tmp_path / "d.h5", *shuffled(gp_pixels, names, perm)), gardens_point)
     places = make_places(gardens_point, PlaceSpec(3, 10))
     args = (places.image_place, gardens_point.image_traversal, places.n_places)
-    ours = paper_protocol(gp_pixels, *args, runs=3, seed=1)
-    theirs = paper_protocol(got.descriptors, *args, runs=3, seed=1)
+    ours = paper_protocol(gp_pixels, *args, ProtocolOptions(runs=3, seed=1))
+    theirs = paper_protocol(got.descriptors, *args, ProtocolOptions(runs=3, seed=1))
     assert theirs.same_numbers(ours)

@@ -16,10 +16,11 @@ import pytest
 
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.data.example_layouts import utm_name, write_gardens_point_layouts
-from vpr_explorer.protocols.evaluation import retrieval_protocol, traversal_protocol
+from vpr_explorer.protocols.evaluation import retrieval_protocol
+from vpr_explorer.protocols.options import ProtocolOptions
 from vpr_explorer.data.groundtruth import GroundTruth
 from vpr_explorer.data.layouts import Layout, detect_layout, load_manifest
-from vpr_explorer.pipeline import dataset_descriptors, evaluate_retrieval, open_dataset, retrieval_places
+from vpr_explorer.pipeline import dataset_descriptors, evaluate_retrieval, open_dataset, retrieval_places, run_protocol
 from vpr_explorer.method.places import MetricPlaceSpec, PlaceSpec, make_places
 
 pytestmark = pytest.mark.realdata
@@ -60,12 +61,10 @@ def loop_recall(sims: np.ndarray, gt: GroundTruth, ks=(1, 3, 5, 10)) -> dict[int
 def gp_traversal(data_root, gardens_point, gp_pixels):
     """The traversal protocol on the aligned folders: day_right database, night_right queries, g3s10."""
     places = make_places(gardens_point, PlaceSpec(3, 10))
-    dbt, qt = gardens_point.traversal_index("day_right"), gardens_point.traversal_index("night_right")
 
     def run(tolerance):
-        return traversal_protocol(gp_pixels, places.image_place, gardens_point.image_traversal,
-                                  gardens_point.image_frame, places.frame_place, database=[dbt], query=qt,
-                                  tolerance=tolerance)
+        return run_protocol("traversal", gardens_point, places, gp_pixels,
+                            ProtocolOptions(database=["day_right"], queries="night_right", tolerance=tolerance))
     return run
 
 
@@ -86,7 +85,7 @@ def test_database_queries_equals_the_aligned_traversals(tmp_path, data_root, gp_
     assert ds.ground_truth.counts.tolist() == [min(f, tolerance) + min(199 - f, tolerance) + 1 for f in range(200)]
     d = dataset_descriptors(ds, "pixels")
     ev = evaluate_retrieval(ds, d, spec=PlaceSpec(3, 10))
-    assert_place_rows_equal(ev, gp_traversal(tolerance))
+    assert ev.same_numbers(gp_traversal(tolerance))  # every row, the image level's too: one protocol
     # the image level counts as the field does: every database image, every query with a positive
     sims = d[200:].astype(np.float32) @ d[:200].astype(np.float32).T
     want = loop_recall(sims.astype(np.float64), ds.ground_truth)
@@ -129,7 +128,7 @@ def test_vpr_bench_equals_the_aligned_traversals(tmp_path, data_root, gp_travers
     assert ds.layout is Layout.VPR_BENCH and ds.query_paths[10].name == "10.jpg"  # natural order, not 10 < 2
     d = dataset_descriptors(ds, "pixels")
     ev = evaluate_retrieval(ds, d, spec=PlaceSpec(3, 10))
-    assert_place_rows_equal(ev, gp_traversal(2))
+    assert ev.same_numbers(gp_traversal(2))
     sims = (d[200:].astype(np.float32) @ d[:200].astype(np.float32).T).astype(np.float64)
     want = loop_recall(sims, ds.ground_truth)
     assert {k: v[0] for k, v in ev.row("image-baseline").recall.items()} == pytest.approx(want, abs=1e-12)
@@ -150,7 +149,7 @@ def test_unknown_place_queries_are_counted_apart(tmp_path, data_root):
     ds = open_dataset(vpr_bench(tmp_path / "vb", data_root / "GardensPointWalking", rows))
     assert ds.ground_truth.n_unknown == 100
     d = dataset_descriptors(ds, "pixels")
-    ev = evaluate_retrieval(ds, d, spec=PlaceSpec(3, 10), user_theta=0.99)
+    ev = evaluate_retrieval(ds, d, ProtocolOptions(user_theta=0.99), spec=PlaceSpec(3, 10))
     assert ev.settings["queries_without_positive"] == 100
     user = ev.row("global-user")
     assert user.unknown_rejection is not None and user.unknown_rejection[0] > 0.9  # θ 0.99 rejects nearly all

@@ -383,11 +383,15 @@ def test_the_app_walks_a_memory_mapped_database(tmp_path, monkeypatch):
     f = rv.fit_retrieval(mm, ds, ROUTE)
     assert metric(at, "places") == f"{f.n_places}" == "500"
     assert any("the 20,000 nearest the selected query" in c.value for c in at.caption)
-    at.number_input(key="w_place_one").set_value(7).run()
+    at = page(at, "thresholds")
+    at.selectbox(key="w_place").set_value(7).run()
     assert_clean(at)
     detail = rv.place_detail(f, mm, 7)
-    assert any(f"**P7**: {len(detail.images)} database image(s), {detail.negatives.size:,} negative scores" in m.value
+    assert any(f"**Place 7**: {len(detail.images)} database images and {len(detail.query_images)} queries" in m.value
                for m in at.markdown)
+    above = detail.share_negatives_above(detail.theta["weighted"])
+    assert metric(at, "negative scores ≥ θ_p weighted") == f"{above:.0%}"
+    at = page(at, "places")
     at.number_input(key="w_step_m").set_value(50.0).run()
     assert_clean(at)
     assert metric(at, "places") == "1000"
@@ -399,7 +403,7 @@ def test_the_app_walks_a_memory_mapped_database(tmp_path, monkeypatch):
     assert_clean(at)
     f50 = rv.fit_retrieval(mm, ds, rv.RetrievalPlaces(PlaceGeometry.ROUTE, metric=MetricPlaceSpec(25.0, 50.0)))
     found, _ = rv.find_query(f50, mm, after=0, kind="rejected", method="global-auto")
-    assert at.number_input(key="w_query_number").value == found
+    assert at.number_input(key="w_frame_number").value == found
 
     at = page(at, "evaluation")  # 500 × 50,000 pairs: it runs by itself (a million-image one waits for Run)
     assert_clean(at)

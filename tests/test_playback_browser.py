@@ -1,7 +1,9 @@
 """A real browser on the Playback page: record, then find rerun's viewer loaded with the recording.
 
 Drives Debian's Chromium (never a downloaded one) against a real ``streamlit run app.py``
-on the built-in demo route with the pixel descriptor, so it needs no dataset download.
+with the pixel descriptor: on the built-in demo route (aligned traversals, no dataset
+download), and on GardensPoint written as a VPR-Bench layout (its queries against its
+references, in order).
 """
 
 from __future__ import annotations
@@ -27,15 +29,27 @@ def _viewer_state(frame) -> str:
     return frame.evaluate("() => new TextDecoder('latin1').decode(window._handle.viewer_state())")
 
 
-def test_playback_page_records_and_shows_the_recording_in_the_viewer(tmp_path):
+@pytest.mark.parametrize("layout, heading, file_name", [
+    ("demo", "demo: night against day, snow", "demo_night_vs_day+snow.rrd"),
+    pytest.param("vpr-bench", "vpr-bench: query against ref", "vpr-bench_query_vs_ref.rrd",
+                 marks=pytest.mark.realdata),
+])
+def test_playback_page_records_and_shows_the_recording_in_the_viewer(tmp_path, request, layout, heading, file_name):
+    link = "source=demo&descriptor=pixels&group=2&step=2&query=night"
+    if layout != "demo":
+        from urllib.parse import quote
+
+        from vpr_explorer.data.example_layouts import write_gardens_point_layouts
+
+        written = write_gardens_point_layouts(request.getfixturevalue("data_root") / "GardensPointWalking", tmp_path)
+        link = f"source={quote(str(written[layout]))}&descriptor=pixels&group=2&step=5"
     with streamlit_server("app.py") as url, sync_api.sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
         try:
             page = browser.new_page(viewport={"width": 1500, "height": 1100}, accept_downloads=True)
             errors: list[str] = []
             page.on("pageerror", lambda exc: errors.append(f"page: {exc}"))
-            page.goto(f"{url}/playback?source=demo&descriptor=pixels&group=2&step=2&query=night",
-                      timeout=TIMEOUT_MS)
+            page.goto(f"{url}/playback?{link}", timeout=TIMEOUT_MS)
             record = page.get_by_role("button", name="Record and play")
             record.wait_for(timeout=TIMEOUT_MS)
             record.click()
@@ -43,7 +57,7 @@ def test_playback_page_records_and_shows_the_recording_in_the_viewer(tmp_path):
             caption = page.get_by_text(re.compile(r"Recording [0-9a-f]{32}"))
             caption.wait_for(timeout=TIMEOUT_MS)
             recording_id = re.search(r"Recording ([0-9a-f]{32})", caption.inner_text()).group(1)
-            assert page.get_by_text("demo: night against day, snow").is_visible()
+            assert page.get_by_text(heading).is_visible()
             assert page.get_by_text("Looking at").is_visible()  # routed through app.py
 
             page.locator("iframe").first.wait_for(timeout=TIMEOUT_MS)
@@ -69,7 +83,7 @@ def test_playback_page_records_and_shows_the_recording_in_the_viewer(tmp_path):
             saved = tmp_path / "playback.rrd"
             download.value.save_as(saved)
             assert saved.read_bytes()[:4] == b"RRF2"
-            assert download.value.suggested_filename == "demo_night_vs_day+snow.rrd"
+            assert download.value.suggested_filename == file_name
 
             assert page.locator('[data-testid="stException"]').count() == 0
             assert page.locator('[data-testid="stAlertContentError"]').count() == 0

@@ -7,8 +7,11 @@ from reference import synthetic_places, unit_rows
 from vpr_explorer.protocols import scale
 from vpr_explorer.protocols.scale import protocol as scale_protocol
 from vpr_explorer.cli import main
-from vpr_explorer.protocols.evaluation import open_set_protocol, paper_protocol, retrieval_protocol, traversal_protocol
+from vpr_explorer.protocols.evaluation import open_set_protocol, paper_protocol, retrieval_protocol
+from vpr_explorer.protocols.options import ProtocolOptions
 from vpr_explorer.data.groundtruth import GroundTruth
+from vpr_explorer.method.places import PlaceSpec, make_places
+from vpr_explorer.pipeline import run_protocol
 from vpr_explorer.views.plots import evaluation_pr_figure
 from vpr_explorer.protocols.precision_recall import GLOBAL_CURVE
 from vpr_explorer.views.report import render
@@ -42,12 +45,13 @@ def assert_same_pr(a: dict, b: dict, where: str = "") -> None:
 
 def test_paper_and_fast_paper_agree(monkeypatch):
     d, lab, trav = _synthetic()
-    ev = paper_protocol(d, lab, trav, 12, runs=4, pr=True, user_theta=0.3)
+    options = ProtocolOptions(runs=4, pr=True, user_theta=0.3)
+    ev = paper_protocol(d, lab, trav, 12, options)
     assert len(ev.pr) == len(ev.rows)
-    fast = scale.fast_paper_protocol(d, lab, trav, 12, runs=4, pr=True, user_theta=0.3)
+    fast = scale.fast_paper_protocol(d, lab, trav, 12, options)
     assert [r.to_dict() for r in fast.pr] == [r.to_dict() for r in ev.pr]
     monkeypatch.setattr(scale_protocol, "PR_FAMILY_CELLS", 0)  # read by fast_paper_protocol
-    blocked = scale.fast_paper_protocol(d, lab, trav, 12, runs=4, pr=True, user_theta=0.3)
+    blocked = scale.fast_paper_protocol(d, lab, trav, 12, options)
     globals_ = {"image-baseline", "place-baseline", "global-auto", "global-oracle", "global-user"}
     assert {r.key for r in blocked.pr} == globals_  # the blocked pass keeps no raw_p: no family curves
     by = {r.key: r for r in ev.pr}
@@ -61,26 +65,18 @@ def test_paper_and_fast_paper_agree(monkeypatch):
     assert {t.meta for t in fig.data} >= {GLOBAL_CURVE, "own raw, weighted θ"}
     fig.to_json()
     # no pr: unchanged
-    plain = paper_protocol(d, lab, trav, 12, runs=4, user_theta=0.3)
+    plain = paper_protocol(d, lab, trav, 12, ProtocolOptions(runs=4, user_theta=0.3))
     assert plain.pr == () and "pr" not in plain.to_dict() and plain.same_numbers(ev)
 
 
-def test_open_set_and_traversal():
+def test_open_set_and_traversal(demo, demo_pixels):
     d, lab, trav = _synthetic(1)
-    ev = open_set_protocol(d, lab, trav, 12, runs=3, pr=True)
+    ev = open_set_protocol(d, lab, trav, 12, ProtocolOptions(runs=3, pr=True))
     assert all(r.n_unknown > 0 for r in ev.pr)
-    # a route: 3 traversals of 24 frames, place = frame // 2
-    n_frames = 24
-    image_trav = np.repeat(np.arange(3), n_frames)
-    image_frame = np.tile(np.arange(n_frames), 3)
-    frame_place = np.arange(n_frames) // 2
-    rng = np.random.default_rng(0)
-    c = unit_rows(rng, 12, 16)
-    dd = c[frame_place[image_frame]] + 0.5 * rng.normal(size=(72, 16)) / 4
-    dd /= np.linalg.norm(dd, axis=1, keepdims=True)
-    tv = traversal_protocol(dd, frame_place[image_frame], image_trav, image_frame, frame_place, database=[0, 1],
-                            query=2, pr=True)
-    assert len(tv.pr) == len(tv.rows)
+    # the demo route: day and night against snow, places of 2 frames
+    tv = run_protocol("traversal", demo, make_places(demo, PlaceSpec(2, 2)), demo_pixels,
+                      ProtocolOptions(database=("day", "night"), queries="snow", pr=True))
+    assert [r.key for r in tv.pr] == [r.key for r in tv.rows]
 
 
 def test_retrieval_protocol(monkeypatch):
@@ -93,14 +89,14 @@ def test_retrieval_protocol(monkeypatch):
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     lists = [[int(i)] if k % 5 else [] for k, i in enumerate(q_idx)]
     gt = GroundTruth.from_lists(lists, 40, "test")
-    ev = retrieval_protocol(db, q, place, 10, gt, pr=True, block=7)
+    ev = retrieval_protocol(db, q, place, 10, gt, ProtocolOptions(pr=True), block=7)
     keys = [r.key for r in ev.pr]
     assert keys[0] == "image-baseline" and "margin-weighted" in keys
     img = ev.pr[0]
     assert img.n_known + img.n_unknown == 25
     import vpr_explorer.protocols.evaluation as evm
     monkeypatch.setattr(evm, "PR_RAW_CELLS", 0)
-    ev2 = evm.retrieval_protocol(db, q, place, 10, gt, pr=True, block=7)
+    ev2 = evm.retrieval_protocol(db, q, place, 10, gt, ProtocolOptions(pr=True), block=7)
     assert "margin-weighted" not in [r.key for r in ev2.pr] and any("left out" in n for n in ev2.notes)
     b = {r.key: r for r in ev.pr}
     for r in ev2.pr:

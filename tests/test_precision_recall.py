@@ -10,6 +10,7 @@ from sklearn.metrics import auc, precision_recall_curve
 from reference import unit_rows
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.protocols.evaluation import draw_splits, run_split
+from vpr_explorer.protocols.options import ProtocolOptions
 from vpr_explorer.protocols.precision_recall import (
     GLOBAL_CURVE,
     IMAGE_CURVE,
@@ -408,7 +409,7 @@ def test_family_counts_equal_the_previous_loop_on_gardens_point(monkeypatch, gar
     monkeypatch.setattr(evaluation, "_pooled_splits", lambda *a, **k: captured.extend(pooled(*a, **k)) or captured)
     places = make_places(gardens_point, PlaceSpec(2, 2))  # adjacent places: a frame's neighbour is right too
     evaluation.open_set_protocol(gp_pixels, places.image_place, gardens_point.image_traversal, places.n_places,
-                                 runs=2, tolerance=1, image_frame=gardens_point.image_frame,
+                                 ProtocolOptions(runs=2, tolerance=1), image_frame=gardens_point.image_frame,
                                  frame_place=places.frame_place)
     assert any(s.correct.sum(axis=1).max() > 1 for s in captured)
     for s in captured:

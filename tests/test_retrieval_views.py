@@ -36,6 +36,8 @@ from vpr_explorer.views.database_queries import (
     geometries,
     image_answer,
     overview,
+    place_detail,
+    place_queries,
     query_label,
     radius_of,
 )
@@ -194,3 +196,38 @@ def test_methods_in_the_overview_are_the_pages():
     ds, d = dataset()
     ov = overview(fit_retrieval(d, ds, ROUTE), d)
     assert set(ov.recall1) <= set(METHODS_BY_KEY)
+
+
+def test_a_places_queries_and_their_raw_p_by_a_loop():
+    ds, d = dataset()
+    f = fit_retrieval(d, ds, ROUTE)
+    for p in range(f.n_places):
+        detail = place_detail(f, d, p)
+        want = [q for q in range(ds.n_queries) if np.isin(ds.ground_truth.positives(q), detail.images).any()]
+        np.testing.assert_array_equal(place_queries(f, p), want)
+        np.testing.assert_array_equal(detail.query_images, ds.n_database + np.asarray(want, dtype=np.int64))
+        for i, raw in zip(detail.query_images, detail.query_raw):
+            assert raw == pytest.approx(max(float(d[i] @ d[j]) for j in detail.images), abs=1e-6)
+    far = [p for p in range(f.n_places) if not len(place_queries(f, p))]
+    assert far  # the database images the far queries moved away from
+    assert np.isnan(place_detail(f, d, far[0]).share_queries_below(0.0))
+
+
+@pytest.mark.parametrize("query", ["snow", "day"])
+def test_a_places_queries_on_aligned_traversals_are_the_traversal_models(demo, demo_pixels, query):
+    from vpr_explorer.data.aligned import database_queries, value_rows
+    from vpr_explorer.views import traversal
+
+    value = database_queries(demo, query)
+    rows = value_rows(value)
+    rows = np.arange(demo.n_images) if rows is None else rows
+    f = fit_retrieval(demo_pixels[rows], value, RetrievalPlaces(PlaceGeometry.FRAMES, spec=PlaceSpec(3, 5)))
+    t = traversal.fit(demo_pixels, demo, PlaceSpec(3, 5), query)
+    for p in range(f.n_places):
+        mine, theirs = place_detail(f, demo_pixels[rows], p), traversal.place_detail(
+            t.model, demo_pixels, demo, t.places, p, query)
+        np.testing.assert_array_equal(rows[mine.images], theirs.images)
+        np.testing.assert_array_equal(rows[mine.query_images], theirs.query_images)  # the query frames in the place
+        np.testing.assert_allclose(mine.query_raw, theirs.query_raw, rtol=1e-6)
+        np.testing.assert_allclose(np.sort(mine.negatives), np.sort(theirs.negatives), rtol=1e-6)
+        assert mine.theta == pytest.approx(theirs.theta)

@@ -9,6 +9,7 @@ fast path resolves up to max(ks) (beyond: max(ks) + 1; Recall@K needs no more).
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 
 import numpy as np
@@ -21,10 +22,10 @@ import vpr_explorer.protocols.scale.protocol as protocol
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.method.thresholds import pooled_pair_sample
 from vpr_explorer.protocols.evaluation import draw_splits, paper_protocol
-from vpr_explorer.protocols.scale import PassOptions, fast_paper_protocol, make_layout, scale_splits
+from vpr_explorer.protocols.options import TABLE_MEMORY, ProtocolOptions
+from vpr_explorer.protocols.scale import fast_paper_protocol, make_layout, scale_splits
 from vpr_explorer.protocols.scale.full_sums import SUM_LANES, full_set_sums
 from vpr_explorer.protocols.scale.layout import as_layout32
-from vpr_explorer.protocols.scale.options import TABLE_MEMORY
 from vpr_explorer.protocols.scale.panel import PassInputs
 from vpr_explorer.protocols.scale.table import Entries
 from vpr_explorer.protocols.scale.twins import Content, shared_places, twins
@@ -87,7 +88,7 @@ def awkward(seed=0, n_places=260, dim=64, noise=1.0):
 # --------------------------------------------------------------------------- comparisons
 
 
-def reference_with_splits(monkeypatch, d, labels, trav, n_places, **kw):
+def reference_with_splits(monkeypatch, d, labels, trav, n_places, options):
     """``paper_protocol`` and the per-split scores it summarised."""
     captured = {}
     pooled = evaluation._pooled_splits
@@ -97,7 +98,7 @@ def reference_with_splits(monkeypatch, d, labels, trav, n_places, **kw):
         return captured["splits"]
 
     monkeypatch.setattr(evaluation, "_pooled_splits", capture)
-    ev = paper_protocol(d, labels, trav, n_places, **kw)
+    ev = paper_protocol(d, labels, trav, n_places, options)
     monkeypatch.setattr(evaluation, "_pooled_splits", pooled)
     return ev, captured["splits"]
 
@@ -138,13 +139,17 @@ def assert_same_splits(ref_splits, fast_splits, max_k):
         np.testing.assert_array_equal(b.train_traversal, a.train_traversal)
 
 
-def check(monkeypatch, d, labels, trav, n_places, *, runs=3, seed=0, ks=(1, 3, 5, 10), fast_kw=None, **kw):
-    ref, ref_splits = reference_with_splits(monkeypatch, d, labels, trav, n_places, runs=runs, seed=seed, ks=ks, **kw)
-    fast = fast_paper_protocol(d, labels, trav, n_places, runs=runs, seed=seed, ks=ks, **kw, **(fast_kw or {}))
+def check(monkeypatch, d, labels, trav, n_places, *, fast_kw=None, **kw):
+    """``paper_protocol`` against ``fast_paper_protocol`` and ``scale_splits`` with ``ProtocolOptions(**kw)`` (3 runs
+    unless said), the fast ones with ``fast_kw``'s pass options too."""
+    options = ProtocolOptions(**{"runs": 3, **kw})
+    fast_options = dataclasses.replace(options, **(fast_kw or {}))
+    ref, ref_splits = reference_with_splits(monkeypatch, d, labels, trav, n_places, options)
+    fast = fast_paper_protocol(d, labels, trav, n_places, fast_options)
     assert_same_evaluation(ref, fast)
-    splits = draw_splits(labels, n_places, runs=runs, seed=seed)
-    fast_splits = scale_splits(d, labels, trav, n_places, splits, seed=seed, max_k=max(ks), **kw, **(fast_kw or {}))
-    assert_same_splits(ref_splits, fast_splits, max(ks))
+    splits = draw_splits(labels, n_places, runs=options.runs, seed=options.seed)
+    fast_splits = scale_splits(d, labels, trav, n_places, splits, fast_options)
+    assert_same_splits(ref_splits, fast_splits, max(options.ks))
     return ref, fast
 
 
@@ -189,13 +194,13 @@ def test_the_automatic_theta_is_the_runs_pooled_sample(monkeypatch):
     # 2,400 images in 300 places of 8: 2,100 training images (2.2·10⁶ pairs), so sampled: both
     # paths take split r's θ from one tile sample of the run (thresholds.pooled_pair_sample)
     d, labels, trav = structured(seed=5, n_places=300, per_place=8, dim=32)
-    _, ref_splits = reference_with_splits(monkeypatch, d, labels, trav, 300, runs=3, seed=2)
+    _, ref_splits = reference_with_splits(monkeypatch, d, labels, trav, 300, ProtocolOptions(runs=3, seed=2))
     splits = draw_splits(labels, 300, runs=3, seed=2)
     sample = pooled_pair_sample(d, [sp.train for sp in splits], seed=2)
     assert 0 < len(sample.scores(0)) < 2_100 * 2_099 // 2  # a sample, not every pair
     want = [sample.theta(r) for r in range(3)]
     assert [s.thresholds["auto"] for s in ref_splits] == want
-    fast = scale_splits(d, labels, trav, 300, splits, seed=2, block=800)
+    fast = scale_splits(d, labels, trav, 300, splits, ProtocolOptions(seed=2, block=800))
     assert [s.thresholds["auto"] for s in fast] == want
     assert len(set(want)) == 3  # each split's own training pairs: three different θ
 
@@ -229,8 +234,9 @@ def test_identical_places_tie_exactly_as_in_the_reference(monkeypatch):
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     d[labels == 30] = d[np.flatnonzero(labels == 30)[0]]
     d[labels == 290] = d[labels == 30]
-    _, ref_splits = reference_with_splits(monkeypatch, d, labels, trav, 400, runs=3, seed=0)
-    fast_splits = scale_splits(d, labels, trav, 400, draw_splits(labels, 400, runs=3, seed=0), block=600)
+    _, ref_splits = reference_with_splits(monkeypatch, d, labels, trav, 400, ProtocolOptions(runs=3, seed=0))
+    splits = draw_splits(labels, 400, runs=3, seed=0)
+    fast_splits = scale_splits(d, labels, trav, 400, splits, ProtocolOptions(block=600))
     for a, b in zip(ref_splits, fast_splits):
         for key in ("simple", "weighted"):
             assert a.thresholds[key][30] == a.thresholds[key][290]  # the reference ties them ...
@@ -271,9 +277,10 @@ def test_near_tie_repair_recomputes_exactly(monkeypatch):
         return np.full(len(lay.places), np.inf)
 
     d, labels, trav = awkward(seed=3)
-    _, ref_splits = reference_with_splits(monkeypatch, d, labels, trav, 260, runs=2, seed=0)
+    _, ref_splits = reference_with_splits(monkeypatch, d, labels, trav, 260, ProtocolOptions(runs=2, seed=0))
     monkeypatch.setattr(protocol, "uncertainty", unreliable)  # where scale_splits reads it
-    fast = scale_splits(d, labels, trav, 260, draw_splits(labels, 260, runs=2, seed=0), block=600)
+    fast = scale_splits(d, labels, trav, 260, draw_splits(labels, 260, runs=2, seed=0),
+                        ProtocolOptions(block=600))
     assert_same_splits(ref_splits, fast, 10)
     for a, b in zip(ref_splits, fast):
         np.testing.assert_allclose(b.thresholds["weighted"], a.thresholds["weighted"], rtol=0, atol=1e-14,
@@ -283,11 +290,12 @@ def test_near_tie_repair_recomputes_exactly(monkeypatch):
 def test_the_comparison_can_fail(monkeypatch, data3000):
     # a different seed is a different set of splits: the helpers must see it
     d, labels, trav = data3000
-    ref, ref_splits = reference_with_splits(monkeypatch, d, labels, trav, 300, runs=2, seed=0)
-    fast = fast_paper_protocol(d, labels, trav, 300, runs=2, seed=1)
+    ref, ref_splits = reference_with_splits(monkeypatch, d, labels, trav, 300, ProtocolOptions(runs=2, seed=0))
+    fast = fast_paper_protocol(d, labels, trav, 300, ProtocolOptions(runs=2, seed=1))
     with pytest.raises(AssertionError):
         assert_same_evaluation(ref, fast)
-    other = scale_splits(d, labels, trav, 300, draw_splits(labels, 300, runs=2, seed=1), seed=1)
+    other = scale_splits(d, labels, trav, 300, draw_splits(labels, 300, runs=2, seed=1),
+                         ProtocolOptions(seed=1))
     with pytest.raises(AssertionError):
         assert_same_splits(ref_splits, other, 10)
 
@@ -313,19 +321,17 @@ def test_layout_blocks_whole_places_slot_major():
 def test_bad_input_raises_like_the_reference():
     d, labels, trav = structured(seed=5, n_places=20, per_place=4, dim=16)
     with pytest.raises(VPRInputError, match="runs=0"):
-        fast_paper_protocol(d, labels, trav, 20, runs=0)
+        fast_paper_protocol(d, labels, trav, 20, ProtocolOptions(runs=0))
     with pytest.raises(VPRInputError, match="cross_condition needs at least 2 traversals"):
-        fast_paper_protocol(d, labels, np.zeros_like(trav), 20, runs=1, cross_condition=True)
+        fast_paper_protocol(d, labels, np.zeros_like(trav), 20, ProtocolOptions(runs=1, cross_condition=True))
     with pytest.raises(VPRInputError, match="have a single image"):
-        fast_paper_protocol(d[:20], np.arange(20), trav[:20], 20, runs=1)
+        fast_paper_protocol(d[:20], np.arange(20), trav[:20], 20, ProtocolOptions(runs=1))
     with pytest.raises(VPRInputError, match="block="):
-        fast_paper_protocol(d, labels, trav, 20, runs=1, block=0)
-    with pytest.raises(VPRInputError, match="block="):  # checked even where the run goes to paper_protocol
-        fast_paper_protocol(d, labels, trav, 20, runs=1, block=0, pr=True)
+        fast_paper_protocol(d, labels, trav, 20, ProtocolOptions(runs=1, block=0))
     with pytest.raises(VPRInputError, match="threads=0"):
-        fast_paper_protocol(d, labels, trav, 20, runs=1, threads=0)
+        fast_paper_protocol(d, labels, trav, 20, ProtocolOptions(runs=1, threads=0))
     with pytest.raises(VPRInputError, match="threads=2.5"):
-        scale_splits(d, labels, trav, 20, draw_splits(labels, 20, runs=1, seed=0), threads=2.5)
+        ProtocolOptions(threads=2.5)
     with pytest.raises(VPRInputError, match="open set"):
         scale_splits(d, labels, trav, 20, draw_splits(labels, 20, runs=1, seed=0, unknown_share=0.3))
 
@@ -400,15 +406,17 @@ from vpr_explorer.data.traversals import load_dataset
 from vpr_explorer.protocols.evaluation import paper_protocol
 from vpr_explorer.pipeline import dataset_descriptors
 from vpr_explorer.method.places import PlaceSpec, make_places
+from vpr_explorer.protocols.options import ProtocolOptions
 from vpr_explorer.protocols.scale import fast_paper_protocol
 
 ds = load_dataset(sys.argv[1])
 pl = make_places(ds, PlaceSpec(3, 3))
 d = dataset_descriptors(ds, "pixels")
 args = (d, pl.image_place, ds.image_traversal, pl.n_places)
-out = {"fast": fast_paper_protocol(*args, runs=2, block=int(sys.argv[2]), threads=int(sys.argv[3])).to_dict()["methods"]}
+fast = ProtocolOptions(runs=2, block=int(sys.argv[2]), threads=int(sys.argv[3]))
+out = {"fast": fast_paper_protocol(*args, fast).to_dict()["methods"]}
 if sys.argv[4] == "ref":
-    out["ref"] = paper_protocol(*args, runs=2).to_dict()["methods"]
+    out["ref"] = paper_protocol(*args, ProtocolOptions(runs=2)).to_dict()["methods"]
 print(json.dumps(out))
 """
 
@@ -453,7 +461,7 @@ def _run_pass(d, lay, query_rows, centre, threads, **kw):
     """``blocked_pass`` of these rows (no cross-condition, records cap 7, μ in [0, 0.2]): its result and entries."""
     entries = Entries(lay, TABLE_MEMORY, None)
     inputs = PassInputs(as_layout32(d, lay), lay, query_rows, None, (0.0, 0.2), centre)
-    return pass_module.blocked_pass(inputs, entries, 7, PassOptions(threads=threads), **kw), entries
+    return pass_module.blocked_pass(inputs, entries, 7, ProtocolOptions(threads=threads), **kw), entries
 
 
 def _pass_of(d, labels, n_places, splits, threads, block):
@@ -592,13 +600,13 @@ def test_torch_device_products_give_the_same_numbers(monkeypatch):
     d, labels, trav = structured(seed=3, n_places=120, per_place=6, dim=48)
     check(monkeypatch, d, labels, trav, 120, runs=2, fast_kw={"block": 200, "device": "cpu"})
     with pytest.raises(VPRInputError, match="device='tpu'"):
-        fast_paper_protocol(d, labels, trav, 120, runs=2, device="tpu")
+        fast_paper_protocol(d, labels, trav, 120, ProtocolOptions(runs=2, device="tpu"))
 
 
 def test_progress_counts_every_split_then_the_pass():
     d, labels, trav = structured(seed=6, n_places=40, per_place=4, dim=16)
     calls = []
-    fast_paper_protocol(d, labels, trav, 40, runs=7, block=64, progress=lambda *a: calls.append(a))
+    fast_paper_protocol(d, labels, trav, 40, ProtocolOptions(runs=7, block=64), progress=lambda *a: calls.append(a))
     totals = {t for _, t, _ in calls}
     assert len(totals) == 1 and calls[-1][0] == calls[-1][1]  # one total, reached at the end
     assert [m for _, _, m in calls[:7]] == [f"split {r}/7: automatic θ" for r in range(1, 8)]

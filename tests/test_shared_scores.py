@@ -17,7 +17,8 @@ from test_scale import awkward, structured
 
 import vpr_explorer.protocols.shared_scores as shared_scores
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.protocols.evaluation import draw_splits, open_set_protocol, paper_protocol, traversal_protocol
+from vpr_explorer.protocols.evaluation import draw_splits, open_set_protocol, paper_protocol
+from vpr_explorer.protocols.options import ProtocolOptions
 from vpr_explorer.protocols.shared_scores import Negatives, SharedScores, resolve
 from vpr_explorer.method.stats import negative_stats
 from vpr_explorer.method.thresholds import place_thresholds
@@ -115,27 +116,22 @@ def test_identical_places_and_duplicates_tie_exactly():
 def test_protocols_with_and_without_shared_scores_agree_bit_for_bit():
     d, labels, trav = awkward(seed=2)
     sh = SharedScores(d)
-    kw = dict(runs=3, seed=1, pr=True)
-    a = paper_protocol(d, labels, trav, 260, shared=sh, **kw)
-    assert _everything(a) == _everything(paper_protocol(d, labels, trav, 260, **kw))
-    a = open_set_protocol(d, labels, trav, 260, shared=sh, k_grid=(0.0, 1.0), **kw)
-    assert _everything(a) == _everything(open_set_protocol(d, labels, trav, 260, k_grid=(0.0, 1.0), **kw))
-    # traversal: the database traversals' Gram is its own, shared by every run on them
-    frames = np.where(labels >= 0, labels, 0)
-    frame_place = np.arange(260)
-    t = traversal_protocol(d, labels, trav, frames, frame_place, database=[0, 1], query=2, shared=sh, pr=True)
-    assert _everything(t) == _everything(traversal_protocol(d, labels, trav, frames, frame_place, database=[0, 1],
-                                                            query=2, pr=True))
-    assert len(sh._grams) == 2  # all images, and traversals 0 and 1
+    options = ProtocolOptions(runs=3, seed=1, pr=True, k_grid=(0.0, 1.0))
+    a = paper_protocol(d, labels, trav, 260, options, shared=sh)
+    assert _everything(a) == _everything(paper_protocol(d, labels, trav, 260, options))
+    a = open_set_protocol(d, labels, trav, 260, options, shared=sh)
+    assert _everything(a) == _everything(open_set_protocol(d, labels, trav, 260, options))
+    assert sh.gram() is sh.gram()  # one Gram of every image, shared by every run on them
 
 
 def test_protocol_numbers_match_the_closed_form_above_the_limit(monkeypatch):
     # past SHARED_LIMIT the closed form: θ to float64 rounding, every outcome the same
     d, labels, trav = structured(seed=3, n_places=90, per_place=8, dim=48)
-    pairwise = paper_protocol(d, labels, trav, 90, runs=3, user_theta=0.3)
+    options = ProtocolOptions(runs=3, user_theta=0.3)
+    pairwise = paper_protocol(d, labels, trav, 90, options)
     monkeypatch.setattr(shared_scores, "SHARED_LIMIT", 100)
     assert resolve(None, d, len(d)) is None
-    closed = paper_protocol(d, labels, trav, 90, runs=3, user_theta=0.3)
+    closed = paper_protocol(d, labels, trav, 90, options)
     assert pairwise.same_numbers(closed)
 
 
@@ -144,9 +140,9 @@ def test_wrong_descriptors_are_refused():
     sh = SharedScores(d)
     other = d.copy()
     with pytest.raises(VPRInputError, match="shared scores were built from other descriptors"):
-        paper_protocol(other, labels, trav, 20, runs=1, shared=sh)
+        paper_protocol(other, labels, trav, 20, ProtocolOptions(runs=1), shared=sh)
     with pytest.raises(VPRInputError, match="expected a SharedScores"):
-        paper_protocol(d, labels, trav, 20, runs=1, shared=d)
+        paper_protocol(d, labels, trav, 20, ProtocolOptions(runs=1), shared=d)
     assert resolve(sh, np.asarray(d), len(d)) is sh  # a view of the same memory is the same descriptors
     assert resolve(None, d, len(d)) is not sh  # none given: a new one
     with pytest.raises(VPRInputError, match="not among this run's members"):

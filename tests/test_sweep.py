@@ -1,10 +1,11 @@
 """Group/step sweeps (``vpr_explorer.protocols.sweep``, ``vpr-explorer sweep``) on GardensPoint's pixel descriptors.
 
 Every cell of a small real sweep is checked against a separate evaluation of the same
-settings (``pipeline.evaluate_dataset``, what ``vpr-explorer evaluate`` runs): the numbers
-must be equal, not close. Then the empty cells and their reasons, bad settings, the
-cache and the places the two readings share, the CSV/JSON columns, the heatmap's click
-data, and the command's exit codes.
+settings (``pipeline.evaluate_dataset``, what ``vpr-explorer evaluate`` runs; on a
+database/queries layout ``pipeline.evaluate_retrieval``): the numbers must be equal, not
+close. Then the empty cells and their reasons, bad settings, the cache and the places the
+two readings share, the CSV/JSON columns, the heatmap's click data, and the command's exit
+codes.
 """
 
 from __future__ import annotations
@@ -17,10 +18,11 @@ import math
 import numpy as np
 import pytest
 
+from vpr_explorer import pipeline
 from vpr_explorer.cli import main
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.pipeline import evaluate_dataset
-from vpr_explorer.method.places import PlaceSpec
+from vpr_explorer.pipeline import evaluate_dataset, evaluate_retrieval, open_dataset
+from vpr_explorer.method.places import MetricPlaceSpec, PlaceSpec
 from vpr_explorer.protocols.shared_scores import SharedScores
 from vpr_explorer.protocols.sweep import (
     Metric,
@@ -43,7 +45,7 @@ def paper_sweep(gardens_point, gp_pixels):
     """Paper protocol, groups 2 3 × steps 2 5, both readings, 2 runs, with precision–recall."""
     spec = SweepSpec(groups=(3, 2), steps=(5, 2), protocol="paper", runs=RUNS)
     seen = []
-    result = sweep(gardens_point, gp_pixels, spec, descriptor="pixels",
+    result = sweep(gardens_point, gp_pixels, spec, pipeline, descriptor="pixels",
                    progress=lambda done, total, msg: seen.append((done, total, msg)))
     return result, seen
 
@@ -84,7 +86,7 @@ def test_open_set_rejection_at_k_equals_a_separate_evaluation(gardens_point, gp_
     spec = SweepSpec(groups=(3,), steps=(5, 10), readings=("stride",), protocol="open-set", runs=RUNS, k=1.25,
                      k_grid=(0.0, 1.0))
     assert spec.k_grid == (0.0, 1.0, 1.25)  # the reported k joins the grid
-    result = sweep(gardens_point, gp_pixels, spec, descriptor="pixels")
+    result = sweep(gardens_point, gp_pixels, spec, pipeline, descriptor="pixels")
     for c in result.cells:
         ev = _separate(data_root, PlaceSpec(c.group, c.step), "open-set", runs=RUNS, k_grid=[0.0, 1.0, 1.25])
         row = next(t for t in ev.tradeoff if t.series == "θ_p(k) weighted" and t.rule == "margin" and t.param == 1.25)
@@ -94,14 +96,15 @@ def test_open_set_rejection_at_k_equals_a_separate_evaluation(gardens_point, gp_
         assert _everything(c.evaluation) == _everything(ev)
     # a higher k rejects at least as many unknown places (same splits, larger thresholds)
     low = sweep(gardens_point, gp_pixels, SweepSpec(groups=(3,), steps=(5, 10), readings=("stride",),
-                                                     protocol="open-set", runs=RUNS, k=0.0, k_grid=(0.0, 1.0)))
+                                                     protocol="open-set", runs=RUNS, k=0.0, k_grid=(0.0, 1.0)),
+                pipeline)
     assert all(h.rejection >= lo.rejection for h, lo in zip(result.cells, low.cells))
 
 
 def test_traversal_cells_and_method(gardens_point, gp_pixels, data_root):
     spec = SweepSpec(groups=(2,), steps=(4,), readings=("skip",), protocol="traversal", method="raw-simple",
                      tolerance=1)
-    c = sweep(gardens_point, gp_pixels, spec, descriptor="pixels").cells[0]
+    c = sweep(gardens_point, gp_pixels, spec, pipeline, descriptor="pixels").cells[0]
     ev = _separate(data_root, PlaceSpec(2, 4, "skip"), "traversal", tolerance=1)
     assert c.gain == ev.row("raw-simple").recall[1][0] - ev.row("place-baseline").recall[1][0]
     assert c.auc == next(r.auc for r in ev.pr if r.key == "raw-simple")
@@ -117,7 +120,7 @@ def test_empty_cells_say_why(paper_sweep, gardens_point, gp_pixels):
     assert "—" in table(result, "r1", "stride").splitlines()[-1]  # group 3 row, step 2 column
     # a step that leaves one place, and a protocol that refuses the places (one image per place)
     spec = SweepSpec(groups=(1, 150), steps=(160,), readings=("stride",), protocol="paper", runs=1)
-    few = sweep(gardens_point, gp_pixels, spec).cells
+    few = sweep(gardens_point, gp_pixels, spec, pipeline).cells
     assert "leaves 1 place(s)" in few[1].empty and "lower group or step" in few[1].empty
     assert few[0].empty is None  # group 1 step 160: 2 places × 3 images
     assert sweep_cost(gardens_point, spec).valid == 1
@@ -134,29 +137,29 @@ def test_readings_share_places_and_cache(paper_sweep, gardens_point, gp_pixels):
     spec = SweepSpec(groups=(2,), steps=(3,), readings=("stride",), protocol="traversal")
     key = "test-key"
     assert sweep_cost(gardens_point, spec, cache=cache, descriptors_key=key).runs == 1
-    one = sweep(gardens_point, gp_pixels, spec, cache=cache, descriptors_key=key)
+    one = sweep(gardens_point, gp_pixels, spec, pipeline, cache=cache, descriptors_key=key)
     assert sweep_cost(gardens_point, spec, cache=cache, descriptors_key=key).runs == 0
-    two = sweep(gardens_point, gp_pixels, spec, cache=cache, descriptors_key=key)
+    two = sweep(gardens_point, gp_pixels, spec, pipeline, cache=cache, descriptors_key=key)
     assert two.cells[0].cached and two.cells[0].evaluation is one.cells[0].evaluation
     other = SweepSpec(groups=(2,), steps=(3,), readings=("stride",), protocol="traversal", tolerance=1)
     assert sweep_cost(gardens_point, other, cache=cache, descriptors_key=key).runs == 1  # options are in the key
 
 
 def test_cells_share_one_set_of_scores(gardens_point, gp_pixels):
-    # one float32 similarity and one float64 Gram of all 600 images serve every paper and open-set cell;
-    # the traversal protocol's Gram is over its database traversals' images, also one for every cell
+    # one float32 similarity and one float64 Gram of all 600 images serve every paper and open-set cell
     shared = SharedScores(gp_pixels)
     spec = SweepSpec(groups=(2, 3), steps=(5,), readings=("stride",), protocol="open-set", runs=1, pr=False)
-    result = sweep(gardens_point, gp_pixels, spec, descriptor="pixels", shared=shared)
+    result = sweep(gardens_point, gp_pixels, spec, pipeline, descriptor="pixels", shared=shared)
     assert all(c.empty is None for c in result.cells)
-    assert shared._full is not None and [len(g.images) for g in shared._grams.values()] == [600]
+    gram = shared.gram()
+    assert shared._full is not None and len(gram.images) == 600
     sweep(gardens_point, gp_pixels, SweepSpec(groups=(2, 3), steps=(5,), readings=("stride",),
-                                              protocol="traversal", pr=False), shared=shared)
-    assert sorted(len(g.images) for g in shared._grams.values()) == [200, 600]  # the database traversal: 200 frames
+                                              protocol="paper", runs=1, pr=False), pipeline, shared=shared)
+    assert shared.gram() is gram  # built once
     alone = evaluate_dataset(gardens_point.root, PlaceSpec(3, 5), "pixels", "open-set", runs=1)
     assert _everything(result.cells[1].evaluation) == _everything(alone)
     with pytest.raises(VPRInputError, match="shared scores were built from other descriptors"):
-        sweep(gardens_point, gp_pixels.copy(), spec, shared=shared)
+        sweep(gardens_point, gp_pixels.copy(), spec, pipeline, shared=shared)
 
 
 def test_bad_settings_are_refused_by_name(gardens_point, gp_pixels):
@@ -166,18 +169,27 @@ def test_bad_settings_are_refused_by_name(gardens_point, gp_pixels):
         (dict(groups=(2,), steps=(2.5,)), "steps=2.5"),
         (dict(groups=(2,), steps=(5,), readings=("diagonal",)), "reading 'diagonal'"),
         (dict(groups=(2,), steps=(5,), readings=()), "readings"),
-        (dict(groups=(2,), steps=(5,), protocol="database-queries"), "a sweep runs paper, traversal, open-set"),
+        (dict(groups=(2,), steps=(5,), protocol="retrieval"), "a sweep runs paper, traversal, open-set, "
+                                                               "database-queries"),
+        (dict(groups=(2,), steps=(5,), geometry="route"), "geometry route: the paper protocol makes places of"),
+        (dict(groups=(0.5,), steps=(5,), protocol="database-queries", geometry="lattice"), None),
+        (dict(groups=(0,), steps=(5,), protocol="database-queries", geometry="route"), "groups=0: must be a "
+                                                                                         "distance in metres"),
+        (dict(groups=(2,), steps=(5,), protocol="database-queries", tolerance=2), "tolerance=2"),
         (dict(groups=(2,), steps=(5,), method="image-baseline"), "method 'image-baseline'"),
         (dict(groups=(2,), steps=(5,), k=float("nan")), "k=nan"),
         (dict(groups=tuple(range(1, 21)), steps=tuple(range(1, 21))), "800 cells: at most 400"),
     ]
     for kwargs, message in cases:
+        if message is None:
+            assert SweepSpec(**kwargs).groups == (0.5,)  # metres may have a fraction
+            continue
         with pytest.raises(VPRInputError, match=message.replace("(", r"\(").replace(")", r"\)")):
             SweepSpec(**kwargs)
     with pytest.raises(VPRInputError, match="runs=0"):
-        sweep(gardens_point, gp_pixels, SweepSpec(groups=(2,), steps=(5,), runs=0))
+        sweep(gardens_point, gp_pixels, SweepSpec(groups=(2,), steps=(5,), runs=0), pipeline)
     with pytest.raises(VPRInputError, match="599 descriptors for 600 images"):
-        sweep(gardens_point, gp_pixels[:599], SweepSpec(groups=(2,), steps=(5,), protocol="traversal"))
+        sweep(gardens_point, gp_pixels[:599], SweepSpec(groups=(2,), steps=(5,), protocol="traversal"), pipeline)
 
 
 def test_csv_and_json_carry_every_setting(paper_sweep):
@@ -220,6 +232,105 @@ def test_heatmap_cells_carry_their_settings(paper_sweep):
     assert selected_cell({"x": "5"}) is None and selected_cell({"customdata": [1, 2, "diagonal"]}) is None
     box = fig.layout.shapes[0]
     assert (box.x0, box.x1, box.y0, box.y1) == (0.5, 1.5, -0.5, 0.5)  # step 5 (column 1), group 2 (row 0)
+
+
+# --------------------------------------------------------------------------- a database/queries layout
+
+
+@pytest.fixture(scope="module")
+def layouts(data_root, tmp_path_factory):
+    """GardensPoint written in the field's layouts (``example_layouts``): layout name -> path."""
+    from vpr_explorer.data.example_layouts import write_gardens_point_layouts
+
+    return write_gardens_point_layouts(data_root / "GardensPointWalking", tmp_path_factory.mktemp("sweep_layouts"))
+
+
+def _pixels_of(value, gardens_point, gp_pixels):
+    """The pixel descriptors of a layout's images (links to GardensPoint's), database rows first."""
+    rows = {p.resolve(): i for i, p in enumerate(gardens_point.image_paths)}
+    return gp_pixels[[rows[p.resolve()] for p in value.image_paths]]
+
+
+SETTINGS = {"descriptor": "pixels", "dtype": "float32"}
+
+
+def test_a_database_queries_layout_sweeps_the_database_queries_protocol(layouts, gardens_point, gp_pixels):
+    value = open_dataset(layouts["database-queries"])
+    d = _pixels_of(value, gardens_point, gp_pixels)
+    spec = SweepSpec(groups=(2, 3), steps=(3, 5), protocol="database-queries")
+    assert spec.options() == {"user_theta": None} and spec.settings()["runs"] is None
+    result = sweep(value, d, spec, pipeline, descriptor="pixels")
+    assert result.cell(2, 3, "skip").same_as == (2, 5, "stride")  # skip 2/3 = stride 2/5
+    for c in result.cells:
+        assert c.empty is None, c.empty
+        ev = evaluate_retrieval(value, d, spec=PlaceSpec(c.group, c.step, c.reading), settings=SETTINGS, pr=True)
+        assert _everything(c.evaluation) == _everything(ev)  # the shared cell's settings restated too
+        base = ev.row("place-baseline").recall[1][0]
+        assert c.r1 == base and c.gain == ev.row("margin-weighted").recall[1][0] - base
+        assert c.auc == next(r.auc for r in ev.pr if r.key == "margin-weighted")
+        assert c.n_places == int(ev.settings["places"].split()[0])
+        assert math.isnan(c.rejection) and "no unknown-place query" in c.missing["rejection"]
+    assert sweep_cost(value, spec).pairs == 7 * 200 * 200  # 8 cells, one pair of them shares its places
+
+
+def test_metres_along_the_route_and_unknown_places(layouts, gardens_point, gp_pixels):
+    import dataclasses
+
+    from vpr_explorer.data.groundtruth import GroundTruth
+
+    value = open_dataset(layouts["database-queries"])
+    gt = value.ground_truth  # every fourth query's positives left out: an unknown place each
+    value = dataclasses.replace(value, ground_truth=GroundTruth.from_lists(
+        [[] if q % 4 == 0 else gt.positives(q) for q in range(value.n_queries)], value.n_database, "every fourth out"))
+    d = _pixels_of(value, gardens_point, gp_pixels)
+    spec = SweepSpec(groups=(20, 25.5), steps=(50,), readings=("stride",), protocol="database-queries",
+                     geometry="route", method="raw-weighted")
+    result = sweep(value, d, spec, pipeline, descriptor="pixels")
+    for c in result.cells:
+        ev = evaluate_retrieval(value, d, metric=MetricPlaceSpec(c.group, c.step, c.reading, "route"),
+                                settings=SETTINGS, pr=True)
+        assert _everything(c.evaluation) == _everything(ev)
+        assert c.rejection == ev.row("raw-weighted").unknown_rejection[0] and "rejection" not in c.missing
+    assert "group \\ step (m)" in table(result, "r1", "stride")
+    fig = sweep_figure(result, "rejection", "stride", marked=(25.5, 50))
+    assert fig.layout.xaxis.title.text == "step (m)" and fig.layout.shapes
+    cells = next(t for t in fig.data if t.meta == "cells")
+    assert [selected_cell({"customdata": list(x)}) for x in cells.customdata] == [(20, 50, "stride"),
+                                                                                 (25.5, 50, "stride")]
+
+
+def test_protocols_and_layouts_a_sweep_refuses_by_name(layouts, gardens_point, gp_pixels):
+    value = open_dataset(layouts["vpr-bench"])
+    d = _pixels_of(value, gardens_point, gp_pixels)
+    for protocol in ("paper", "traversal", "open-set"):
+        with pytest.raises(VPRInputError, match=f"protocol {protocol}: it needs aligned traversals.*vpr-bench layout"):
+            sweep(value, d, SweepSpec(groups=(2,), steps=(5,), protocol=protocol), pipeline)
+    named = open_dataset(layouts["manifest"])
+    with pytest.raises(VPRInputError, match="group/step do not apply: the manifest layout .* names its places"):
+        sweep_cost(named, SweepSpec(groups=(2,), steps=(5,), protocol="database-queries"))
+    with pytest.raises(VPRInputError, match="give 'GardensPointWalking' as its database/queries value"):
+        sweep(gardens_point, gp_pixels, SweepSpec(groups=(2,), steps=(5,), protocol="database-queries"), pipeline)
+
+
+def test_cli_sweep_on_a_database_queries_layout(layouts, gardens_point, gp_pixels, tmp_path, capsys):
+    out_json = tmp_path / "sweep.json"
+    rc = main(["sweep", "--dataset", str(layouts["vpr-bench"]), "--descriptor", "pixels", "--groups", "2", "3",
+               "--steps", "5", "--reading", "stride", "--metric", "r1", "--json", str(out_json)])
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "vpr-bench: 2 cells, 2 with valid places, 2 protocol runs" in out and "database-queries protocol" in out
+    data = json.loads(out_json.read_text())
+    assert data["settings"]["protocol"] == "database-queries" and data["settings"]["geometry"] == "frames"
+    value = open_dataset(layouts["vpr-bench"])
+    ev = evaluate_retrieval(value, _pixels_of(value, gardens_point, gp_pixels), spec=PlaceSpec(3, 5), pr=True)
+    assert data["cells"][1]["r1"] == ev.row("place-baseline").recall[1][0]
+    for argv, message in ((["--dataset", str(layouts["vpr-bench"]), "--protocol", "paper"], "protocol paper: it "
+                           "needs aligned traversals"),
+                          (["--dataset", str(layouts["vpr-bench"]), "--runs", "3"], "--runs applies to the paper"),
+                          (["--dataset", str(layouts["manifest"])], "group/step do not apply")):
+        assert main(["sweep", "--descriptor", "pixels", "--groups", "2", "--steps", "5", *argv]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err[-1].startswith("error: ") and message in err[-1], err
 
 
 # --------------------------------------------------------------------------- the command

@@ -168,7 +168,7 @@ def test_route_figure_of_a_long_route_shows_its_start_and_says_so():
 
 def test_protocol_pairs_is_each_protocols_scored_pairs(demo):
     from vpr_explorer.method.places import make_places
-    from vpr_explorer.views.traversal import protocol_pairs
+    from vpr_explorer.protocols.cost import protocol_pairs
 
     places = make_places(demo, SPEC)  # 12 places x 9 images
     n = 12 * 9

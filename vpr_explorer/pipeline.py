@@ -6,22 +6,25 @@ What the command line, the app and the recorder call, so that each of them is
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
 
+from vpr_explorer.data.aligned import database_queries, value_rows
 from vpr_explorer.data.traversals import Dataset, load_dataset
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.protocols.evaluation import (
-    K_GRID,
     Evaluation,
     Progress,
     Protocol,
     open_set_protocol,
-    traversal_protocol,
+    retrieval_protocol,
 )
 from vpr_explorer.method.places import Places, PlaceSpec, make_places, retrieval_places
+# check_finite is read from here by recording
+from vpr_explorer.protocols.options import ProtocolOptions, check_finite, check_whole  # noqa: F401
 from vpr_explorer.protocols.scale import fast_paper_protocol
 from vpr_explorer.protocols.shared_scores import SharedScores
 from vpr_explorer.settings import check_cache_root, default_workers
@@ -126,36 +129,6 @@ VIEW_BATCH = 65_536
 """Images extracted per call before a dataset view is written (their vectors are not kept)."""
 
 
-MAX_RUNS = 1000
-"""Most random splits a pooled protocol runs: each split keeps its own thresholds and outcomes
-(memory and time grow with runs); the paper uses 50."""
-MAX_SEED = 2**63 - 1
-
-
-def check_whole(name: str, value: object, *, low: int, high: int, why: str = "") -> int:
-    """``value`` as an ``int`` in ``[low, high]``, or a ``VPRInputError`` naming ``name`` and the limit."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise VPRInputError(f"{name}={value!r}: must be a whole number from {low:,} to {high:,}")
-    if not low <= value <= high:
-        limit = f"{low:,} or more" if value < low else f"{high:,} or less"
-        raise VPRInputError(f"{name}={value}: must be {limit}{why}")
-    return int(value)
-
-
-def check_finite(name: str, value: object, *, low: float | None = None, high: float | None = None,
-                 example: str = "") -> float:
-    """``value`` as a finite ``float`` strictly inside ``(low, high)`` where given, or a ``VPRInputError``."""
-    ok = not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating))
-    if ok and not np.isfinite(value):
-        ok = False
-    what = "a finite number" + (f" between {low:g} and {high:g}" if low is not None and high is not None else "")
-    if ok and ((low is not None and value <= low) or (high is not None and value >= high)):
-        ok = False
-    if not ok:
-        raise VPRInputError(f"{name}={value!r}: must be {what}{f' (e.g. {example})' if example else ''}")
-    return float(value)
-
-
 def default_traversals(dataset: Dataset, database: Sequence[str] | None, queries: str | None) -> tuple[list[int], int]:
     """Database and query traversal indices; by default ``Dataset.default_roles`` (names, else folder order)."""
     if dataset.n_traversals < 2:
@@ -171,6 +144,9 @@ def default_traversals(dataset: Dataset, database: Sequence[str] | None, queries
         q = roles.query
     if db is None:
         db = [t for t in roles.database if t != q] or [0 if q != 0 else 1]
+    if q in db:
+        raise VPRInputError(f"queries={dataset.traversals[q]!r} is also a database traversal; pick another query "
+                            "traversal")
     return db, q
 
 
@@ -190,50 +166,37 @@ def _protocol(protocol: Protocol | str) -> Protocol:
         raise VPRInputError(f"protocol {protocol!r}: choose one of {', '.join(p.value for p in Protocol)}") from None
 
 
-def check_options(
-    protocol: Protocol | str,
-    dataset: Dataset,
-    *,
-    runs: int = 50,
-    seed: int = 0,
-    unknown_share: float = 0.3,
-    database: Sequence[str] | None = None,
-    queries: str | None = None,
-    tolerance: int = 0,
-    user_theta: float | None = None,
-    k_grid: Sequence[float] = K_GRID,
-    **_,
-) -> Protocol:
-    """Check a protocol's options (``run_protocol``'s), cheaply, so that bad input fails before any work.
+def options_of(options: ProtocolOptions | None, fields: dict) -> ProtocolOptions:
+    """``options``, or the ``ProtocolOptions`` of ``fields`` (its field names as keywords) when it is None.
+
+    Raises:
+        VPRInputError: both were given.
+    """
+    if options is None:
+        return ProtocolOptions(**fields)
+    if fields:
+        raise VPRInputError(f"{', '.join(fields)}: give the options as one ProtocolOptions or as keywords, not both")
+    return options
+
+
+def check_options(protocol: Protocol | str, dataset: Dataset, options: ProtocolOptions | None = None,
+                  **fields) -> Protocol:
+    """Check what a protocol's options mean for ``dataset``, cheaply, so that bad input fails before any work.
+
+    ``ProtocolOptions`` checks each value on its own; here the protocol's name, the tolerance
+    against the dataset's frames and the traversal protocol's traversals are checked.
+    ``fields``: ``ProtocolOptions``' fields as keywords, in place of ``options``.
 
     Raises:
         VPRInputError: naming the option, its value and the limit or the fix.
     """
     protocol = _protocol(protocol)
-    if user_theta is not None:
-        check_finite("theta", user_theta, example="0.5, a cosine similarity")
-    check_whole("tolerance", tolerance, low=0, high=dataset.n_frames,
+    options = options_of(options, fields)
+    check_whole("tolerance", options.tolerance, low=0, high=dataset.n_frames,
                 why=f" (frames of slack; {dataset.name!r} has {dataset.n_frames:,} frames)")
     if protocol is Protocol.TRAVERSAL:
-        default_traversals(dataset, database, queries)
-        return protocol
-    check_whole("runs", runs, low=1, high=MAX_RUNS,
-                why=" (random splits: each keeps its own thresholds and scores, so memory and time grow with runs; "
-                    "the paper uses 50)")
-    check_whole("seed", seed, low=0, high=MAX_SEED)
-    if protocol is Protocol.OPEN_SET:
-        check_finite("unknown_share", unknown_share, low=0, high=1, example="0.3")
-        k_grid = list(k_grid)
-        if not k_grid:
-            raise VPRInputError("k: give at least one value of k for θ_p + k·s_p, e.g. -1 0 0.5 1 2")
-        for k in k_grid:
-            check_finite("k", k, example="-1 0 0.5 1 2")
+        default_traversals(dataset, options.database, options.queries)
     return protocol
-
-
-def _paper_progress(progress: Progress | None, runs: int) -> Progress | None:
-    """``fast_paper_protocol`` reports each split, then the blocks of its one pass over all splits."""
-    return progress
 
 
 def run_protocol(
@@ -241,30 +204,31 @@ def run_protocol(
     dataset: Dataset,
     places: Places,
     descriptors: np.ndarray,
+    options: ProtocolOptions | None = None,
     *,
-    runs: int = 50,
-    seed: int = 0,
-    cross_condition: bool = False,
-    unknown_share: float = 0.3,
-    database: Sequence[str] | None = None,
-    queries: str | None = None,
-    tolerance: int = 0,
-    user_theta: float | None = None,
-    k_grid: Sequence[float] = K_GRID,
     progress: Progress | None = None,
     settings: dict | None = None,
-    pr: bool = False,
     shared: SharedScores | None = None,
+    **fields,
 ) -> Evaluation:
     """Run one protocol of ``evaluation`` on a dataset's descriptors.
 
     Options are checked first (``check_options``). The result's settings hold every option
     that shaped the run: group/step/reading, the user's θ and the tolerance beside the
-    protocol's own (runs, seed, …). ``shared``: the ``shared_scores.SharedScores`` of these
-    descriptors, to reuse between runs (a sweep's cells); the numbers are the same without.
+    protocol's own (runs, seed, …). The traversal protocol is the database/queries protocol
+    (``evaluation.retrieval_protocol``) on the aligned traversals' value
+    (``data.aligned.database_queries``), its settings naming the traversals.
+
+    Args:
+        options: the protocol's settings (default ``ProtocolOptions()``); or ``fields``, its
+            field names as keywords.
+        settings: what the caller records in the result's settings (the descriptor, …).
+        shared: the ``shared_scores.SharedScores`` of these descriptors, to reuse between
+            runs of the paper and open-set protocols (a sweep's cells); the numbers are the
+            same without.
     """
-    protocol = check_options(protocol, dataset, runs=runs, seed=seed, unknown_share=unknown_share, database=database,
-                             queries=queries, tolerance=tolerance, user_theta=user_theta, k_grid=k_grid)
+    options = options_of(options, fields)
+    protocol = check_options(protocol, dataset, options)
     if len(descriptors) != dataset.n_images:
         raise VPRInputError(
             f"{len(descriptors)} descriptors for {dataset.n_images} images of {dataset.name!r}: recompute them"
@@ -275,29 +239,41 @@ def run_protocol(
     settings = {
         "dataset": dataset.name, "places": places.describe(), **(settings or {}),
         "group": spec.group if spec else None, "step": spec.step if spec else None,
-        "reading": spec.reading.value if spec else None,
-        "theta": None if user_theta is None else float(user_theta), "tolerance": int(tolerance),
+        "reading": spec.reading.value if spec else None, "theta": options.user_theta, "tolerance": options.tolerance,
     }
     if protocol is Protocol.TRAVERSAL:
-        db, q = default_traversals(dataset, database, queries)
-        db_images = np.flatnonzero(np.isin(dataset.image_traversal, db))
-        settings.update(places=places.describe(images=db_images, what="database images"),
-                        direction=traversal_direction(dataset, db, q))
-        return traversal_protocol(
-            descriptors, places.image_place, dataset.image_traversal, dataset.image_frame, places.frame_place,
-            database=db, query=q, tolerance=tolerance, traversal_names=dataset.traversals, user_theta=user_theta,
-            settings=settings, pr=pr, shared=shared,
-        )
-    pooled = dict(runs=runs, seed=seed, cross_condition=cross_condition, user_theta=user_theta, settings=settings,
-                  tolerance=tolerance, image_frame=dataset.image_frame, frame_place=places.frame_place, pr=pr)
+        return _traversal(dataset, places, descriptors, options, settings, progress)
+    pooled = dict(image_frame=dataset.image_frame, frame_place=places.frame_place, progress=progress,
+                  settings=settings, shared=shared)
     if protocol is Protocol.PAPER:
         # evaluation.paper_protocol's numbers (tests/test_scale.py) in one pass over the image pairs
-        return fast_paper_protocol(descriptors, places.image_place, dataset.image_traversal, places.n_places,
-                                   progress=_paper_progress(progress, runs), shared=shared, **pooled)
-    return open_set_protocol(
-        descriptors, places.image_place, dataset.image_traversal, places.n_places,
-        unknown_share=unknown_share, k_grid=k_grid, progress=progress, shared=shared, **pooled,
-    )
+        return fast_paper_protocol(descriptors, places.image_place, dataset.image_traversal, places.n_places, options,
+                                   **pooled)
+    return open_set_protocol(descriptors, places.image_place, dataset.image_traversal, places.n_places, options,
+                             **pooled)
+
+
+def _traversal(dataset: Dataset, places: Places, descriptors: np.ndarray, options: ProtocolOptions, settings: dict,
+               progress: Progress | None) -> Evaluation:
+    """The traversal protocol: ``retrieval_protocol`` on the value of the chosen traversals, labelled as such.
+
+    The settings name the database and query traversals, the direction's origin, the
+    database's places, the query frames scored and those between places.
+    """
+    db, q = default_traversals(dataset, options.database, options.queries)
+    value = database_queries(dataset, query=q, database=db, tolerance=options.tolerance)
+    rows = value_rows(value)
+    d = descriptors if rows is None else descriptors[rows]
+    ev = retrieval_protocol(d[:value.n_database], d[value.n_database:], places.frame_place[value.database_frame],
+                            places.n_places, value.ground_truth, options, progress=progress)
+    between = ev.settings["queries_between_places"]
+    return dataclasses.replace(ev, protocol=Protocol.TRAVERSAL, settings={
+        **settings, "places": places.describe(images=np.flatnonzero(np.isin(dataset.image_traversal, db)),
+                                              what="database images"),
+        "direction": traversal_direction(dataset, db, q), "database": [dataset.traversals[t] for t in db],
+        "queries": dataset.traversals[q], "queries_scored": ev.settings["queries"] - between,
+        "queries_between_places": between,
+    })
 
 
 def evaluate_dataset(
@@ -305,20 +281,23 @@ def evaluate_dataset(
     spec: PlaceSpec | None,
     descriptor: str,
     protocol: Protocol | str,
+    options: ProtocolOptions | None = None,
     *,
     cache_root: Path | None = None,
     extract_progress: Callable[[int, int], None] | None = None,
+    progress: Progress | None = None,
     dtype: str = "float32",
     storage: str | None = None,
     layout: str = "auto",
     descriptors_file: Path | None = None,
     names_file: Path | None = None,
-    **options,
+    **fields,
 ) -> Evaluation:
     """Everything from a dataset path (or ``"demo"``) to an ``Evaluation``.
 
-    ``dtype`` and ``storage`` go to :func:`dataset_descriptors`, the other options to
-    :func:`run_protocol`. With ``descriptors_file``, descriptors computed elsewhere are read
+    ``dtype`` and ``storage`` go to :func:`dataset_descriptors`; ``options`` (or ``fields``,
+    its field names as keywords) and ``progress`` to :func:`run_protocol`. With
+    ``descriptors_file``, descriptors computed elsewhere are read
     from it (:func:`imported_descriptors`) instead of ``descriptor``'s extraction, the
     file's stem names the descriptor, and the settings record the file's path and sha256
     (``ImportedDescriptors.settings``).
@@ -329,7 +308,8 @@ def evaluate_dataset(
     if not isinstance(dataset, Dataset):
         raise VPRInputError(f"{source} is a {dataset.layout.value} layout: evaluate it with evaluate_retrieval")
     places = make_places(dataset, spec)
-    check_options(protocol, dataset, **options)
+    options = options_of(options, fields)
+    check_options(protocol, dataset, options)
     source: dict[str, str] = {}
     if descriptors_file is not None:
         imp = imported_descriptors(dataset, descriptors_file, names_file=names_file, dtype=dtype)
@@ -338,8 +318,8 @@ def evaluate_dataset(
         desc = dataset_descriptors(
             dataset, descriptor, cache_root=cache_root, progress=extract_progress, dtype=dtype, storage=storage
         )
-    return run_protocol(protocol, dataset, places, desc,
-                        settings={"descriptor": descriptor, **source, "dtype": str(desc.dtype)}, **options)
+    return run_protocol(protocol, dataset, places, desc, options, progress=progress,
+                        settings={"descriptor": descriptor, **source, "dtype": str(desc.dtype)})
 
 
 def imported_descriptors(dataset, path: Path, *, names_file: Path | None = None, dtype: str = "float32",
@@ -429,28 +409,28 @@ def open_dataset(source: str | Path, layout: str = "auto", *, radius: float | No
 def evaluate_retrieval(
     dataset,
     descriptors: np.ndarray,
+    options: ProtocolOptions | None = None,
     *,
     spec: PlaceSpec | None = None,
     metric=None,
-    user_theta: float | None = None,
     settings: dict | None = None,
     progress: Progress | None = None,
-    pr: bool = False,
+    **fields,
 ) -> Evaluation:
     """The database/queries protocol on a ``RetrievalDataset`` with its descriptors (database rows first).
+
+    Reads ``options``' user_theta and pr (or ``fields``, its field names as keywords).
 
     In-memory float32 descriptors go to ``evaluation.retrieval_protocol``. A memory-mapped
     (or float16) matrix, such as a million-image database (``descriptors.store``), goes to
     ``database_queries.evaluate_fitted``: the same table, the database read a block at a time
     and never converted whole, with the thresholds of the explorer's (kept) fit of these places.
     """
-    from vpr_explorer.protocols.evaluation import retrieval_protocol
-
+    options = options_of(options, fields)
     if len(descriptors) != dataset.n_images:
         raise VPRInputError(f"{len(descriptors)} descriptors for {dataset.n_images} images of {dataset.name!r}: "
                             "recompute them")
-    if user_theta is not None:
-        check_finite("theta", user_theta, example="0.5, a cosine similarity")
+    user_theta = options.user_theta
     place, n_places = retrieval_places(dataset, spec, metric)
     how = ("places from the layout" if dataset.database_place is not None
            else metric.describe() if metric is not None else spec.describe())
@@ -464,9 +444,7 @@ def evaluate_retrieval(
         fitted = rv.fit_retrieval(descriptors, dataset, rv.RetrievalPlaces(
             geometry, None if metric is not None else spec, metric))
         return rv.evaluate_fitted(fitted, descriptors, user_theta=user_theta, settings=settings, progress=progress,
-                                  pr=pr)
+                                  pr=options.pr)
     d = np.asarray(descriptors)
-    return retrieval_protocol(
-        d[:dataset.n_database], d[dataset.n_database:], place, n_places, dataset.ground_truth,
-        user_theta=user_theta, progress=progress, pr=pr, settings=settings,
-    )
+    return retrieval_protocol(d[:dataset.n_database], d[dataset.n_database:], place, n_places, dataset.ground_truth,
+                              options, progress=progress, settings=settings)

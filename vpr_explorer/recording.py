@@ -1,36 +1,47 @@
-"""Traversal playback with rerun: a query traversal decided frame by frame against a database.
+"""Playback with rerun: the queries of a dataset value decided one by one against its database.
 
 The one module that talks to rerun. Every recording is an explicit
 ``rerun.RecordingStream`` (never rerun's global one: several browser sessions may record
-at once). On one ``frame`` timeline it logs, for each query frame:
+at once). A dataset value (``layouts.RetrievalDataset``; aligned traversals are one,
+``data.aligned.database_queries``, whose query ``q`` is frame ``q`` of the query traversal)
+is played back as the sequence of its queries in their order. On one ``query`` timeline
+(the query's index) it logs, for each query:
 
 | entity                                   | what                                                        |
 |------------------------------------------|-------------------------------------------------------------|
 | ``query``                                | the query image (its file's bytes, original size)           |
 | ``match/paper``, ``match/baseline``      | the database image behind each method's answer (cleared when rejected) |
-| ``decision/paper``, ``decision/baseline``| the answer and whether it was right, as a text log; level INFO right, ERROR wrong accept, WARN wrong reject, DEBUG between places (not scored) |
+| ``decision/paper``, ``decision/baseline``| the answer and whether it was right, as a text log; level INFO right, ERROR wrong accept, WARN wrong reject, DEBUG not scored |
 | ``scores/<method>/{raw,theta,margin}``   | raw_p, θ_p and raw_p − θ_p of the method's best place         |
-| ``place/{true,paper,baseline}``          | the true place and each answered place                       |
-| ``route/query``, ``route/<method>``      | the query's true position and the answered image's position  |
+| ``place/{true,paper,baseline}``          | the right place (the best-scoring one) and each answered place |
+| ``route/query``, ``route/<method>``      | the query's position and the answered image's position      |
 
-and, static: ``route/path`` and ``route/places`` (the route, from ``Dataset.positions`` or,
-without positions, frame indices on a line), ``thresholds/{weighted,simple}`` (θ_p of every
-place) and ``summary`` (settings and counts). ``playback_blueprint`` lays them out.
+and, static: ``route/path`` and ``route/places`` (the database's route and each place's
+centre), ``thresholds/{weighted,simple}`` (θ_p of every place) and ``summary`` (settings
+and counts). ``playback_blueprint`` lays them out.
+
+What is right (``verdicts``): a query with a right place is right when accepted with it at
+rank 1; a query with no positive at all (an unknown place, the open-set case) is right when
+rejected, a wrong accept otherwise; a query whose positives all lie outside every place is
+not scored (``places.BETWEEN_PLACES_RULE``).
 
 "paper" is the paper's method (margin rule, weighted θ: ``margin-weighted``), "baseline"
 the place-level baseline (``place-baseline``). The baseline has no threshold; its θ_p and
 margin series show where the paper's weighted θ_p puts the place it picked.
 
-Images are read from disk one frame at a time and logged as encoded files, so a long
-traversal never holds all its images in memory (give the recording a sink first,
+The route: positions in metres where the value has them (for aligned traversals the
+positions of their frames), else for aligned traversals frame numbers on a line; a layout
+with neither (VPR-Bench) has no route.
+
+Images are read from disk one query at a time and logged as encoded files, so a long
+sequence never holds all its images in memory (give the recording a sink first,
 ``save``/``set_sinks``: one without a sink buffers everything).
 
-Entry points, from the most to the least given: ``log_traversal`` (decisions already
-made) < ``record_traversal`` (decides, then logs) < ``save_traversal`` (a new recording
-written to an ``.rrd``, optionally served) < ``record_playback`` (places and database
-thresholds of a loaded dataset) < ``record_dataset`` (a dataset path or ``"demo"``; the
-``record`` command). ``viewer_servers`` starts rerun's gRPC server and bundled web viewer
-once per process.
+Entry points, from the most to the least given: ``log_queries`` (decisions already made,
+``decide_every_query``) < ``record_playback`` (a fitted value: decides, writes an ``.rrd``,
+optionally served) < ``record_dataset`` (an opened dataset, its descriptors computed or
+read: the ``record`` command). ``viewer_servers`` starts rerun's gRPC server and bundled
+web viewer once per process.
 """
 
 from __future__ import annotations
@@ -50,15 +61,36 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from vpr_explorer.method.database import DatabaseModel, TraversalDecisions, Verdict, decide_traversal, fit_database
+from vpr_explorer.data.aligned import database_queries, value_rows
+from vpr_explorer.data.layouts import RetrievalDataset
 from vpr_explorer.data.traversals import Dataset, load_dataset
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.method.places import BETWEEN_PLACES_RULE, Places, PlaceSpec, between_places, make_places
+from vpr_explorer.method.database import Verdict
+from vpr_explorer.method.places import (
+    BETWEEN_PLACES_RULE,
+    MetricPlaceSpec,
+    PlaceGeometry,
+    PlaceSpec,
+    Reading,
+    retrieval_places,
+)
+from vpr_explorer.method.retrieval import METHODS_BY_KEY, Outcome, place_scores, score_queries
+from vpr_explorer.protocols.options import check_finite, check_whole
 from vpr_explorer.settings import check_cache_root
-from vpr_explorer.method.retrieval import METHODS_BY_KEY
+from vpr_explorer.views.database_queries import (
+    BETWEEN,
+    KNOWN,
+    SCORE_ELEMS,
+    UNKNOWN,
+    RetrievalFitted,
+    RetrievalPlaces,
+    check_geometry,
+    fit_retrieval,
+    score_rows,
+)
 
 APPLICATION_ID = "vpr_explorer"
-TIMELINE = "frame"
+TIMELINE = "query"
 PAPER = "margin-weighted"
 BASELINE = "place-baseline"
 RECORDED: dict[str, str] = {PAPER: "paper", BASELINE: "baseline"}
@@ -91,109 +123,196 @@ _MARKERS = {"true": "Circle", "paper": "Cross", "baseline": "Diamond"}
 _PLACE_COLORS = {"true": (200, 200, 200), "paper": (31, 119, 180), "baseline": (255, 127, 14)}
 
 
-# --------------------------------------------------------------------------- what is logged
+# --------------------------------------------------------------------------- the decisions
 
 
-def frame_verdicts(decisions: TraversalDecisions, key: str) -> np.ndarray:
-    """``(n_frames,)`` ``Verdict`` values of one method over the query frames.
+@dataclass(frozen=True, eq=False)
+class QueryDecisions:
+    """Every query of a dataset value decided against its database under the recorded methods, in query order.
 
-    A frame with no right place (between places) is not scored (``places.BETWEEN_PLACES_RULE``,
-    as in the traversal protocol); otherwise right = accepted with the true place at rank 1.
+    Attributes:
+        fitted: the places and thresholds the queries were decided with.
+        status: ``(n_queries,)`` ``database_queries.KNOWN`` (a right place), ``BETWEEN`` (positives,
+            none in a place: not scored) or ``UNKNOWN`` (no positive at all).
+        true_place: ``(n_queries,)`` the right place scoring highest, ``-1`` where there is none.
+        true_raw: ``(n_queries,)`` its raw_p (NaN where there is none).
+        outcomes: method key -> ``Outcome`` over the queries (``answer_image`` indexes ``fitted.model.images``).
+        plotted: method key -> ``(n_queries,)`` the place whose scores are logged: the answer, or
+            for a rejected query the one that came closest (highest raw_p − θ_p).
+        plotted_raw: method key -> ``(n_queries,)`` raw_p of that place.
+        thresholds: the threshold mapping the methods ran with (θ_p + k·s_p).
+        k: that k.
     """
+
+    fitted: RetrievalFitted
+    status: np.ndarray
+    true_place: np.ndarray
+    true_raw: np.ndarray
+    outcomes: dict[str, Outcome]
+    plotted: dict[str, np.ndarray]
+    plotted_raw: dict[str, np.ndarray]
+    thresholds: dict[str, np.ndarray | float]
+    k: float = 0.0
+
+    @property
+    def n_queries(self) -> int:
+        return len(self.status)
+
+    def theta(self, name: str = "weighted") -> np.ndarray:
+        """``(n_places,)`` one threshold of every place (a global one broadcast)."""
+        return np.broadcast_to(np.asarray(self.thresholds[name], dtype=np.float64), (self.fitted.n_places,))
+
+
+def decide_every_query(fitted: RetrievalFitted, descriptors: np.ndarray, *, k: float = 0.0) -> QueryDecisions:
+    """Decide every query of ``fitted``'s dataset under the recorded methods (``RECORDED``), in blocks.
+
+    Each block's scores are the query rows against the database images in places
+    (``database_queries.score_rows``), their place maxima (``retrieval.place_scores``) and the
+    methods' outcomes (``retrieval.score_queries``): what ``database_queries.explain_query``
+    decides one query at a time. Only one block's scores are held at once (``SCORE_ELEMS``).
+
+    Args:
+        descriptors: ``(n_images, D)`` of the dataset, database rows first.
+        k: thresholds θ_p + k·s_p (0: the paper's).
+
+    Raises:
+        VPRInputError: descriptors of another dataset, or a dataset without queries.
+    """
+    ds, model, n_places = fitted.dataset, fitted.model, fitted.n_places
+    if len(descriptors) != ds.n_images:
+        raise VPRInputError(f"{len(descriptors)} descriptors for {ds.n_images} images of {ds.name!r}: "
+                            "compute them for this dataset")
+    if not ds.n_queries:
+        raise VPRInputError(f"{ds.name!r} has no query image: there is nothing to play back")
+    th = model.thresholds(k)
+    methods = tuple(METHODS_BY_KEY[key] for key in RECORDED)
+    full = {name: np.broadcast_to(np.asarray(v, dtype=np.float64), (n_places,)) for name, v in th.items()}
+    block = max(1, SCORE_ELEMS // max(1, len(model.images)))
+    parts: list[tuple] = []
+    for lo in range(0, ds.n_queries, block):
+        queries = np.arange(lo, min(lo + block, ds.n_queries))
+        sims = score_rows(descriptors, ds.n_database + queries, model.images)
+        raw, best = place_scores(sims, model.places, n_places)
+        truth = fitted.right_places(queries)
+        outs = score_queries(sims, model.places, n_places, th, truth, methods, raw_best=(raw, best))
+        rows = np.arange(len(queries))
+        plotted, plotted_raw = {}, {}
+        for m in methods:
+            ranking = raw if m.threshold is None else raw - full[m.threshold]
+            closest = np.argmax(np.where(np.isfinite(ranking), ranking, -np.inf), axis=1)
+            o = outs[m.key]
+            plotted[m.key] = np.where(o.accepted, o.answer_place, closest)
+            plotted_raw[m.key] = raw[rows, plotted[m.key]]
+        known = truth.any(axis=1)
+        true = np.argmax(np.where(truth, raw, -np.inf), axis=1)
+        status = np.where(known, KNOWN, np.where(ds.ground_truth.counts[queries] == 0, UNKNOWN, BETWEEN))
+        parts.append((status, np.where(known, true, -1), np.where(known, raw[rows, true], np.nan), outs, plotted,
+                      plotted_raw))
+
+    def joined(i: int, key: str | None = None) -> np.ndarray:
+        return np.concatenate([p[i] if key is None else p[i][key] for p in parts])
+
+    outcomes = {m.key: Outcome(m, *(np.concatenate([getattr(p[3][m.key], f) for p in parts])
+                                    for f in ("rank", "answer_place", "answer_image", "n_kept"))) for m in methods}
+    return QueryDecisions(fitted, joined(0).astype(object), joined(1), joined(2), outcomes,
+                          {key: joined(4, key) for key in RECORDED}, {key: joined(5, key) for key in RECORDED},
+                          th, float(k))
+
+
+def verdicts(decisions: QueryDecisions, key: str) -> np.ndarray:
+    """``(n_queries,)`` ``Verdict`` values of one method over the queries (module docstring: what is right)."""
     o = decisions.outcomes[key]
-    known = ~between_places(decisions.truth)
+    status = decisions.status
     out = np.where(o.right, Verdict.RIGHT.value,
                    np.where(o.accepted, Verdict.WRONG_ACCEPT.value, Verdict.WRONG_REJECT.value))
-    return np.where(known, out, Verdict.BETWEEN.value).astype(object)
+    out = np.where(status == UNKNOWN, np.where(o.accepted, Verdict.WRONG_ACCEPT.value, Verdict.RIGHT.value), out)
+    return np.where(status == BETWEEN, Verdict.BETWEEN.value, out).astype(object)
 
 
-def verdict_counts(decisions: TraversalDecisions, key: str) -> dict[Verdict, int]:
-    """How many frames got each verdict under one method."""
-    v = frame_verdicts(decisions, key)
+def verdict_counts(decisions: QueryDecisions, key: str) -> dict[Verdict, int]:
+    """How many queries got each verdict under one method."""
+    v = verdicts(decisions, key)
     return {verdict: int((v == verdict.value).sum()) for verdict in Verdict}
 
 
-def best_places(decisions: TraversalDecisions, key: str) -> np.ndarray:
-    """``(n_frames,)`` the place whose scores are plotted for a method.
-
-    The answered place; for a rejected frame, the place that came closest (highest
-    raw_p − θ_p), which is the one the paper's rule would have answered.
-    """
-    o = decisions.outcomes[key]
-    method = METHODS_BY_KEY[key]
-    if method.threshold is None:
-        ranking = decisions.raw
-    else:
-        with np.errstate(invalid="ignore"):
-            ranking = decisions.raw - np.asarray(decisions.thresholds[method.threshold], dtype=np.float64)
-    closest = np.argmax(np.where(np.isfinite(ranking), ranking, -np.inf), axis=1)
-    return np.where(o.accepted, o.answer_place, closest)
-
-
-def score_series(decisions: TraversalDecisions, key: str) -> dict[str, np.ndarray]:
-    """``{"raw", "theta", "margin"}`` -> ``(n_frames,)`` of each frame's best place (``best_places``).
-
-    θ is the paper's weighted θ_p (with the decisions' k) for both methods.
-    """
-    p = best_places(decisions, key)
-    rows = np.arange(len(p))
-    theta = np.broadcast_to(np.asarray(decisions.thresholds["weighted"], dtype=np.float64), decisions.raw.shape[1:])
-    raw = decisions.raw[rows, p]
-    return {"raw": raw, "theta": theta[p], "margin": raw - theta[p]}
-
-
-def describe_frames(decisions: TraversalDecisions, key: str) -> list[str]:
-    """One method's decision for every frame in words, e.g.
+def describe_queries(decisions: QueryDecisions, key: str) -> list[str]:
+    """One method's decision for every query in words, e.g.
     "accepted as place 7 (right): raw 0.812, threshold 0.460, margin +0.352"."""
     o = decisions.outcomes[key]
     method = METHODS_BY_KEY[key]
-    theta = np.broadcast_to(np.asarray(decisions.thresholds["weighted"], dtype=np.float64), decisions.raw.shape[1:])
-    closest = best_places(decisions, key)
-    verdicts = frame_verdicts(decisions, key)
+    theta = None if method.threshold is None else decisions.theta(method.threshold)
+    said = verdicts(decisions, key)
     texts = []
-    for frame in range(len(o.answer_place)):
-        raw = decisions.raw[frame]
 
-        def scores(p: int) -> str:
-            text = f"raw {raw[p]:.3f}"
-            if method.threshold is not None:
-                text += f", threshold {theta[p]:.3f}, margin {raw[p] - theta[p]:+.3f}"
-            return text
+    def scores(p: int, raw: float) -> str:
+        text = f"raw {raw:.3f}"
+        if theta is not None:
+            text += f", threshold {theta[p]:.3f}, margin {raw - theta[p]:+.3f}"
+        return text
 
-        answer = int(o.answer_place[frame])
+    for i in range(decisions.n_queries):
+        answer, p = int(o.answer_place[i]), int(decisions.plotted[key][i])
+        body = scores(p, decisions.plotted_raw[key][i])
         if answer >= 0:
-            head, body = f"accepted as place {answer}", scores(answer)
+            head = f"accepted as place {answer}"
         else:
-            c = int(closest[frame])
-            head, body = "rejected", f"every place scored below its threshold; the closest, place {c}: {scores(c)}"
-        verdict = Verdict(verdicts[frame])
+            head, body = "rejected", f"every place scored below its threshold; the closest, place {p}: {body}"
+        verdict, status = Verdict(said[i]), decisions.status[i]
         if verdict is Verdict.BETWEEN:
-            texts.append(f"{head} (not scored: the frame lies between places): {body}")
-            continue
-        if verdict is Verdict.RIGHT:
+            texts.append(f"{head} (not scored: the query's right images all lie between places): {body}")
+        elif status == UNKNOWN:
+            right = "right" if verdict is Verdict.RIGHT else "wrong"
+            texts.append(f"{head} ({right}: the query's place is not in the database): {body}")
+        elif verdict is Verdict.RIGHT:
             texts.append(f"{head} (right): {body}")
-            continue
-        truth = np.flatnonzero(decisions.truth[frame])
-        true = int(truth[np.argmax(raw[truth])])
-        rank = o.rank[frame]
-        if verdict is Verdict.WRONG_REJECT:
-            why = f"the query is place {true} ({scores(true)})"
-        elif not np.isfinite(rank):
-            why = f"the true place {true} was dropped ({scores(true)})"
-        elif rank == 1:
-            why = f"the true place {true} ties with it at the top, and ties count against the query"
         else:
-            why = f"the true place {true} ranked {int(rank)} ({scores(true)})"
-        texts.append(f"{head} (wrong: {why}): {body}")
+            true, rank = int(decisions.true_place[i]), o.rank[i]
+            at_true = scores(true, decisions.true_raw[i])
+            if verdict is Verdict.WRONG_REJECT:
+                why = f"the query is place {true} ({at_true})"
+            elif not np.isfinite(rank):
+                why = f"the true place {true} was dropped ({at_true})"
+            elif rank == 1:
+                why = f"the true place {true} ties with it at the top, and ties count against the query"
+            else:
+                why = f"the true place {true} ranked {int(rank)} ({at_true})"
+            texts.append(f"{head} (wrong: {why}): {body}")
     return texts
 
 
-def route_positions(dataset: Dataset) -> np.ndarray:
-    """``(n_frames, 2)`` where each frame lies: ``Dataset.positions``, else ``(frame, 0)`` on a line."""
-    if dataset.positions is not None:
-        return np.asarray(dataset.positions, dtype=np.float64)
-    f = np.arange(dataset.n_frames, dtype=np.float64)
-    return np.stack([f, np.zeros_like(f)], axis=1)
+# --------------------------------------------------------------------------- what is logged
+
+
+@dataclass(frozen=True, eq=False)
+class Route:
+    """Where a value's images lie, in metres (or frame numbers on a line).
+
+    Attributes:
+        path: ``(m, 2)`` the database's route: every frame of aligned traversals, else the
+            database images in listed order.
+        line: ``path`` is one route in order (drawn as a line), not a set of points.
+        database, queries: ``(n, 2)`` each database image's and each query's position.
+    """
+
+    path: np.ndarray
+    line: bool
+    database: np.ndarray
+    queries: np.ndarray
+
+
+def route_of(dataset: RetrievalDataset) -> Route | None:
+    """The value's route: its positions, else for aligned traversals ``(frame, 0)``; ``None`` with neither."""
+    if dataset.database_frame is not None and dataset.query_frame is not None:
+        xy = dataset.frame_xy
+        if xy is None:
+            f = np.arange(dataset.n_frames, dtype=np.float64)
+            xy = np.stack([f, np.zeros_like(f)], axis=1)
+        xy = np.asarray(xy, dtype=np.float64)
+        return Route(xy, True, xy[dataset.database_frame], xy[dataset.query_frame])
+    if dataset.database_xy is not None and dataset.query_xy is not None:
+        db = np.asarray(dataset.database_xy, dtype=np.float64)
+        return Route(db, bool(dataset.ordered), db, np.asarray(dataset.query_xy, dtype=np.float64))
+    return None
 
 
 #: Longest view title the viewer shows whole in a third of the Playback page's width.
@@ -217,9 +336,9 @@ def playback_blueprint(query: str, database: Sequence[str]) -> rrb.Blueprint:
                 rrb.Spatial2DView(origin="match/baseline", name="place-level baseline's answer"),
             ),
             rrb.Horizontal(
-                rrb.TimeSeriesView(origin="scores/paper", name="paper: similarity per frame",
+                rrb.TimeSeriesView(origin="scores/paper", name="paper: similarity per query",
                                    plot_legend=legend),
-                rrb.TimeSeriesView(origin="scores/baseline", name="baseline: similarity per frame",
+                rrb.TimeSeriesView(origin="scores/baseline", name="baseline: similarity per query",
                                    plot_legend=legend),
                 rrb.TimeSeriesView(origin="place", name="place: true (grey) and answers", plot_legend=legend),
             ),
@@ -261,19 +380,31 @@ def _image(path: Path) -> rr.AsComponents:
         raise VPRInputError(f"{path}: cannot read the image ({why}); restore the file and record again") from exc
 
 
-def _summary(
-    dataset: Dataset, places: Places, model: DatabaseModel, decisions: TraversalDecisions, query: str,
-    descriptor: str | None, k: float,
-) -> str:
-    db = ", ".join(dataset.traversals[t] for t in model.traversals)
+def sides(dataset: RetrievalDataset) -> tuple[tuple[str, ...], str]:
+    """The database traversals (in order) and the query traversal of a value, by name."""
+    order = np.unique(dataset.database_traversal, return_index=True)[1]
+    database = tuple(dataset.traversals[int(t)] for t in dataset.database_traversal[np.sort(order)])
+    return database, dataset.traversals[int(dataset.query_traversal[0])]
+
+
+def summary(decisions: QueryDecisions, descriptor: str | None) -> str:
+    """The recording's summary (markdown): data, places, thresholds, and each method's counts in one short line."""
+    fitted = decisions.fitted
+    ds = fitted.dataset
+    database, query = sides(ds)
+    n_unknown = int((decisions.status == UNKNOWN).sum())
+    n_known = int((decisions.status == KNOWN).sum())
     lines = [
-        f"# {dataset.name}: {query} against {db}",
+        f"# {ds.name}: {query} against {', '.join(database)}",
         "",
-        f"- places: {places.describe()}",
+        f"- places: {fitted.describe()}",
+        f"- right images: {ds.ground_truth.description}",
         f"- descriptor: {descriptor or 'not given'}",
-        f"- thresholds: θ_p + k·s_p with k = {k:g}, from the database images only "
+        f"- thresholds: θ_p + k·s_p with k = {decisions.k:g}, from the database images only "
         "(weighted θ uses the normalised weights wᵢτᵢ² / Σⱼ wⱼτⱼ²)",
-        f"- {len(decisions.query_images)} query frames, {int((~between_places(decisions.truth)).sum())} in a place",
+        f"- {decisions.n_queries} queries in their order on the `{TIMELINE}` timeline: {n_known} with a right "
+        f"place, {n_unknown} of an unknown place (no right image: rejecting them is right), "
+        f"{decisions.n_queries - n_known - n_unknown} not scored",
         f"- {BETWEEN_PLACES_RULE}",
         "",
         "## Decisions",
@@ -282,110 +413,109 @@ def _summary(
     # One short line per method, not a wide table: the viewer's text panel would cut its columns.
     for key, short in RECORDED.items():
         c = verdict_counts(decisions, key)
-        scored = c[Verdict.RIGHT] + c[Verdict.WRONG_ACCEPT] + c[Verdict.WRONG_REJECT]
-        recall = f"{100 * c[Verdict.RIGHT] / scored:.1f} %" if scored else "— (no frame in a place)"
+        right_known = int((decisions.outcomes[key].right & (decisions.status == KNOWN)).sum())
+        recall = f"{100 * right_known / n_known:.1f} %" if n_known else "— (no query with a right place)"
         lines.append(f"- **{short}** ({METHODS_BY_KEY[key].label}): Recall@1 {recall}; {c[Verdict.RIGHT]} right, "
                      f"{c[Verdict.WRONG_ACCEPT]} wrong accepts, {c[Verdict.WRONG_REJECT]} wrong rejects, "
-                     f"{c[Verdict.BETWEEN]} between places (not scored)")
+                     f"{c[Verdict.BETWEEN]} not scored")
     lines += [
         "",
         "## Plots",
         "",
-        f"- similarity per frame: {', '.join(_SERIES_NAMES.values())} of the method's best place "
-        "(the answer, or for a rejected frame the closest place), against the frame number",
-        "- place: the true place id and each answered place id, against the frame number",
-        "- route: the query's true position (blue), each answer's position (green right, red wrong)",
+        f"- similarity per query: {', '.join(_SERIES_NAMES.values())} of the method's best place "
+        "(the answer, or for a rejected query the closest place), against the query number",
+        "- place: the true place id and each answered place id, against the query number",
+        "- route: the query's position (blue), each answer's position (green right, red wrong)"
+        if route_of(ds) is not None else "- route: none (the layout has neither positions nor frames)",
     ]
     return "\n".join(lines) + "\n"
 
 
-def log_traversal(
+def log_queries(
     recording: rr.RecordingStream,
-    dataset: Dataset,
-    places: Places,
-    model: DatabaseModel,
-    decisions: TraversalDecisions,
+    decisions: QueryDecisions,
     *,
     descriptor: str | None = None,
-    k: float = 0.0,
     progress: Progress | None = None,
 ) -> None:
-    """Log decided query frames to ``recording`` (entities in the module docstring).
+    """Log decided queries to ``recording`` (entities in the module docstring).
 
-    Static entities and every series go first as columns; then the images, one frame at
-    a time, read from disk. ``descriptor`` and ``k`` only label the summary.
+    Static entities and every series go first as columns; then the images, one query at
+    a time, read from disk. ``descriptor`` only labels the summary.
     """
-    qi = np.asarray(decisions.query_images)
-    frames = dataset.image_frame[qi].astype(np.int64)
-    query = dataset.traversals[int(dataset.image_traversal[qi[0]])]
-    times = [rr.TimeColumn(TIMELINE, sequence=frames)]
-    positions = route_positions(dataset)
-    theta = {name: np.broadcast_to(np.asarray(decisions.thresholds[name], dtype=np.float64), (places.n_places,))
-             for name in ("weighted", "simple")}
+    fitted = decisions.fitted
+    ds, model = fitted.dataset, fitted.model
+    n = decisions.n_queries
+    queries = np.arange(n, dtype=np.int64)
+    times = [rr.TimeColumn(TIMELINE, sequence=queries)]
+    theta = {name: decisions.theta(name) for name in ("weighted", "simple")}
 
-    recording.log("summary", rr.TextDocument(_summary(dataset, places, model, decisions, query, descriptor, k),
-                                             media_type=rr.MediaType.MARKDOWN), static=True)
+    recording.log("summary", rr.TextDocument(summary(decisions, descriptor), media_type=rr.MediaType.MARKDOWN),
+                  static=True)
     for name, values in theta.items():
         recording.log(f"thresholds/{name}", rr.BarChart(np.nan_to_num(values)), static=True)
-    recording.log("route/path", rr.LineStrips2D([positions], colors=[_ROUTE],
-                                                radii=rr.components.Radius.ui_points(1.5)), static=True)
-    # A place's mark sits at the mean of its frames (the middle frame of a group).
-    in_place = places.frame_place >= 0
-    counts = np.bincount(places.frame_place[in_place], minlength=places.n_places)
-    sums = np.bincount(places.frame_place[in_place], weights=np.flatnonzero(in_place), minlength=places.n_places)
-    centres = np.rint(sums / np.maximum(counts, 1)).astype(np.int64)
-    recording.log("route/places", rr.Points2D(
-        positions[centres], radii=rr.components.Radius.ui_points(3.0), colors=[_ROUTE],
-        labels=[f"place {p}: θ {theta['weighted'][p]:.3f}" for p in range(places.n_places)],
-        show_labels=False,  # shown on hover: drawn, they hide the route
-    ), static=True)
+    route = route_of(ds)
+    said = {key: verdicts(decisions, key) for key in RECORDED}
+    if route is not None:
+        radius = rr.components.Radius.ui_points(1.5)
+        recording.log("route/path", rr.LineStrips2D([route.path], colors=[_ROUTE], radii=radius) if route.line
+                      else rr.Points2D(route.path, colors=[_ROUTE], radii=radius), static=True)
+        # A place's mark sits at the mean position of its database images.
+        placed = fitted.database_place >= 0
+        counts = np.bincount(fitted.database_place[placed], minlength=fitted.n_places)
+        centres = np.stack([np.bincount(fitted.database_place[placed], weights=route.database[placed, axis],
+                                        minlength=fitted.n_places) for axis in (0, 1)], axis=1)
+        recording.log("route/places", rr.Points2D(
+            centres / np.maximum(counts, 1)[:, None], radii=rr.components.Radius.ui_points(3.0), colors=[_ROUTE],
+            labels=[f"place {p}: θ {theta['weighted'][p]:.3f}" for p in range(fitted.n_places)],
+            show_labels=False,  # shown on hover: drawn, they hide the route
+        ), static=True)
+        recording.send_columns("route/query", indexes=times, columns=rr.Points2D.columns(
+            positions=route.queries, colors=np.tile(_QUERY, (n, 1)),
+            radii=np.full(n, rr.components.Radius.ui_points(6.0), dtype=np.float32),
+        ))
 
-    known = decisions.truth.any(axis=1)
-    true_place = np.argmax(decisions.truth, axis=1)
+    known = decisions.true_place >= 0
     recording.log("place/true", rr.SeriesPoints(colors=[_PLACE_COLORS["true"]], markers=[_MARKERS["true"]],
                                                 names=["true place"]), static=True)
-    recording.send_columns("place/true", indexes=[rr.TimeColumn(TIMELINE, sequence=frames[known])],
-                           columns=rr.Scalars.columns(scalars=true_place[known].astype(np.float64)))
-    recording.send_columns("route/query", indexes=times, columns=rr.Points2D.columns(
-        positions=positions[frames], colors=np.tile(_QUERY, (len(frames), 1)),
-        radii=np.full(len(frames), rr.components.Radius.ui_points(6.0), dtype=np.float32),
-    ))
-
-    verdicts = {key: frame_verdicts(decisions, key) for key in RECORDED}
+    recording.send_columns("place/true", indexes=[rr.TimeColumn(TIMELINE, sequence=queries[known])],
+                           columns=rr.Scalars.columns(scalars=decisions.true_place[known].astype(np.float64)))
     for key, short in RECORDED.items():
         o = decisions.outcomes[key]
         label = METHODS_BY_KEY[key].label
-        for name, values in score_series(decisions, key).items():
+        raw = decisions.plotted_raw[key]
+        series = {"raw": raw, "theta": theta["weighted"][decisions.plotted[key]],
+                  "margin": raw - theta["weighted"][decisions.plotted[key]]}
+        for name, values in series.items():
             path = f"scores/{short}/{name}"
             recording.log(path, rr.SeriesLines(colors=[_SERIES[name]], names=[_SERIES_NAMES[name]]), static=True)
             recording.send_columns(path, indexes=times, columns=rr.Scalars.columns(scalars=values))
         accepted = o.accepted
         recording.log(f"place/{short}", rr.SeriesPoints(colors=[_PLACE_COLORS[short]], markers=[_MARKERS[short]],
                                                         names=[f"answer ({label})"]), static=True)
-        recording.send_columns(f"place/{short}", indexes=[rr.TimeColumn(TIMELINE, sequence=frames[accepted])],
+        recording.send_columns(f"place/{short}", indexes=[rr.TimeColumn(TIMELINE, sequence=queries[accepted])],
                                columns=rr.Scalars.columns(scalars=o.answer_place[accepted].astype(np.float64)))
-        texts = describe_frames(decisions, key)
         recording.send_columns(f"decision/{short}", indexes=times, columns=rr.TextLog.columns(
-            text=[f"frame {f} · {label}: {t}" for f, t in zip(frames, texts)],
-            level=[LEVELS[Verdict(v)] for v in verdicts[key]],
+            text=[f"query {q} · {label}: {t}" for q, t in zip(queries, describe_queries(decisions, key))],
+            level=[LEVELS[Verdict(v)] for v in said[key]],
         ))
-        # One point per accepted frame, none for a rejected one (an empty batch clears it).
-        answer_frames = dataset.image_frame[model.images[np.maximum(o.answer_image, 0)]]
-        recording.send_columns(f"route/{short}", indexes=times, columns=rr.Points2D.columns(
-            positions=positions[answer_frames[accepted]],
-            colors=np.array([_COLORS[Verdict(v)] for v in verdicts[key][accepted]], dtype=np.uint8).reshape(-1, 3),
-            radii=np.full(int(accepted.sum()), rr.components.Radius.ui_points(4.5), dtype=np.float32),
-        ).partition(accepted.astype(np.int64)))
+        if route is not None:  # one point per accepted query, none for a rejected one (an empty batch clears it)
+            answers = model.images[np.maximum(o.answer_image, 0)]
+            recording.send_columns(f"route/{short}", indexes=times, columns=rr.Points2D.columns(
+                positions=route.database[answers[accepted]],
+                colors=np.array([_COLORS[Verdict(v)] for v in said[key][accepted]], dtype=np.uint8).reshape(-1, 3),
+                radii=np.full(int(accepted.sum()), rr.components.Radius.ui_points(4.5), dtype=np.float32),
+            ).partition(accepted.astype(np.int64)))
 
-    image_paths = dataset.image_paths
-    for i, (q, f) in enumerate(zip(qi, frames)):
-        recording.set_time(TIMELINE, sequence=int(f))
-        recording.log("query", _image(image_paths[q]))
+    for q in range(n):
+        recording.set_time(TIMELINE, sequence=q)
+        recording.log("query", _image(ds.query_paths[q]))
         for key, short in RECORDED.items():
-            a = int(decisions.outcomes[key].answer_image[i])
-            recording.log(f"match/{short}", _image(image_paths[model.images[a]]) if a >= 0 else rr.Clear(recursive=False))
+            a = int(decisions.outcomes[key].answer_image[q])
+            recording.log(f"match/{short}", _image(ds.database_paths[model.images[a]]) if a >= 0
+                          else rr.Clear(recursive=False))
         if progress is not None:
-            progress(i + 1, len(qi))
+            progress(q + 1, n)
     recording.reset_time()
 
 
@@ -393,55 +523,10 @@ def log_traversal(
 
 
 def new_recording(recording_id: str | None = None) -> rr.RecordingStream:
-    """A fresh explicit recording of this application (never rerun's global one), on ``frame`` time only."""
+    """A fresh explicit recording of this application (never rerun's global one), on the query timeline only."""
     rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id or uuid.uuid4().hex)
     rec.set_log_time_enabled(False)
     return rec
-
-
-def _check_inputs(dataset: Dataset, places: Places, descriptors: np.ndarray, model: DatabaseModel) -> None:
-    if len(descriptors) != dataset.n_images:
-        raise VPRInputError(
-            f"{len(descriptors)} descriptors for {dataset.n_images} images of {dataset.name!r}: "
-            "compute them for this dataset"
-        )
-    if len(places.frame_place) != dataset.n_frames:
-        raise VPRInputError(
-            f"the places cover {len(places.frame_place)} frames but every traversal of {dataset.name!r} has "
-            f"{dataset.n_frames}: make the places from this dataset"
-        )
-    if model.n_places != places.n_places or (len(model.images) and model.images.max() >= dataset.n_images):
-        raise VPRInputError("the database model was fitted on other places or another dataset: fit it on these")
-
-
-def record_traversal(
-    dataset: Dataset,
-    places: Places,
-    descriptors: np.ndarray,
-    model: DatabaseModel,
-    query_traversal: str | int,
-    *,
-    recording: rr.RecordingStream,
-    k: float = 0.0,
-    tolerance: int = 0,
-    descriptor: str | None = None,
-    progress: Progress | None = None,
-) -> TraversalDecisions:
-    """Decide every frame of ``query_traversal`` against ``model`` and log it to ``recording``.
-
-    Args:
-        descriptors: ``(n_images, D)`` of ``dataset``.
-        k: thresholds θ_p + k·s_p (0: the paper's).
-        tolerance: frames of slack for a right place, as in ``decide_traversal``.
-        descriptor: its name, for the summary.
-        progress: ``progress(done, total)`` after each logged frame.
-    Returns:
-        the library's decisions, exactly what was logged.
-    """
-    _check_inputs(dataset, places, descriptors, model)
-    decisions = decide_traversal(model, descriptors, dataset, places, query_traversal, k=k, tolerance=tolerance)
-    log_traversal(recording, dataset, places, model, decisions, descriptor=descriptor, k=k, progress=progress)
-    return decisions
 
 
 def check_output(path: str | Path) -> Path:
@@ -464,15 +549,6 @@ def check_output(path: str | Path) -> Path:
     if not existed:
         path.unlink(missing_ok=True)
     return path
-
-
-def check_record_options(dataset: Dataset, *, k: float, tolerance: int) -> None:
-    """A recording's numeric options, or a ``VPRInputError`` naming the one at fault and its limit."""
-    from vpr_explorer.pipeline import check_finite, check_whole
-
-    check_finite("k", k, example="0 for the paper's θ_p, 1 for θ_p + s_p")
-    check_whole("tolerance", tolerance, low=0, high=dataset.n_frames,
-                why=f" (frames of slack; {dataset.name!r} has {dataset.n_frames:,} frames)")
 
 
 # --------------------------------------------------------------------------- serving
@@ -544,13 +620,13 @@ def playback_dir() -> Path:
 
 @dataclass(frozen=True, eq=False)
 class Playback:
-    """A recorded traversal: where its ``.rrd`` is, what was decided and where to watch it.
+    """A recorded sequence of queries: where its ``.rrd`` is, what was decided and where to watch it.
 
     Attributes:
         rrd: the recording file.
         recording_id: rerun's recording id (the viewer lists recordings by it).
         dataset: the dataset name.
-        database: database traversal names.
+        database: database traversal names (``("database",)`` for a layout without traversals).
         query: query traversal name.
         decisions: the library's decisions, exactly what was logged.
         viewer_url: the bundled web viewer showing it, when it was served.
@@ -561,88 +637,70 @@ class Playback:
     dataset: str
     database: tuple[str, ...]
     query: str
-    decisions: TraversalDecisions
+    decisions: QueryDecisions
     viewer_url: str | None = None
 
     @property
-    def n_frames(self) -> int:
-        return len(self.decisions.query_images)
+    def n_queries(self) -> int:
+        return self.decisions.n_queries
 
     def counts(self) -> dict[str, dict[Verdict, int]]:
-        """Method key -> frames per verdict, for the recorded methods."""
+        """Method key -> queries per verdict, for the recorded methods."""
         return {key: verdict_counts(self.decisions, key) for key in RECORDED}
 
     def describe(self) -> str:
         """One line per recorded method, e.g. "margin, weighted θ: 45 right, 3 wrong accepts, …"."""
-        lines = [f"{self.n_frames} frames of {self.query} against {', '.join(self.database)} ({self.dataset})"]
+        lines = [f"{self.n_queries} queries of {self.query} against {', '.join(self.database)} ({self.dataset})"]
         for key, c in self.counts().items():
             lines.append(
                 f"{METHODS_BY_KEY[key].label}: {c[Verdict.RIGHT]} right, {c[Verdict.WRONG_ACCEPT]} wrong accepts, "
-                f"{c[Verdict.WRONG_REJECT]} wrong rejects ({c[Verdict.BETWEEN]} frames between places, not scored)"
+                f"{c[Verdict.WRONG_REJECT]} wrong rejects ({c[Verdict.BETWEEN]} queries between places, not scored)"
             )
         return "\n".join(lines)
 
 
-def _traversal_choice(database: Sequence[str], queries: str) -> list[str]:
-    database = list(dict.fromkeys(database))
-    if not database:
-        raise VPRInputError("database: choose at least one database traversal")
-    if queries in database:
-        raise VPRInputError(f"queries={queries!r} is also a database traversal; pick another query traversal")
-    return database
+def check_k(k: float) -> float:
+    """``k`` of θ_p + k·s_p as a finite number, or a ``VPRInputError`` naming it."""
+    return check_finite("k", k, example="0 for the paper's θ_p, 1 for θ_p + s_p")
 
 
-def load_traversals(source: str | Path, database: Sequence[str], queries: str) -> Dataset:
-    """The dataset at ``source`` (or ``"demo"``) with the chosen traversals checked.
-
-    A traversal-folder dataset is read with only these traversals, so the loader checks
-    that they exist and have equal lengths (frame i must be the same spot in each), and
-    the folder's other traversals do not matter.
-    """
-    from vpr_explorer.pipeline import DEMO, resolve_dataset
-
-    database = _traversal_choice(database, queries)
-    try:
-        if str(source) == DEMO:
-            dataset = resolve_dataset(DEMO)
-        else:
-            dataset = load_dataset(source, traversals=[*database, queries])
-        for name in (*database, queries):
-            dataset.traversal_index(name)
-    except VPRInputError as exc:
-        raise VPRInputError(f"database={database}, queries={queries!r}: {exc}") from None
-    return dataset
-
-
-def save_traversal(
-    out: str | Path,
-    dataset: Dataset,
-    places: Places,
+def record_playback(
+    fitted: RetrievalFitted,
     descriptors: np.ndarray,
-    model: DatabaseModel,
-    query_traversal: str | int,
     *,
+    out: str | Path | None = None,
     serve: bool = False,
     k: float = 0.0,
-    tolerance: int = 0,
     descriptor: str | None = None,
     recording_id: str | None = None,
     progress: Progress | None = None,
 ) -> Playback:
-    """``record_traversal`` into a new recording written to the ``.rrd`` file ``out``, with its blueprint.
+    """Decide every query of a fitted value (``decide_every_query``) and record them, in order, to an ``.rrd``.
+
+    The recording is written beside ``out`` and renamed over it once complete: an interrupted
+    or failed run leaves an existing recording as it was (and no partial file).
 
     Args:
+        fitted: the value's places and database thresholds (``database_queries.fit_retrieval``).
+        descriptors: ``(n_images, D)`` of ``fitted.dataset``, database rows first.
+        out: the ``.rrd`` to write; default a new file in ``playback_dir()``.
         serve: also stream it to this process's viewer servers (``viewer_servers``); the
             returned ``Playback.viewer_url`` shows it.
+        k: thresholds θ_p + k·s_p (0: the paper's).
+        descriptor: its name, for the summary.
+        progress: ``progress(done, total)`` after each logged query.
+
+    Raises:
+        VPRInputError: an unwritable ``out``, a non-finite ``k``, descriptors of another dataset, an
+            unreadable image.
     """
-    out = check_output(out)
-    check_record_options(dataset, k=k, tolerance=tolerance)
-    query = dataset.traversals[dataset.traversal_index(query_traversal)]
-    database = [dataset.traversals[t] for t in model.traversals]
+    rid = recording_id or uuid.uuid4().hex
+    out = check_output(out if out is not None else playback_dir() / f"{rid}.rrd")
+    k = check_k(k)
+    decisions = decide_every_query(fitted, descriptors, k=k)
+    database, query = sides(fitted.dataset)
     servers = viewer_servers() if serve else None
-    rec = new_recording(recording_id)
-    # Written beside ``out`` and renamed over it once complete: an interrupted or failed run
-    # leaves an existing recording as it was (and no partial file).
+    rec = new_recording(rid)
     partial = out.with_name(f".{out.stem}.{uuid.uuid4().hex[:8]}.partial.rrd")
     sinks: list = [rr.FileSink(partial)]
     if servers is not None:
@@ -652,11 +710,10 @@ def save_traversal(
             rec.set_sinks(*sinks)
         except RuntimeError as exc:
             raise VPRInputError(f"{out}: cannot write the recording ({exc}); pick a writable path") from exc
-        rec.send_recording_name(f"{dataset.name}: {query} against {', '.join(database)}")
+        rec.send_recording_name(f"{fitted.dataset.name}: {query} against {', '.join(database)}")
         rec.send_blueprint(playback_blueprint(query, database))
         try:
-            decisions = record_traversal(dataset, places, descriptors, model, query, recording=rec, k=k,
-                                         tolerance=tolerance, descriptor=descriptor, progress=progress)
+            log_queries(rec, decisions, descriptor=descriptor, progress=progress)
         finally:
             # Sends what is buffered and closes the file (writing its footer); the served copy
             # lives on in the gRPC server, which ``_server_owner`` keeps running.
@@ -668,55 +725,59 @@ def save_traversal(
             raise VPRInputError(f"{out}: cannot write the recording ({exc.strerror}); pick a writable path") from exc
     finally:
         partial.unlink(missing_ok=True)
-    return Playback(rrd=out, recording_id=rec.get_recording_id(), dataset=dataset.name, database=tuple(database),
+    return Playback(rrd=out, recording_id=rec.get_recording_id(), dataset=fitted.dataset.name, database=database,
                     query=query, decisions=decisions, viewer_url=servers.viewer_url if servers else None)
 
 
-def record_playback(
-    dataset: Dataset,
-    descriptors: np.ndarray,
-    spec: PlaceSpec | None,
-    *,
-    database: Sequence[str],
-    queries: str,
-    out: str | Path | None = None,
-    serve: bool = False,
-    k: float = 0.0,
-    tolerance: int = 0,
-    descriptor: str | None = None,
-    recording_id: str | None = None,
-    progress: Progress | None = None,
-) -> Playback:
-    """Places, the database's thresholds and the recording (``save_traversal``) of a loaded dataset.
+def load_traversals(source: str | Path, database: Sequence[str] | None = None, queries: str | None = None,
+                    layout: str = "auto") -> Dataset:
+    """Aligned traversals at ``source`` (or ``"demo"``), with the chosen traversals checked.
 
-    Args:
-        descriptors: ``(n_images, D)`` of ``dataset``.
-        spec: group/step (``None`` for a prepared-places dataset).
-        out: the ``.rrd`` to write; default a new file in ``playback_dir()``.
+    With both ``database`` and ``queries``, a traversal-folder dataset is read with only these
+    traversals, so the loader checks that they exist and have equal lengths (frame i must be
+    the same spot in each), and the folder's other traversals do not matter.
     """
-    database = _traversal_choice(database, queries)
-    for name in (*database, queries):
+    from vpr_explorer.pipeline import DEMO, open_dataset
+
+    if database is None or queries is None or str(source) == DEMO:
+        dataset = open_dataset(source, layout)
+    else:
+        if queries in database:
+            raise VPRInputError(f"queries={queries!r} is also a database traversal; pick another query traversal")
+        try:
+            dataset = load_dataset(source, traversals=[*dict.fromkeys(database), queries])
+        except VPRInputError as exc:
+            raise VPRInputError(f"database={list(database)}, queries={queries!r}: {exc}") from None
+    for name in (*(database or ()), *([queries] if queries else [])):
         dataset.traversal_index(name)
-    check_record_options(dataset, k=k, tolerance=tolerance)
-    rid = recording_id or uuid.uuid4().hex
-    out = check_output(out if out is not None else playback_dir() / f"{rid}.rrd")
-    places = make_places(dataset, spec)
-    model = fit_database(descriptors, dataset, places, database)
-    return save_traversal(out, dataset, places, descriptors, model, queries, serve=serve, k=k, tolerance=tolerance,
-                          descriptor=descriptor, recording_id=rid, progress=progress)
+    return dataset
+
+
+def _places(value: RetrievalDataset, group: float, step: float, reading: str, geometry: str | None) -> RetrievalPlaces:
+    """The value's places: its own ids, or group/step in the geometry asked (default the value's,
+    ``database_queries.check_geometry``)."""
+    g = check_geometry(value, geometry)
+    if g is None:
+        return RetrievalPlaces(None)
+    if g is PlaceGeometry.FRAMES:
+        return RetrievalPlaces(g, spec=PlaceSpec(group, step, reading))
+    return RetrievalPlaces(g, metric=MetricPlaceSpec(group, step, reading, g))
 
 
 def record_dataset(
-    source: str | Path,
-    spec: PlaceSpec | None,
+    dataset: Dataset | RetrievalDataset,
     descriptor: str,
     *,
-    database: Sequence[str],
-    queries: str,
+    query: str | None = None,
+    database: Sequence[str] | None = None,
+    tolerance: int = 0,
+    group: float = 3,
+    step: float = 10,
+    reading: str = Reading.STRIDE.value,
+    geometry: str | None = None,
     out: str | Path | None = None,
     serve: bool = False,
     k: float = 0.0,
-    tolerance: int = 0,
     recording_id: str | None = None,
     cache_root: Path | None = None,
     extract_progress: Progress | None = None,
@@ -725,29 +786,50 @@ def record_dataset(
     descriptors_file: Path | None = None,
     names_file: Path | None = None,
 ) -> Playback:
-    """Everything from a dataset path (or ``"demo"``) to a recorded ``.rrd`` (``record_playback``).
+    """Everything from an opened dataset (``pipeline.open_dataset``, ``load_traversals``) to a recorded ``.rrd``.
 
-    The output path is checked first, before any descriptor is computed. ``dtype`` is the
-    descriptors' precision (``pipeline.dataset_descriptors``). With ``descriptors_file``,
-    descriptors computed elsewhere (for the whole dataset) are read from it instead.
+    Aligned traversals become the value ``data.aligned.database_queries(dataset, query,
+    database, tolerance)`` (default query: ``Dataset.default_roles``); any other layout is the
+    value already. Its places are the layout's own, or group/step in ``geometry`` (frames, or
+    metres along the route or over a lattice; default the value's). Options and places are
+    checked before any descriptor is computed. ``dtype`` is the descriptors' precision
+    (``pipeline.dataset_descriptors``). With ``descriptors_file``, descriptors computed
+    elsewhere (for the whole dataset) are read from it instead.
+
+    Raises:
+        VPRInputError: naming the option at fault: a non-finite ``k``, a bad tolerance, traversals
+            or traversal options for a layout without them, group/step that make no places.
     """
-    rid = recording_id or uuid.uuid4().hex
-    out = check_output(out if out is not None else playback_dir() / f"{rid}.rrd")
-    if descriptors_file is None:
-        check_cache_root(cache_root)  # an unusable cache folder fails before the dataset is read or the demo drawn
-    dataset = load_traversals(source, database, queries)
-    check_record_options(dataset, k=k, tolerance=tolerance)
-    make_places(dataset, spec)  # group/step that leave too few places fail before any descriptor is computed
+    from vpr_explorer.pipeline import dataset_descriptors, imported_descriptors
 
-    from vpr_explorer.pipeline import dataset_descriptors, imported_descriptors, resolve_dataset
-
-    if descriptors_file is not None:  # the file covers the whole dataset: take the recorded traversals' rows
-        full = resolve_dataset(source)
-        imp = imported_descriptors(full, descriptors_file, names_file=names_file, dtype=dtype)
-        row = {p: i for i, p in enumerate(full.image_paths)}
-        descriptors, descriptor = imp.descriptors[[row[p] for p in dataset.image_paths]], imp.name
+    k = check_k(k)
+    if isinstance(dataset, Dataset):
+        check_whole("tolerance", tolerance, low=0, high=dataset.n_frames,
+                    why=f" (frames of slack; {dataset.name!r} has {dataset.n_frames:,} frames)")
+        if query is None:
+            query = dataset.traversals[dataset.default_roles().query]
+        value = database_queries(dataset, query, database, tolerance)
     else:
+        if query is not None or database is not None or tolerance:
+            raise VPRInputError(f"{dataset.name!r} is a {dataset.layout.value} layout: its queries and ground truth "
+                                "are set when it is opened; drop the traversals and the tolerance")
+        value = dataset
+    places = _places(value, group, step, reading, geometry)
+    retrieval_places(value, places.spec, places.metric)  # too few places fail before any descriptor is computed
+    if descriptors_file is not None:  # the file covers the whole dataset
+        whole = load_dataset(dataset.root) if isinstance(dataset, Dataset) else dataset
+        imp = imported_descriptors(whole, descriptors_file, names_file=names_file, dtype=dtype)
+        descriptors, descriptor = imp.descriptors, imp.name
+        if whole.image_paths != dataset.image_paths:  # aligned traversals read with some of their traversals
+            row = {p: i for i, p in enumerate(whole.image_paths)}
+            descriptors = descriptors[[row[p] for p in dataset.image_paths]]
+    else:
+        check_cache_root(cache_root)
         descriptors = dataset_descriptors(dataset, descriptor, cache_root=cache_root, progress=extract_progress,
                                           dtype=dtype)
-    return record_playback(dataset, descriptors, spec, database=database, queries=queries, out=out, serve=serve, k=k,
-                           tolerance=tolerance, descriptor=descriptor, recording_id=rid, progress=progress)
+    rows = value_rows(value)
+    if rows is not None:
+        descriptors = descriptors[rows]
+    fitted = fit_retrieval(descriptors, value, places)
+    return record_playback(fitted, descriptors, out=out, serve=serve, k=k, descriptor=descriptor,
+                           recording_id=recording_id, progress=progress)

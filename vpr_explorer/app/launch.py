@@ -42,6 +42,8 @@ from vpr_explorer.app import (
     data_root,
     started_view,
 )
+from vpr_explorer.cli.common import default_note
+from vpr_explorer.data.groundtruth import DEFAULT_RADIUS
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.settings import DATA_ENV
 
@@ -86,7 +88,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="how the dataset is laid out (as for evaluate: traversals, prepared, database-queries, "
                         "vpr-bench, traversal-positions, manifest); default: detected, and changeable on the Dataset page")
     p.add_argument("--radius", type=float, default=None, metavar="METRES",
-                   help="position-tagged layouts: a database image within this many metres is right (default 25)")
+                   help="position-tagged layouts: a database image within this many metres is right"
+                        + default_note(DEFAULT_RADIUS))
     p.add_argument("--descriptors", type=Path, default=None, metavar="FILE",
                    help="descriptors computed elsewhere (.npz, .npy, hloc .h5), offered beside the extractors and "
                         "opened first; named by the file's stem")
@@ -95,10 +98,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "(symbolic links and .. resolved; nothing outside it is read or listed); default: the folder "
                         "holding --dataset (a dataset folder's parent, a manifest .csv's folder), else "
                         f"${DATA_ENV}, else the current folder")
-    p.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"port to serve on (default {DEFAULT_PORT})")
+    p.add_argument("--port", type=int, default=DEFAULT_PORT, help="port to serve on")
     p.add_argument("--address", default=DEFAULT_ADDRESS,
-                   help=f"address to bind (default {DEFAULT_ADDRESS}: this machine only; 0.0.0.0 for every interface, "
-                        "and then anyone who can reach the port can browse the data root)")
+                   help=f"address to bind: {DEFAULT_ADDRESS} is this machine only; 0.0.0.0 every interface, and then "
+                        "anyone who can reach the port can browse the data root")
     p.add_argument("--headless", action="store_true",
                    help="do not open a browser (Streamlit's --server.headless true)")
 

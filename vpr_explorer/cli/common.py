@@ -15,8 +15,8 @@ from vpr_explorer.data.groundtruth import DEFAULT_RADIUS, check_radius
 from vpr_explorer.data.layouts import VPR_BENCH_GT, Layout, RetrievalDataset, radius_applies
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.method.places import PlaceGeometry, Reading
-from vpr_explorer.pipeline import MAX_RUNS
 from vpr_explorer.protocols.evaluation import Protocol
+from vpr_explorer.protocols.options import MAX_RUNS, RUNS, SEED, UNKNOWN_SHARE
 from vpr_explorer.settings import CACHE_ENV
 
 #: the extractor a command runs when neither --descriptor nor --descriptors names one
@@ -25,13 +25,14 @@ DEFAULT_DESCRIPTOR = "efficientnet-lite0"
 CACHE_HELP = f"descriptor cache folder (default: ${CACHE_ENV}, else ~/.cache/vpr_explorer)"
 
 #: The paper and open-set protocols' options: name -> (the protocols that read it, its value when
-#: not given). Their argparse default is None ("not given"), so that one the chosen protocol would
-#: ignore is refused (:func:`protocol_options`); each command adds its own to this table.
+#: not given: ``protocols.options``' default). Their argparse default is None ("not given"), so
+#: that one the chosen protocol would ignore is refused (:func:`protocol_options`); each command
+#: adds its own to this table.
 SPLIT_OPTIONS = {
-    "runs": ((Protocol.PAPER, Protocol.OPEN_SET), 50),
-    "seed": ((Protocol.PAPER, Protocol.OPEN_SET), 0),
+    "runs": ((Protocol.PAPER, Protocol.OPEN_SET), RUNS),
+    "seed": ((Protocol.PAPER, Protocol.OPEN_SET), SEED),
     "cross_condition": ((Protocol.PAPER, Protocol.OPEN_SET), False),
-    "unknown_share": ((Protocol.OPEN_SET,), 0.3),
+    "unknown_share": ((Protocol.OPEN_SET,), UNKNOWN_SHARE),
 }
 
 
@@ -191,7 +192,8 @@ def add_split_args(p: argparse.ArgumentParser, splits: str = "random splits") ->
     """
     runs, seed, unknown_share = (SPLIT_OPTIONS[name][1] for name in ("runs", "seed", "unknown_share"))
     p.add_argument("--runs", type=int, default=None,
-                   help=f"paper and open-set protocols: {splits}, at most {MAX_RUNS} (default: {runs}, the paper's)")
+                   help=f"paper and open-set protocols: {splits} (the paper's R), at most {MAX_RUNS}"
+                        + default_note(runs))
     p.add_argument("--seed", type=int, default=None,
                    help="paper and open-set protocols: seed of the splits" + default_note(seed))
     p.add_argument("--cross-condition", action="store_true", default=None,

@@ -27,7 +27,8 @@ from vpr_explorer.cli.common import (
 from vpr_explorer.data.layouts import RETRIEVAL_LAYOUTS, Layout, detect_layout
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec
-from vpr_explorer.protocols.evaluation import K_GRID, Protocol
+from vpr_explorer.protocols.evaluation import Protocol
+from vpr_explorer.protocols.options import K_GRID, ProtocolOptions
 
 #: evaluate's options that only some protocols read: ``common.SPLIT_OPTIONS`` and the k grid, the traversals
 PROTOCOL_OPTIONS = {
@@ -53,7 +54,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--queries", default=None,
                    help="traversal protocol: query traversal (default: one named query, queries, q or live, "
                         "else the last)")
-    p.add_argument("--tolerance", type=int, default=0,
+    p.add_argument("--tolerance", type=int, default=ProtocolOptions.tolerance,
                    help="frames of slack: a place is right when one of its frames is within this many frames "
                         "of the query's; the authors count ±2")
     p.add_argument("--theta", type=float, default=None, help="also evaluate this global threshold (a finite number)")
@@ -83,13 +84,13 @@ def run(args: argparse.Namespace) -> int:
                             "queries/, VPR-Bench, traversals with positions.csv, or a manifest); "
                             f"{args.dataset} holds aligned traversals: use paper, traversal or open-set")
     o = protocol_options(args, PROTOCOL_OPTIONS)
+    options = ProtocolOptions(runs=o["runs"], seed=o["seed"], cross_condition=o["cross_condition"],
+                              unknown_share=o["unknown_share"], k_grid=o["k"], database=o["database"],
+                              queries=o["queries"], tolerance=args.tolerance, user_theta=args.theta, pr=args.pr)
     ev = evaluate_dataset(
-        args.dataset, PlaceSpec(args.group, args.step, args.reading), descriptor_name(args), args.protocol,
-        cache_root=args.cache_dir, extract_progress=bar("descriptors"), dtype=args.dtype,
-        layout=args.layout, descriptors_file=args.descriptors, names_file=args.names,
-        runs=o["runs"], seed=o["seed"], cross_condition=o["cross_condition"], unknown_share=o["unknown_share"],
-        database=o["database"], queries=o["queries"], tolerance=args.tolerance, user_theta=args.theta,
-        k_grid=o["k"], progress=bar(f"{args.protocol} protocol"), pr=args.pr,
+        args.dataset, PlaceSpec(args.group, args.step, args.reading), descriptor_name(args), args.protocol, options,
+        cache_root=args.cache_dir, extract_progress=bar("descriptors"), progress=bar(f"{args.protocol} protocol"),
+        dtype=args.dtype, layout=args.layout, descriptors_file=args.descriptors, names_file=args.names,
     )
     print(render(ev))
     _write_json(args, ev)
@@ -141,6 +142,7 @@ def _evaluate_retrieval(args: argparse.Namespace, dataset) -> int:
     if args.tolerance:
         raise VPRInputError("--tolerance counts frames of aligned traversals; a database/queries layout says which "
                             "images are right by its ground truth (position-tagged: --radius)")
+    options = ProtocolOptions(user_theta=args.theta, pr=args.pr)
     spec, metric = _place_specs(args, dataset)
     descriptor = descriptor_name(args)
     source: dict[str, str] = {}  # a descriptor file's path and sha256: never mistaken for an extractor's run
@@ -153,9 +155,8 @@ def _evaluate_retrieval(args: argparse.Namespace, dataset) -> int:
         check_cache_root(args.cache_dir)
         desc = dataset_descriptors(dataset, descriptor, cache_root=args.cache_dir, progress=bar("descriptors"),
                                    dtype=args.dtype)
-    ev = evaluate_retrieval(dataset, desc, spec=spec, metric=metric, user_theta=args.theta,
-                            settings={"descriptor": descriptor, **source, "dtype": args.dtype},
-                            progress=bar("queries"), pr=args.pr)
+    ev = evaluate_retrieval(dataset, desc, options, spec=spec, metric=metric,
+                            settings={"descriptor": descriptor, **source, "dtype": args.dtype}, progress=bar("queries"))
     print(dataset.describe())
     for note in dataset.notes:
         print(note)

@@ -27,8 +27,6 @@ COMMANDS = (
                          "--ray ADDRESS|local"),
     ("app", launch, "open the explorer: Streamlit on the packaged app, from any directory"),
 )
-#: commands whose help texts state their defaults themselves (argparse's plain formatter)
-OWN_DEFAULTS = frozenset({"app"})
 #: the line a Ctrl-C prints once the command runs
 INTERRUPTED = "interrupted; run the same command again to resume (descriptors computed so far are cached)"
 
@@ -38,8 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vpr-explorer", description=vpr_explorer.__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
     for name, module, help in COMMANDS:
-        formatter = argparse.HelpFormatter if name in OWN_DEFAULTS else HelpFormatter
-        command = commands.add_parser(name, help=help, formatter_class=formatter)
+        command = commands.add_parser(name, help=help, formatter_class=HelpFormatter)
         module.add_arguments(command)
         command.set_defaults(func=module.run)
     return parser

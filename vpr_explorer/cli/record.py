@@ -1,7 +1,10 @@
-"""``vpr-explorer record``: play a query traversal back against a database, into a rerun ``.rrd`` file.
+"""``vpr-explorer record``: play a dataset's queries back against its database, into a rerun ``.rrd`` file.
 
-Each query frame is matched against the database traversal(s) and logged with its scores,
-the place decision and the per-place threshold, on one timeline (``vpr_explorer.recording``).
+Every layout is one dataset value (``data.aligned.database_queries`` for aligned traversal
+folders: the query traversal's frames are the queries, the database traversals' frames the
+database). Each query, in order, is matched against the database and logged with its
+scores, the place decision and the per-place threshold, on one timeline
+(``vpr_explorer.recording``).
 """
 
 from __future__ import annotations
@@ -9,47 +12,49 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from vpr_explorer.cli.common import (
-    add_dataset_args,
-    bar,
-    check_radius_option,
-    descriptor_name,
-    refuse_retrieval_options,
-)
-from vpr_explorer.data.layouts import Layout
-from vpr_explorer.errors import VPRInputError
-from vpr_explorer.method.places import PlaceSpec
+from vpr_explorer.cli.common import add_dataset_args, bar, descriptor_name
+from vpr_explorer.cli.sweep import retrieval_dataset
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """``record``'s options: the dataset's (``common.add_dataset_args``), the traversals, the file to write."""
     add_dataset_args(p)
-    p.add_argument("--database", nargs="+", required=True, help="database traversal(s), e.g. day_right")
-    p.add_argument("--queries", required=True, help="query traversal, e.g. night_right")
+    p.add_argument("--database", nargs="+", default=None,
+                   help="database traversal(s), e.g. day_right (default: every traversal but the query)")
+    p.add_argument("--queries", default=None,
+                   help="query traversal, e.g. night_right (default: one named query, queries, q or live, else the "
+                        "last)")
     p.add_argument("--out", type=Path, required=True, help="the .rrd file to write, e.g. run.rrd")
     p.add_argument("--k", type=float, default=0.0, help="thresholds θ_p + k·s_p; 0 is the paper's")
-    p.add_argument("--tolerance", type=int, default=0, help="frames of slack for a right place")
+    p.add_argument("--tolerance", type=int, default=0,
+                   help="aligned traversals: frames of slack for a right place")
 
 
 def run(args: argparse.Namespace) -> int:
     """Record the playback ``args`` describe; print what was written and how to watch it.
 
+    The output path, the cache folder and the options are checked before any descriptor is computed.
+
     Returns:
         0 (bad input raises ``VPRInputError``).
     """
-    from vpr_explorer.recording import record_dataset
+    from vpr_explorer.recording import check_output, load_traversals, record_dataset
+    from vpr_explorer.settings import check_cache_root
 
-    check_radius_option(args)
-    refuse_retrieval_options(args, "record plays back aligned traversal folders, whose frames say which database "
-                                   "images are right")
-    if args.layout not in (Layout.AUTO.value, Layout.TRAVERSALS.value):
-        raise VPRInputError(f"--layout {args.layout}: record plays back aligned traversal folders only; leave "
-                            "--layout out (or give traversals)")
+    out = check_output(args.out)
+    descriptor = descriptor_name(args)
+    if args.descriptors is None:
+        check_cache_root(args.cache_dir)  # an unusable cache folder fails before the dataset is read or the demo drawn
+    dataset = retrieval_dataset(args, "record of aligned traversal folders makes places of their frames, and their "
+                                      "frames say which database images are right")
+    aligned = dataset is None
+    if aligned:
+        dataset = load_traversals(args.dataset, args.database, args.queries, layout=args.layout)
     playback = record_dataset(
-        args.dataset, PlaceSpec(args.group, args.step, args.reading), descriptor_name(args),
-        database=args.database, queries=args.queries, out=args.out, k=args.k, tolerance=args.tolerance,
-        cache_root=args.cache_dir, extract_progress=bar("descriptors"), progress=bar("frames"), dtype=args.dtype,
-        descriptors_file=args.descriptors, names_file=args.names,
+        dataset, descriptor, query=args.queries if aligned else None, database=args.database if aligned else None,
+        tolerance=args.tolerance, group=args.group, step=args.step, reading=args.reading, geometry=args.geometry,
+        out=out, k=args.k, cache_root=args.cache_dir, extract_progress=bar("descriptors"), progress=bar("queries"),
+        dtype=args.dtype, descriptors_file=args.descriptors, names_file=args.names,
     )
     print(playback.describe())
     print(f"wrote {playback.rrd}: watch it with `rerun {playback.rrd}` (or `rerun --web-viewer {playback.rrd}`)")

@@ -6,7 +6,11 @@
 The dataset options are ``evaluate``'s (``common.add_dataset_args``), with ``--groups``,
 ``--steps`` and ``--reading`` taking several values; the protocol options are
 ``evaluate``'s too, and ``--k`` is the one k whose unknown-place rejection the open set
-reports. The cost (cells, protocol runs, image pairs) is printed before the work starts.
+reports. Aligned traversal folders run the paper (default), traversal or open-set protocol
+on places of frames; any other layout runs the database-queries protocol, group/step
+counting its database images in listed order (``--geometry frames``) or metres along its
+route or over a lattice (``--geometry route``/``lattice``, where it has positions). The
+cost (cells, protocol runs, image pairs) is printed before the work starts.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ from vpr_explorer.cli.common import (
     add_dataset_args,
     add_split_args,
     bar,
+    check_radius_applies,
     check_radius_option,
     default_note,
     descriptor_name,
@@ -27,9 +32,9 @@ from vpr_explorer.cli.common import (
     refuse_retrieval_options,
     write_text,
 )
-from vpr_explorer.errors import VPRInputError
-from vpr_explorer.method.places import Reading
-from vpr_explorer.protocols.evaluation import K_GRID, Protocol
+from vpr_explorer.method.places import PlaceGeometry, Reading
+from vpr_explorer.protocols.evaluation import Protocol
+from vpr_explorer.protocols.options import K_GRID
 from vpr_explorer.protocols.sweep import (
     METRIC_LABELS,
     SWEEP_METHODS,
@@ -50,8 +55,8 @@ PROTOCOL_OPTIONS = {
     **SPLIT_OPTIONS,
     "k": ((Protocol.OPEN_SET,), 0.0),
     "k_grid": ((Protocol.OPEN_SET,), list(K_GRID)),
-    "database": ((Protocol.TRAVERSAL,), None),
-    "queries": ((Protocol.TRAVERSAL,), None),
+    "database": ((Protocol.TRAVERSAL, Protocol.DATABASE), None),
+    "queries": ((Protocol.TRAVERSAL, Protocol.DATABASE), None),
 }
 
 
@@ -63,15 +68,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     """
     add_dataset_args(p, places=False)
     p.add_argument("--groups", "--group", dest="groups", type=number, nargs="+", required=True,
-                   metavar="G", help="frames per place, one or more (e.g. 1 2 3 4 5 6)")
+                   metavar="G", help="frames (or metres, see --geometry) per place, one or more (e.g. 1 2 3 4 5 6)")
     p.add_argument("--steps", "--step", dest="steps", type=number, nargs="+", required=True,
-                   metavar="S", help="frames from one place to the next (stride) or skipped (skip), one or more")
+                   metavar="S", help="frames (or metres) from one place to the next (stride) or skipped (skip), "
+                                     "one or more")
     p.add_argument("--reading", "--readings", dest="reading", nargs="+", choices=[r.value for r in Reading],
                    default=[r.value for r in Reading],
                    help="stride (a place starts every STEP frames, authors' code) and/or skip (take GROUP, skip "
                         "STEP, paper text); a grid each")
-    p.add_argument("--protocol", choices=[x.value for x in SWEEP_PROTOCOLS], default=Protocol.PAPER.value,
-                   help="the protocol every cell runs")
+    p.add_argument("--protocol", choices=[x.value for x in SWEEP_PROTOCOLS], default=None,
+                   help=f"the protocol every cell runs (default: paper for aligned traversals, "
+                        f"{Protocol.DATABASE.value} for a database/queries layout)")
     p.add_argument("--method", choices=list(SWEEP_METHODS), default=SWEEP_METHODS[0],
                    help="the thresholded method whose R@1 gain over the place level, unknown-place rejection "
                         "and AUC the cells report (default: %(default)s, the paper's)")
@@ -81,11 +88,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         f"(default: {PROTOCOL_OPTIONS['k'][1]:g}, the paper's θ_p; added to --k-grid when missing)")
     p.add_argument("--k-grid", type=float, nargs="+", default=None,
                    help="open-set protocol: the trade-off's k values" + default_note(PROTOCOL_OPTIONS["k_grid"][1]))
-    p.add_argument("--database", nargs="+", default=None, help="traversal protocol: database traversal(s)")
-    p.add_argument("--queries", default=None, help="traversal protocol: query traversal")
+    p.add_argument("--database", nargs="+", default=None,
+                   help="traversal protocol: database traversal(s); a layout of traversals with positions: its "
+                        "database traversal(s)")
+    p.add_argument("--queries", default=None, help="traversal protocol: query traversal; a layout of traversals "
+                                                   "with positions: its query traversal")
     p.add_argument("--tolerance", type=int, default=0,
-                   help="frames of slack: a place is right when one of its frames is within this many frames of "
-                        "the query's")
+                   help="aligned traversals: frames of slack: a place is right when one of its frames is within this "
+                        "many frames of the query's")
     p.add_argument("--theta", type=float, default=None, help="also evaluate this global threshold in each cell")
     p.add_argument("--no-pr", action="store_true",
                    help="skip precision–recall (faster; the AUC column stays empty)")
@@ -97,41 +107,71 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", type=Path, default=None, help="write the settings and every cell as JSON")
 
 
+def retrieval_dataset(args: argparse.Namespace, reason: str):
+    """The database/queries dataset ``--dataset``/``--layout`` name, or ``None`` for aligned traversal folders.
+
+    Args:
+        args: the parsed command line (``--dataset``, ``--layout``, ``--radius``, ``--geometry``,
+            ``--database``, ``--queries``).
+        reason: why ``--radius`` and ``--geometry`` do not apply to aligned traversal folders.
+
+    Raises:
+        VPRInputError: ``--radius`` or ``--geometry`` for aligned traversal folders, a radius the
+            layout does not read, or a dataset that cannot be read.
+    """
+    from vpr_explorer.data.layouts import RETRIEVAL_LAYOUTS, Layout, detect_layout
+    from vpr_explorer.pipeline import DEMO, open_dataset
+
+    check_radius_option(args)
+    layout = Layout(args.layout)
+    path = Path(args.dataset).expanduser()
+    if layout is Layout.AUTO and args.dataset != DEMO and path.exists():
+        layout = detect_layout(path)
+    if layout not in RETRIEVAL_LAYOUTS:
+        refuse_retrieval_options(args, reason)
+        return None
+    dataset = open_dataset(args.dataset, layout.value, radius=args.radius, database=args.database,
+                           queries=args.queries)
+    check_radius_applies(args, dataset)
+    return dataset
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the sweep ``args`` describe; print the cost, the grids and why cells are empty; write CSV/JSON.
 
     Returns:
         0 (bad input raises ``VPRInputError``).
     """
-    from vpr_explorer.data.traversals import Dataset
-    from vpr_explorer.pipeline import dataset_descriptors, imported_descriptors, open_dataset
+    from vpr_explorer import pipeline
     from vpr_explorer.settings import check_cache_root
+    from vpr_explorer.views.database_queries import check_geometry
 
-    check_radius_option(args)
-    refuse_retrieval_options(args, "a sweep reads aligned traversal folders, whose places group/step make")
-    o = protocol_options(args, PROTOCOL_OPTIONS)
-    spec = SweepSpec(groups=args.groups, steps=args.steps, readings=args.reading, protocol=args.protocol,
-                     method=args.method, k=o["k"], runs=o["runs"], seed=o["seed"],
-                     cross_condition=o["cross_condition"], unknown_share=o["unknown_share"],
-                     database=o["database"], queries=o["queries"], tolerance=args.tolerance, user_theta=args.theta,
-                     k_grid=o["k_grid"], pr=not args.no_pr)
     descriptor = descriptor_name(args)
     if args.descriptors is None:
         check_cache_root(args.cache_dir)
-    dataset = open_dataset(args.dataset, args.layout)
-    if not isinstance(dataset, Dataset):
-        raise VPRInputError(f"{args.dataset} is a {dataset.layout.value} layout: a sweep reads aligned traversal "
-                            "folders (group/step over their frames); evaluate it with `vpr-explorer evaluate`")
-    cost = sweep_cost(dataset, spec)  # also refuses a dataset whose file names fix the places, before extraction
+    retrieval = retrieval_dataset(args, "a sweep of aligned traversal folders makes places of their frames")
+    dataset = pipeline.open_dataset(args.dataset, args.layout) if retrieval is None else retrieval
+    geometry = PlaceGeometry.FRAMES
+    if retrieval is not None:  # none when the layout names its places: sweep_cost says so
+        geometry = check_geometry(retrieval, args.geometry) or geometry
+    if args.protocol is None:
+        args.protocol = (Protocol.PAPER if retrieval is None else Protocol.DATABASE).value
+    o = protocol_options(args, PROTOCOL_OPTIONS)
+    spec = SweepSpec(groups=args.groups, steps=args.steps, readings=args.reading, protocol=args.protocol,
+                     geometry=geometry, method=args.method, k=o["k"], runs=o["runs"], seed=o["seed"],
+                     cross_condition=o["cross_condition"], unknown_share=o["unknown_share"],
+                     database=o["database"], queries=o["queries"], tolerance=args.tolerance, user_theta=args.theta,
+                     k_grid=o["k_grid"], pr=not args.no_pr)
+    cost = sweep_cost(dataset, spec)  # refuses data the protocol does not run on, before extraction
     print(f"{dataset.name}: {cost.describe()}")
     source: dict[str, str] = {}
     if args.descriptors is not None:
-        imp = imported_descriptors(dataset, args.descriptors, names_file=args.names, dtype=args.dtype)
+        imp = pipeline.imported_descriptors(dataset, args.descriptors, names_file=args.names, dtype=args.dtype)
         desc, descriptor, source = imp.descriptors, imp.name, imp.settings()
     else:
-        desc = dataset_descriptors(dataset, descriptor, cache_root=args.cache_dir, progress=bar("descriptors"),
-                                   dtype=args.dtype)
-    result = sweep(dataset, desc, spec, descriptor=descriptor, progress=bar("sweep cells"),
+        desc = pipeline.dataset_descriptors(dataset, descriptor, cache_root=args.cache_dir,
+                                            progress=bar("descriptors"), dtype=args.dtype)
+    result = sweep(dataset, desc, spec, pipeline, descriptor=descriptor, progress=bar("sweep cells"),
                    cell_progress=bar(f"{spec.protocol.value} protocol"), source=source)
     _print_result(result, spec, descriptor, [Metric(m) for m in (args.metric or [m.value for m in Metric])])
     write_text(args.csv, result.to_csv(), "--csv")
@@ -142,6 +182,7 @@ def run(args: argparse.Namespace) -> int:
 def _print_result(result: SweepResult, spec: SweepSpec, descriptor: str, metrics: list[Metric]) -> None:
     """The sweep's grids (one per metric and reading), why cells are empty, and the best cell of each metric."""
     print(f"{spec.protocol.value} protocol, {descriptor}, method {spec.method}"
+          + (f", group/step in metres ({spec.geometry.value})" if spec.unit == "m" else "")
           + (f", rejection at k = {spec.k:g}" if spec.protocol is Protocol.OPEN_SET else "")
           + f" · {result.seconds:.1f} s")
     for metric in metrics:
@@ -163,4 +204,4 @@ def _print_result(result: SweepResult, spec: SweepSpec, descriptor: str, metrics
     for metric in metrics:
         best = result.best(metric)
         if best is not None:
-            print(f"best {metric.value}: group {best.group}, step {best.step} ({best.reading.value})")
+            print(f"best {metric.value}: group {best.group:g}, step {best.step:g} {spec.unit} ({best.reading.value})")

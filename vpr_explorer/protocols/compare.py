@@ -33,8 +33,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.protocols.evaluation import Evaluation
-from vpr_explorer.views.report import strict
+from vpr_explorer.protocols.evaluation import Evaluation, strict
 from vpr_explorer.method.retrieval import METHODS_BY_KEY
 
 #: Unpinned runs kept; the oldest unpinned one goes when another arrives.

@@ -1,29 +1,33 @@
-"""Evaluation protocols: paper (closed set), traversal, open set.
+"""Evaluation protocols: paper (closed set), open set, database/queries.
 
 * **paper**: R seeded random splits; in each, one image per place is the query and the rest
   train; thresholds come from that split's training images only (a query never influences
   its own threshold); Recall@K as mean ± std over splits. ``cross_condition`` scores each
   query only against database images of other traversals, and every method reports the
   share of its accepted top-1 matches that come from the query's own traversal.
-* **traversal**: database traversal(s) against a query traversal; thresholds from the
-  database only; one deterministic run.
 * **open set**: as the paper protocol, but a share of places is held out of the database
   entirely; one image of each such place is a query that must be rejected. Reports the
   unknown-place rejection rate beside known-place Recall@1 and the precision of accepted
   matches, over the threshold family θ_p(k) = θ_p + k·s_p and a sweep of global θ.
+* **database/queries** (``retrieval_protocol``): a database against queries with the ground
+  truth as a relation; thresholds from the database only; one deterministic run. The
+  traversal protocol (a database traversal against a query traversal) is this protocol on
+  the aligned traversals' value (``data.aligned.database_queries``; ``pipeline.run_protocol``).
 
-All functions are pure: descriptors and labels in, a frozen ``Evaluation`` out. Up to
-``shared_scores.SHARED_LIMIT`` images the paper, open-set and traversal protocols score every
-image pair once (``shared_scores.SharedScores``: the float32 similarity that scores the
-queries, the float64 Gram each split's negative statistics come from, pairwise); a caller
-running several protocols on the same descriptors (a group/step sweep) passes one as
-``shared=``, and the numbers are the same, bit for bit, as when each run builds its own.
+Every protocol takes its settings as one ``options.ProtocolOptions``. All functions are
+pure: descriptors and labels in, a frozen ``Evaluation`` out. Up to
+``shared_scores.SHARED_LIMIT`` images the paper and open-set protocols score every image
+pair once (``shared_scores.SharedScores``: the float32 similarity that scores the queries,
+the float64 Gram each split's negative statistics come from, pairwise); a caller running
+several protocols on the same descriptors (a group/step sweep) passes one as ``shared=``,
+and the numbers are the same, bit for bit, as when each run builds its own.
 """
 
 from __future__ import annotations
 
+import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 
@@ -31,7 +35,9 @@ import numpy as np
 
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.data.groundtruth import GroundTruth
-from vpr_explorer.method.places import between_places, right_places
+from vpr_explorer.method.places import right_places
+# KS and K_GRID are read from here by views.database_queries and the sweep
+from vpr_explorer.protocols.options import K_GRID, KS, ProtocolOptions  # noqa: F401
 from vpr_explorer.protocols.precision_recall import PRCurve, PRRow, PRSplit, pr_rows
 from vpr_explorer.method.retrieval import (
     METHODS_BY_KEY,
@@ -65,11 +71,9 @@ from vpr_explorer.method.thresholds import (
     training_pair_scores,
 )
 
-KS = (1, 3, 5, 10)
 #: The database/queries protocol keeps every query's raw_p (float32, exact) for the per-place
 #: precision–recall curves up to this many query × place cells (200 MB), and leaves them out above.
 PR_RAW_CELLS = 50_000_000
-K_GRID = (-1.0, -0.5, 0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
 Progress = Callable[[int, int, str], None]
 
 
@@ -196,6 +200,19 @@ class Evaluation:
             **({"pr": [r.to_dict() for r in self.pr],
                 "pr_curves": {name: c.to_dict() for name, c in self.pr_curves.items()}} if self.pr else {}),
         }
+
+
+def strict(x):
+    """``x`` made strict JSON: NaN and ±inf as ``None``, numpy scalars as Python numbers, keys as strings."""
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, Mapping):
+        return {str(k): strict(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [strict(v) for v in x]
+    if hasattr(x, "item") and not isinstance(x, (str, bytes)):  # a numpy scalar
+        return strict(x.item())
+    return x
 
 
 # --------------------------------------------------------------------------- split core
@@ -410,16 +427,15 @@ def _tradeoff(splits: list[SplitScores], k_grid: Sequence[float]) -> tuple[Trade
 # --------------------------------------------------------------------------- protocols
 
 
-def check_protocol_inputs(descriptors, image_place, image_traversal, runs=1, ks=KS):
-    """The inputs every protocol takes, checked: descriptors, labels, ``runs`` and ``ks``.
+def check_protocol_inputs(descriptors, image_place, image_traversal):
+    """The inputs every pooled protocol takes, checked: descriptors and their labels.
 
     Returns:
-        ``(descriptors, image_place, image_traversal, ks)``: the descriptors as
-        ``validate_descriptors`` returns them, the labels as ``(n_images,)`` arrays, ``ks`` a
-        tuple of ints.
+        ``(descriptors, image_place, image_traversal)``: the descriptors as
+        ``validate_descriptors`` returns them, the labels as ``(n_images,)`` arrays.
 
     Raises:
-        VPRInputError: on bad descriptors, labels of another length, ``runs`` < 1 or a K < 1.
+        VPRInputError: on bad descriptors, or labels of another length.
     """
     d = validate_descriptors(descriptors)
     image_place = np.asarray(image_place)
@@ -428,12 +444,7 @@ def check_protocol_inputs(descriptors, image_place, image_traversal, runs=1, ks=
         raise VPRInputError(
             f"descriptors have {len(d)} rows but {image_place.shape} place labels and {image_traversal.shape} traversal labels"
         )
-    if isinstance(runs, bool) or not isinstance(runs, (int, np.integer)) or runs < 1:
-        raise VPRInputError(f"runs={runs!r}: must be a whole number, 1 or more")
-    ks = tuple(int(k) for k in ks)
-    if not ks or min(ks) < 1:
-        raise VPRInputError(f"ks={ks}: Recall@K needs K >= 1")
-    return d, image_place, image_traversal, ks
+    return d, image_place, image_traversal
 
 
 def place_members(image_place: np.ndarray, n_places: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -468,16 +479,14 @@ class Split:
     unknown: np.ndarray  # (n_places,) bool, places held out of the database
 
 
-def draw_splits(
-    image_place: np.ndarray, n_places: int, *, runs: int, seed: int, unknown_share: float | None = None
-) -> list[Split]:
-    """Seeded splits: each place gives one random query image; the rest train.
+def draw_splits(image_place: np.ndarray, n_places: int, *, runs: int, seed: int,
+                unknown_share: float | None = None) -> list[Split]:
+    """``runs`` splits seeded with ``seed``: each place gives one random query image; the rest train.
 
     With ``unknown_share``, that share of places (at least 1, leaving at least 2 known) is
-    held out: their query stays, their other images leave the training set.
+    held out: their query stays, their other images leave the training set. The values are
+    ``ProtocolOptions``' (checked there).
     """
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2**63:
-        raise VPRInputError(f"seed={seed!r}: must be a whole number from 0 to 2**63 - 1")
     order, starts, sizes = place_members(image_place, n_places)
     places = np.flatnonzero(sizes > 0)
     _require_two_per_place(sizes, places)
@@ -485,8 +494,6 @@ def draw_splits(
         raise VPRInputError("the paper protocol needs at least 2 places")
     n_unknown = 0
     if unknown_share is not None:
-        if not 0 < unknown_share < 1:
-            raise VPRInputError(f"unknown share {unknown_share!r}: must be between 0 and 1 (e.g. 0.3)")
         if len(places) < 3:
             raise VPRInputError(f"{len(places)} places: the open set needs at least 3 (2 known, 1 unknown)")
         n_unknown = int(np.clip(round(unknown_share * len(places)), 1, len(places) - 2))
@@ -502,12 +509,6 @@ def draw_splits(
         train_mask[pick] = False
         splits.append(Split(queries=pick, train=np.flatnonzero(train_mask), unknown=unknown))
     return splits
-
-
-def _check_tolerance(tolerance) -> int:
-    if isinstance(tolerance, bool) or not isinstance(tolerance, (int, np.integer)) or not 0 <= tolerance <= 1_000_000:
-        raise VPRInputError(f"tolerance={tolerance!r}: must be a whole number of frames, 0 or more (the authors use 2)")
-    return int(tolerance)
 
 
 def pooled_truth(
@@ -529,8 +530,8 @@ def pooled_truth(
         image_place: ``(n_images,)`` place of each image, ``-1`` for skipped frames.
         image_frame: ``(n_images,)`` frame index of each image in its traversal.
         frame_place: ``(n_frames,)`` place of each frame index, ``-1`` between places.
+        tolerance: frames of slack, as ``ProtocolOptions.tolerance`` checks it.
     """
-    tolerance = _check_tolerance(tolerance)
     if tolerance == 0:
         return None
     if image_frame is None or frame_place is None:
@@ -543,8 +544,14 @@ def pooled_truth(
     return (labelled[i], p) if len(i) else None
 
 
-def _pooled_splits(d, image_place, image_traversal, n_places, *, runs, seed, unknown_share, cross_condition,
-                   user_theta, progress, extra_truth=None, shared: SharedScores | None = None) -> list[SplitScores]:
+def check_cross_condition(image_place: np.ndarray, image_traversal: np.ndarray, options: ProtocolOptions) -> None:
+    """Refuse ``cross_condition`` on images of one traversal (no query would have anything to match)."""
+    if options.cross_condition and len(np.unique(image_traversal[image_place >= 0])) < 2:
+        raise VPRInputError("cross_condition needs at least 2 traversals")
+
+
+def _pooled_splits(d, image_place, image_traversal, n_places, options: ProtocolOptions, *, open_set: bool,
+                   progress, extra_truth=None, shared: SharedScores | None = None) -> list[SplitScores]:
     """Every split of the paper / open-set protocol, scored (``run_split``).
 
     With ``shared`` (``shared_scores.resolve``: up to ``SHARED_LIMIT`` images), the queries'
@@ -552,12 +559,12 @@ def _pooled_splits(d, image_place, image_traversal, n_places, *, runs, seed, unk
     statistics pairwise from its float64 Gram; without, each split scores its queries
     against its training images and fits the statistics in closed form. The automatic θ of
     every split comes from one tile sample of the run (``thresholds.pooled_pair_sample``,
-    seeded with ``seed``), as ``scale.scale_splits`` takes it.
+    seeded with ``options.seed``), as ``scale.scale_splits`` takes it.
     """
-    if cross_condition and len(np.unique(image_traversal[image_place >= 0])) < 2:
-        raise VPRInputError("cross_condition needs at least 2 traversals")
-    splits = draw_splits(image_place, n_places, runs=runs, seed=seed, unknown_share=unknown_share)
-    sample = pooled_pair_sample(d, [sp.train for sp in splits], seed=seed)
+    check_cross_condition(image_place, image_traversal, options)
+    splits = draw_splits(image_place, n_places, runs=options.runs, seed=options.seed,
+                         unknown_share=options.unknown_share if open_set else None)
+    sample = pooled_pair_sample(d, [sp.train for sp in splits], seed=options.seed)
     full = shared.full() if shared is not None else None
     negatives = Negatives(shared.gram(), np.flatnonzero(image_place >= 0)) if shared is not None else None
     extra = None
@@ -579,12 +586,26 @@ def _pooled_splits(d, image_place, image_traversal, n_places, *, runs, seed, unk
         stats = negatives.stats(train, image_place[train], n_places) if negatives is not None else None
         out.append(run_split(
             d[train], image_place[train], image_traversal[train], sims, correct, image_traversal[pick], n_places,
-            cross_condition=cross_condition, user_theta=user_theta, seed=seed + r, stats=stats,
-            auto_theta=sample.theta(r),
+            cross_condition=options.cross_condition, user_theta=options.user_theta, seed=options.seed + r,
+            stats=stats, auto_theta=sample.theta(r),
         ))
         if progress:
-            progress(r + 1, runs, f"split {r + 1}/{runs}")
+            progress(r + 1, options.runs, f"split {r + 1}/{options.runs}")
     return out
+
+
+def own_traversal_notes(options: ProtocolOptions) -> tuple[str, ...]:
+    """The paper protocol's note on what it measures when queries see their own traversal."""
+    if options.cross_condition:
+        return ()
+    return ("queries are matched against all traversals, their own included: see the own-traversal share, and the "
+            "cross-condition variant",)
+
+
+def paper_settings(options: ProtocolOptions, settings: dict | None, queries_per_run: int) -> dict:
+    """The paper protocol's ``Evaluation.settings``: the caller's, then the run's own."""
+    return {**(settings or {}), "runs": options.runs, "seed": options.seed, "cross_condition": options.cross_condition,
+            "tolerance": options.tolerance, "queries_per_run": queries_per_run}
 
 
 def paper_protocol(
@@ -592,51 +613,40 @@ def paper_protocol(
     image_place: np.ndarray,
     image_traversal: np.ndarray,
     n_places: int,
+    options: ProtocolOptions = ProtocolOptions(),
     *,
-    runs: int = 50,
-    seed: int = 0,
-    cross_condition: bool = False,
-    user_theta: float | None = None,
-    ks: tuple[int, ...] = KS,
-    progress: Progress | None = None,
-    settings: dict | None = None,
-    tolerance: int = 0,
     image_frame: np.ndarray | None = None,
     frame_place: np.ndarray | None = None,
-    pr: bool = False,
+    progress: Progress | None = None,
+    settings: dict | None = None,
     shared: SharedScores | None = None,
 ) -> Evaluation:
-    """The paper's closed-set protocol over ``runs`` seeded splits.
+    """The paper's closed-set protocol over ``options.runs`` seeded splits.
+
+    Reads ``options``' runs, seed, cross_condition, user_theta, ks, tolerance and pr.
 
     Args:
         descriptors: ``(n_images, D)`` L2-normalised.
         image_place: ``(n_images,)`` place of each image, ``-1`` for skipped frames.
         image_traversal: ``(n_images,)`` traversal of each image.
-        tolerance: frames of slack: a place holding a frame within ``tolerance`` frames of
-            the query's frame is right too (the authors count ±2); needs ``image_frame``
-            ``(n_images,)`` and ``frame_place`` ``(n_frames,)``.
-        pr: also the precision–recall rows and curves (``split_pr``).
+        image_frame, frame_place: ``(n_images,)`` frame of each image and ``(n_frames,)`` place
+            of each frame, which a tolerance above 0 needs (a place holding a frame within
+            ``options.tolerance`` frames of the query's frame is right too).
+        settings: what the caller records in ``Evaluation.settings`` beside the run's own.
         shared: ``shared_scores.SharedScores`` of these same ``descriptors`` (a sweep shares one
             between its cells); up to ``SHARED_LIMIT`` images one is built when not given, so
             the numbers are the same either way, bit for bit. Not used above the limit.
     """
     t0 = time.perf_counter()
-    d, image_place, image_traversal, ks = check_protocol_inputs(descriptors, image_place, image_traversal, runs, ks)
+    d, image_place, image_traversal = check_protocol_inputs(descriptors, image_place, image_traversal)
     shared = resolve(shared, descriptors, len(d))
-    extra = pooled_truth(image_place, image_frame, frame_place, tolerance, n_places)
-    splits = _pooled_splits(d, image_place, image_traversal, n_places, runs=runs, seed=seed, unknown_share=None,
-                            cross_condition=cross_condition, user_theta=user_theta, progress=progress,
+    extra = pooled_truth(image_place, image_frame, frame_place, options.tolerance, n_places)
+    splits = _pooled_splits(d, image_place, image_traversal, n_places, options, open_set=False, progress=progress,
                             extra_truth=extra, shared=shared)
-    notes = []
-    if not cross_condition:
-        notes.append("queries are matched against all traversals, their own included: see the own-traversal "
-                     "share, and the cross-condition variant")
-    pr_rows_, pr_curves = split_pr(splits) if pr else ((), {})
+    pr_rows_, pr_curves = split_pr(splits) if options.pr else ((), {})
     return Evaluation(
-        protocol=Protocol.PAPER,
-        settings={**(settings or {}), "runs": runs, "seed": seed, "cross_condition": cross_condition,
-                  "tolerance": int(tolerance), "queries_per_run": len(splits[0].known)},
-        ks=ks, rows=summarise(splits, ks, own_traversal=True), notes=tuple(notes),
+        protocol=Protocol.PAPER, settings=paper_settings(options, settings, len(splits[0].known)),
+        ks=options.ks, rows=summarise(splits, options.ks, own_traversal=True), notes=own_traversal_notes(options),
         seconds=time.perf_counter() - t0, pr=pr_rows_, pr_curves=pr_curves,
     )
 
@@ -646,45 +656,36 @@ def open_set_protocol(
     image_place: np.ndarray,
     image_traversal: np.ndarray,
     n_places: int,
+    options: ProtocolOptions = ProtocolOptions(),
     *,
-    runs: int = 50,
-    seed: int = 0,
-    unknown_share: float = 0.3,
-    cross_condition: bool = False,
-    user_theta: float | None = None,
-    k_grid: Sequence[float] = K_GRID,
-    ks: tuple[int, ...] = KS,
-    progress: Progress | None = None,
-    settings: dict | None = None,
-    tolerance: int = 0,
     image_frame: np.ndarray | None = None,
     frame_place: np.ndarray | None = None,
-    pr: bool = False,
+    progress: Progress | None = None,
+    settings: dict | None = None,
     shared: SharedScores | None = None,
 ) -> Evaluation:
-    """Open set: ``unknown_share`` of the places are held out of the database in each split.
+    """Open set: ``options.unknown_share`` of the places are held out of the database in each split.
 
-    ``tolerance``, ``image_frame``, ``frame_place``, ``shared`` as for ``paper_protocol``: a query
-    of a held-out place with a known place within the tolerance counts as a known-place query.
+    Reads what ``paper_protocol`` reads, and unknown_share and k_grid; the other arguments as
+    for it: a query of a held-out place with a known place within the tolerance counts as a
+    known-place query.
     """
     t0 = time.perf_counter()
-    d, image_place, image_traversal, ks = check_protocol_inputs(descriptors, image_place, image_traversal, runs, ks)
+    d, image_place, image_traversal = check_protocol_inputs(descriptors, image_place, image_traversal)
     shared = resolve(shared, descriptors, len(d))
-    k_grid = tuple(float(k) for k in k_grid)
-    if not k_grid or not all(np.isfinite(k_grid)):
-        raise VPRInputError(f"k grid {k_grid}: give finite values of k, e.g. -1 0 0.5 1 2")
-    extra = pooled_truth(image_place, image_frame, frame_place, tolerance, n_places)
-    splits = _pooled_splits(d, image_place, image_traversal, n_places, runs=runs, seed=seed,
-                            unknown_share=unknown_share, cross_condition=cross_condition,
-                            user_theta=user_theta, progress=progress, extra_truth=extra, shared=shared)
+    extra = pooled_truth(image_place, image_frame, frame_place, options.tolerance, n_places)
+    splits = _pooled_splits(d, image_place, image_traversal, n_places, options, open_set=True, progress=progress,
+                            extra_truth=extra, shared=shared)
     n_unknown = int((~splits[0].known).sum())
-    pr_rows_, pr_curves = split_pr(splits) if pr else ((), {})
+    pr_rows_, pr_curves = split_pr(splits) if options.pr else ((), {})
     return Evaluation(
         protocol=Protocol.OPEN_SET,
-        settings={**(settings or {}), "runs": runs, "seed": seed, "unknown_share": unknown_share,
-                  "unknown_places_per_run": n_unknown, "known_places_per_run": int(splits[0].known.sum()),
-                  "cross_condition": cross_condition, "tolerance": int(tolerance), "k_grid": list(k_grid)},
-        ks=ks, rows=summarise(splits, ks, own_traversal=True), tradeoff=_tradeoff(splits, k_grid),
+        settings={**(settings or {}), "runs": options.runs, "seed": options.seed,
+                  "unknown_share": options.unknown_share, "unknown_places_per_run": n_unknown,
+                  "known_places_per_run": int(splits[0].known.sum()), "cross_condition": options.cross_condition,
+                  "tolerance": options.tolerance, "k_grid": list(options.k_grid)},
+        ks=options.ks, rows=summarise(splits, options.ks, own_traversal=True),
+        tradeoff=_tradeoff(splits, options.k_grid),
         notes=("the oracle global θ is chosen knowing which queries are unknown: an upper bound, not a method",),
         seconds=time.perf_counter() - t0, pr=pr_rows_, pr_curves=pr_curves,
     )
@@ -695,74 +696,13 @@ def query_truth(query_frames: np.ndarray, frame_place: np.ndarray, tolerance: in
     return right_places(query_frames, frame_place, tolerance)
 
 
-def traversal_protocol(
-    descriptors: np.ndarray,
-    image_place: np.ndarray,
-    image_traversal: np.ndarray,
-    image_frame: np.ndarray,
-    frame_place: np.ndarray,
-    *,
-    database: Sequence[int],
-    query: int,
-    tolerance: int = 0,
-    user_theta: float | None = None,
-    ks: tuple[int, ...] = KS,
-    traversal_names: Sequence[str] | None = None,
-    settings: dict | None = None,
-    pr: bool = False,
-    shared: SharedScores | None = None,
-) -> Evaluation:
-    """Database traversal(s) against a query traversal; thresholds from the database only.
-
-    A query frame's right places are those holding a frame within ``tolerance`` frames of
-    it; query frames with none (between places) are left out and counted in the settings.
-    ``shared`` as for ``paper_protocol``: the database images' statistics come pairwise from
-    its float64 Gram of the database traversals' images (every image of them, whatever the
-    places, so a sweep computes it once), up to ``SHARED_LIMIT`` such images.
-    """
-    t0 = time.perf_counter()
-    d, image_place, image_traversal, ks = check_protocol_inputs(descriptors, image_place, image_traversal, 1, ks)
-    database = [int(t) for t in database]
-    if not database:
-        raise VPRInputError("database: name at least one database traversal")
-    if query in database:
-        name = traversal_names[query] if traversal_names else query
-        raise VPRInputError(f"queries={name!r} is also a database traversal; pick another query traversal")
-    _check_tolerance(tolerance)
-    n_places = int(frame_place.max()) + 1
-    db = np.flatnonzero(np.isin(image_traversal, database) & (image_place >= 0))
-    qs = np.flatnonzero(image_traversal == query)
-    truth = right_places(image_frame[qs], frame_place, tolerance)
-    keep = ~between_places(truth)  # places.BETWEEN_PLACES_RULE: frames between places are left out
-    qs, truth = qs[keep], truth[keep]
-    if len(qs) == 0:
-        raise VPRInputError("no query frame falls in a place; lower step or raise tolerance")
-    db_traversals = np.flatnonzero(np.isin(image_traversal, database))
-    shared = resolve(shared, descriptors, len(db_traversals))
-    stats = None
-    if shared is not None and len(db):
-        stats = Negatives(shared.gram(db_traversals), db).stats(db, image_place[db], n_places)
-    split = run_split(d[db], image_place[db], image_traversal[db], similarity(d[qs], d[db]), truth,
-                      image_traversal[qs], n_places, user_theta=user_theta, stats=stats)
-    names = list(traversal_names) if traversal_names else None
-    pr_rows_, pr_curves = split_pr([split]) if pr else ((), {})
-    return Evaluation(
-        protocol=Protocol.TRAVERSAL,
-        settings={**(settings or {}), "database": [names[t] for t in database] if names else database,
-                  "queries": names[query] if names else query, "tolerance": tolerance, "queries_scored": int(len(qs)),
-                  "queries_between_places": int((~keep).sum())},
-        ks=ks, rows=summarise([split], ks, own_traversal=False), seconds=time.perf_counter() - t0,
-        pr=pr_rows_, pr_curves=pr_curves,
-    )
-
-
 # --------------------------------------------------------------------------- database and queries with a relation
 
 
 class RetrievalTally:
     """The database/queries protocol's outcomes, block of queries by block, and the table they make.
 
-    Shared by ``retrieval_protocol`` and ``retrieval_views.evaluate_fitted`` (a memory-mapped
+    Shared by ``retrieval_protocol`` and ``database_queries.evaluate_fitted`` (a memory-mapped
     database): they differ in how a block's scores and its image-level answers are computed,
     not in what is counted.
 
@@ -837,8 +777,8 @@ class RetrievalTally:
                     for key, ps in self.parts.items()}
         known = np.concatenate(self.place_known)
         top = np.concatenate(self.tops)
-        # place level: queries whose positives all lie outside places are left out (as the traversal
-        # protocol leaves out frames between places); queries with no positive at all stay, as unknown
+        # place level: queries whose positives all lie outside places are left out (places.BETWEEN_PLACES_RULE);
+        # queries with no positive at all stay, as unknown
         scored = known | ~known_any
         th["oracle"] = oracle_global_threshold(top[scored], np.concatenate(self.base_right)[scored], known[scored])
         base = outcomes["place-baseline"]
@@ -885,13 +825,11 @@ def retrieval_protocol(
     database_place: np.ndarray,
     n_places: int,
     ground_truth: GroundTruth,
+    options: ProtocolOptions = ProtocolOptions(),
     *,
-    user_theta: float | None = None,
-    ks: tuple[int, ...] = KS,
     settings: dict | None = None,
-    block: int = 2048,
     progress: Progress | None = None,
-    pr: bool = False,
+    block: int = 2048,
 ) -> Evaluation:
     """A database against queries with ground truth as a relation (``groundtruth.GroundTruth``).
 
@@ -901,21 +839,21 @@ def retrieval_protocol(
     with a positive; the place-level methods rank places, a place being right when it
     holds a positive, over the queries with a positive inside some place. Queries with no
     positive are unknown-place queries: counted apart (their rejection rate), never as
-    misses.
+    misses. Reads ``options``' user_theta, ks and pr.
 
     Args:
         database: ``(n_database, D)``; queries: ``(n_queries, D)``; both L2-normalised.
         database_place: ``(n_database,)`` place of each database image, ``-1`` outside places.
         ground_truth: a ``GroundTruth`` of ``n_queries`` rows over ``n_database`` images.
+        options: with ``pr``, the precision–recall rows and curves too; the per-place family
+            curves only up to ``PR_RAW_CELLS`` queries × places (they need every query's raw_p).
+        settings: what the caller records in ``Evaluation.settings`` beside the run's own.
         block: queries scored at a time (memory: block × n_database float32).
-        pr: also the precision–recall rows and curves; the per-place family curves only up to
-            ``PR_RAW_CELLS`` queries × places (they need every query's raw_p).
     """
     t0 = time.perf_counter()
     db = validate_descriptors(database)
     q = validate_descriptors(queries)
     database_place = np.asarray(database_place, dtype=np.int64)
-    ks = tuple(int(k) for k in ks)
     if not isinstance(ground_truth, GroundTruth):
         raise VPRInputError("ground_truth: give a groundtruth.GroundTruth")
     if ground_truth.n_queries != len(q) or ground_truth.n_database != len(db) or database_place.shape != (len(db),):
@@ -930,8 +868,8 @@ def retrieval_protocol(
         raise VPRInputError("the database holds fewer than 2 places: negative statistics need at least 2; "
                             "lower group or step")
     labels = database_place[placed]
-    th, spread, k_ad = _thresholds(db[placed], labels, n_places, user_theta=user_theta, seed=0)
-    tally = RetrievalTally(th, n_places, placed, labels, n_queries=len(q), n_database=len(db), pr=pr)
+    th, spread, k_ad = _thresholds(db[placed], labels, n_places, user_theta=options.user_theta, seed=0)
+    tally = RetrievalTally(th, n_places, placed, labels, n_queries=len(q), n_database=len(db), pr=options.pr)
     for lo in range(0, len(q), block):
         rows = np.arange(lo, min(lo + block, len(q)))
         sims = similarity(q[rows], db)
@@ -942,4 +880,4 @@ def retrieval_protocol(
                    img_scores.max(axis=1)))
         if progress:
             progress(int(rows[-1]) + 1, len(q), f"queries {int(rows[-1]) + 1}/{len(q)}")
-    return tally.evaluation(ground_truth, spread, k_ad, ks, settings=settings, started=t0)
+    return tally.evaluation(ground_truth, spread, k_ad, options.ks, settings=settings, started=t0)

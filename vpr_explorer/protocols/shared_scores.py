@@ -7,11 +7,10 @@ scores, computed once and kept for as long as the caller keeps it:
 
 * ``full()``: the float32 similarity of all images, ``retrieval.similarity(d, d)``
   (``(n_images, n_images)``, 4·n² bytes), from which the protocols take their queries' scores;
-* ``gram(images)``: a float64 Gram ``d64 @ d64ᵀ`` over the distinct descriptors of
-  ``images`` (8 bytes × their number²) with each row's mean score cᵢ, over all images
-  (paper and open set) or over the database traversals' images (traversal protocol),
-  whatever the places. Images with identical descriptors share one row: a GEMM's rounding
-  can depend on where a row sits, and identical images must get identical statistics.
+* ``gram()``: a float64 Gram ``d64 @ d64ᵀ`` over the distinct descriptors of all images
+  (8 bytes × their number²) with each row's mean score cᵢ, whatever the places. Images
+  with identical descriptors share one row: a GEMM's rounding can depend on where a row
+  sits, and identical images must get identical statistics.
 
 From a Gram, ``Negatives`` gives a split's ``stats.NegativeStats`` pairwise instead of in
 closed form (``stats.negative_stats``). For the members M of one protocol run (the images in a place)
@@ -102,7 +101,7 @@ class SharedScores:
         self.descriptors = validate_descriptors(descriptors)
         self.shape = self.descriptors.shape
         self._full: np.ndarray | None = None
-        self._grams: dict[bytes, Gram] = {}
+        self._gram: Gram | None = None
         self._lock = threading.Lock()
 
     def belongs_to(self, descriptors: object) -> bool:
@@ -127,22 +126,19 @@ class SharedScores:
                 self._full = full
             return self._full
 
-    def gram(self, images: np.ndarray | None = None) -> Gram:
-        """The float64 ``Gram`` of ``images`` (image indices; default all), computed once per set."""
-        idx = np.arange(self.shape[0]) if images is None else np.unique(np.asarray(images, dtype=np.int64))
-        key = idx.tobytes()
+    def gram(self) -> Gram:
+        """The float64 ``Gram`` of every image, computed once."""
         with self._lock:
-            g = self._grams.get(key)
-            if g is None:
-                _check_size(len(idx))
-                x = np.ascontiguousarray(self.descriptors[idx])
+            if self._gram is None:
+                _check_size(self.shape[0])
+                x = np.ascontiguousarray(self.descriptors)
                 rows = x.view(np.dtype((np.void, x.shape[1] * x.dtype.itemsize))).ravel()
                 _, first, row = np.unique(rows, return_index=True, return_inverse=True)
                 u = np.asarray(x[first], dtype=np.float64)
                 values = u @ u.T
-                g = Gram(idx, row.reshape(-1).astype(np.int64), values, values.mean(axis=1))
-                self._grams[key] = g
-            return g
+                self._gram = Gram(np.arange(self.shape[0]), row.reshape(-1).astype(np.int64), values,
+                                  values.mean(axis=1))
+            return self._gram
 
 
 def _same_memory(a: object, b: object) -> bool:

@@ -1,16 +1,31 @@
 """Group/step sweeps: one protocol over a grid of group × step, in both readings.
 
-Each cell of the grid is a ``PlaceSpec(group, step, reading)`` evaluated with
-``pipeline.run_protocol`` on the same descriptors, with the same options, exactly as one
-``vpr-explorer evaluate`` of those settings would be (``tests/test_sweep.py`` checks every
-cell against a separate run). Per cell:
+Each cell of the grid is one set of places (``group``, ``step`` and a reading) evaluated on
+the same descriptors with the same options, exactly as one ``vpr-explorer evaluate`` of
+those settings would be (``tests/test_sweep.py`` checks every cell against a separate run).
+What a cell runs depends on the data:
+
+* aligned traversals (``traversals.Dataset``, descriptors in traversal order): the paper,
+  traversal and open-set protocols (``pipeline.run_protocol``) on places of ``group`` frames
+  every ``step`` frames (``places.make_places``);
+* any other dataset value (``layouts.RetrievalDataset``, database rows first): the
+  database/queries protocol (``pipeline.evaluate_retrieval``) on places of group/step over
+  its database images in listed order (``geometry`` frames), or in metres along its route or
+  over a square lattice (``route``, ``lattice``) where it has positions
+  (``places.retrieval_places``). The protocols that need aligned traversals are refused by
+  name there; places the layout names (prepared places, a manifest's place column) leave
+  nothing to sweep.
+
+The protocol runs come from ``stages``: ``vpr_explorer.pipeline`` itself, passed by the caller
+(protocols sit below the pipeline in the data flow, which wires them to datasets). Per cell:
 
 * **R@1**: the place-level baseline's Recall@1 (mean over runs), the level every
   thresholded method ranks at;
 * **gain**: a thresholded method's R@1 minus that baseline's (default the margin rule with
   the weighted θ_p, the paper's method): what the threshold adds at this group/step;
-* **rejection**: the open set's unknown-place rejection of that method's family
-  θ_p(k) = θ_p + k·s_p at one k (``evaluation._tradeoff``'s row of that k); closed-set
+* **rejection**: unknown-place rejection of that method: in the open set, its family
+  θ_p(k) = θ_p + k·s_p at one k (``evaluation._tradeoff``'s row of that k); in the
+  database/queries protocol, at θ_p (k = 0) over the queries with no positive; closed-set
   protocols have no unknown places, so the cell says so instead of a number;
 * **AUC**: the area under the method's precision–recall curve (``precision_recall``); a
   run that leaves the per-place curves out (the blocked paper pass on a large dataset)
@@ -21,18 +36,19 @@ What is shared between cells, and what is not:
 * the descriptors are computed (or read from their cache) once, by the caller;
 * the two readings name the same places whenever their periods agree: the skip reading's
   ``(group, step)`` is the stride reading's ``(group, group + step)``. A cell's places are
-  keyed by their content (``frame_place``), so such a pair is evaluated once and the second
-  cell carries the first's numbers (its settings restated);
+  keyed by their content (the place of each frame or database image), so such a pair is
+  evaluated once and the second cell carries the first's numbers (its settings restated);
 * every evaluation is kept in a ``SweepCache`` keyed by the descriptors, the protocol's
   options and the places: a second sweep over an overlapping grid, or the same sweep with
   another metric shown, evaluates only the new cells;
-* every image pair's score (``shared_scores.SharedScores``, up to ``SHARED_LIMIT`` images):
-  the float32 similarity of all images that scores the queries, and a float64 Gram from
-  which each split's negative statistics come pairwise. A split's μᵢ, σᵢ are still its own
-  (its training images depend on group and step: the places, the query drawn from each, the
-  held-out places), but they are sums over the Gram's rows, not a closed form
-  of O(n·D²) per split. A run outside a sweep builds the same scores itself, so a cell and a
-  separate ``evaluate`` agree bit for bit. Above the limit each cell fits its own in closed form.
+* in the paper and open-set protocols, every image pair's score (``shared_scores.SharedScores``, up to
+  ``SHARED_LIMIT`` images): the float32 similarity of all images that scores the queries,
+  and a float64 Gram from which each split's negative statistics come pairwise. A split's
+  μᵢ, σᵢ are still its own (its training images depend on group and step: the places, the
+  query drawn from each, the held-out places), but they are sums over the Gram's rows, not
+  a closed form of O(n·D²) per split. A run outside a sweep builds the same scores itself,
+  so a cell and a separate ``evaluate`` agree bit for bit. Above the limit each cell fits
+  its own in closed form.
 
 A cell with no numbers says why (``Cell.empty``): the stride reading with ``step < group``
 would overlap places; a group/step that leaves fewer than two places; a protocol that
@@ -55,22 +71,35 @@ from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
+from typing import Protocol as Interface
 
 import numpy as np
 
+from vpr_explorer.data.layouts import RetrievalDataset
 from vpr_explorer.data.traversals import Dataset
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.protocols.evaluation import K_GRID, Evaluation, Progress, Protocol
-from vpr_explorer.pipeline import check_finite, check_options, check_whole, run_protocol
-from vpr_explorer.method.places import MAX_FRAMES, PlaceSpec, Reading, make_places
-from vpr_explorer.protocols.precision_recall import GLOBAL_CURVE
+from vpr_explorer.method.places import (
+    MetricPlaceSpec,
+    PlaceGeometry,
+    Places,
+    PlaceSpec,
+    Reading,
+    make_places,
+    retrieval_places,
+)
 from vpr_explorer.method.retrieval import METHODS_BY_KEY
+from vpr_explorer.protocols.cost import protocol_pairs
+from vpr_explorer.protocols.evaluation import Evaluation, Progress, Protocol
+from vpr_explorer.protocols.options import K_GRID, check_finite
+from vpr_explorer.protocols.precision_recall import GLOBAL_CURVE
 from vpr_explorer.protocols.shared_scores import SharedScores
 
 MAX_CELLS = 400
 """Most cells one sweep may hold (all readings together): each is a full protocol run."""
-SWEEP_PROTOCOLS = (Protocol.PAPER, Protocol.TRAVERSAL, Protocol.OPEN_SET)
-"""The protocols of aligned traversals, whose places group/step make."""
+ALIGNED_PROTOCOLS = (Protocol.PAPER, Protocol.TRAVERSAL, Protocol.OPEN_SET)
+"""The protocols of aligned traversals, whose places group/step make of their frames."""
+SWEEP_PROTOCOLS = (*ALIGNED_PROTOCOLS, Protocol.DATABASE)
+"""Every protocol a sweep runs: the aligned traversals' and the database/queries protocol of any other value."""
 SWEEP_METHODS = ("margin-weighted", "margin-simple", "raw-weighted", "raw-simple")
 """The per-place thresholded methods a sweep can compare with the place-level baseline."""
 BASELINE = "place-baseline"
@@ -95,29 +124,48 @@ class Metric(StrEnum):
 METRIC_LABELS = {
     Metric.R1: "place-level R@1 (%)",
     Metric.GAIN: "gain in R@1 over the place level (points)",
-    Metric.REJECTION: "unknown-place rejection at k (%)",
+    Metric.REJECTION: "unknown-place rejection (%)",
     Metric.AUC: "AUC of precision–recall",
 }
 METRIC_HELP = {
     Metric.R1: "Recall@1 of the place-level baseline (places ranked by raw_p, no threshold), mean over runs.",
     Metric.GAIN: "Recall@1 of the chosen thresholded method minus the place-level baseline's, in percentage points: "
                  "what the threshold adds at this group/step.",
-    Metric.REJECTION: "Open set only: the share of queries of held-out places that the chosen method's θ_p + k·s_p "
-                      "rejects, mean over runs.",
+    Metric.REJECTION: "The share of queries of unknown places that the chosen method rejects: in the open set, the "
+                      "queries of held-out places under θ_p + k·s_p (mean over runs); in the database/queries "
+                      "protocol, the queries with no positive under θ_p (k = 0).",
     Metric.AUC: "Area under the chosen method's precision–recall curve (trapezoids over recall; accepted and right "
                 "is a true positive, accepted and wrong or of an unknown place a false positive).",
 }
 
 
+class Stages(Interface):
+    """The pipeline's stages a sweep runs its cells with: the ``vpr_explorer.pipeline`` module is one."""
+
+    def check_options(self, protocol: Protocol | str, dataset, **options) -> Protocol: ...
+
+    def run_protocol(self, protocol: Protocol | str, dataset: Dataset, places: Places, descriptors: np.ndarray,
+                     **options) -> Evaluation: ...
+
+    def evaluate_retrieval(self, dataset: RetrievalDataset, descriptors: np.ndarray, **options) -> Evaluation: ...
+
+
 # --------------------------------------------------------------------------- settings
 
 
-def _whole_list(name: str, values: Sequence[object]) -> tuple[int, ...]:
+def _grid_values(name: str, values: Sequence[object], geometry: PlaceGeometry) -> tuple[int | float, ...]:
+    """``values`` sorted, each once: whole frames (``PlaceSpec``'s rule) or metres (``MetricPlaceSpec``'s)."""
     values = list(values)
+    metres = geometry is not PlaceGeometry.FRAMES
     if not values:
-        raise VPRInputError(f"{name}: give at least one whole number of frames, e.g. 1 2 3 5")
-    out = sorted({check_whole(name, v, low=1, high=MAX_FRAMES, why=" frames") for v in values})
-    return tuple(out)
+        raise VPRInputError(f"{name}: give at least one " + ("distance in metres, e.g. 10 25 50" if metres else
+                                                            "whole number of frames, e.g. 1 2 3 5"))
+    for v in values:
+        try:
+            MetricPlaceSpec(v, v, geometry=geometry) if metres else PlaceSpec(v, v)
+        except VPRInputError as exc:
+            raise VPRInputError(f"{name}={v!r}: {str(exc).split(': ', 1)[1]}") from None
+    return tuple(sorted({float(v) if metres else int(v) for v in values}))
 
 
 @dataclass(frozen=True)
@@ -125,9 +173,14 @@ class SweepSpec:
     """A sweep's settings: the grid, the protocol and its options, and what the cells report.
 
     Attributes:
-        groups, steps: frames per place and between places (sorted, duplicates dropped).
+        groups, steps: per place and between places (sorted, duplicates dropped): frames, or
+            metres when ``geometry`` is route or lattice.
         readings: ``stride`` and/or ``skip`` (``places.Reading``); a grid per reading.
-        protocol: ``paper``, ``traversal`` or ``open-set``.
+        protocol: ``paper``, ``traversal``, ``open-set`` (aligned traversals) or
+            ``database-queries`` (a dataset value).
+        geometry: what group/step count (``places.PlaceGeometry``): frames (aligned traversals'
+            frames, or a value's database images in listed order), or metres along the route or
+            of a lattice (the database/queries protocol on a value with positions).
         method: the thresholded method whose gain, rejection and AUC the cells report.
         k: the k of θ_p + k·s_p whose unknown-place rejection the open set reports; it is
             added to ``k_grid`` when missing (so a cell equals ``evaluate --k`` of that grid).
@@ -135,10 +188,11 @@ class SweepSpec:
         pr: compute precision–recall (the AUC); off is faster and leaves AUC empty.
     """
 
-    groups: tuple[int, ...]
-    steps: tuple[int, ...]
+    groups: tuple[int | float, ...]
+    steps: tuple[int | float, ...]
     readings: tuple[Reading, ...] = (Reading.STRIDE, Reading.SKIP)
     protocol: Protocol = Protocol.PAPER
+    geometry: PlaceGeometry = PlaceGeometry.FRAMES
     method: str = "margin-weighted"
     k: float = 0.0
     runs: int = 50
@@ -153,8 +207,14 @@ class SweepSpec:
     pr: bool = True
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "groups", _whole_list("groups", self.groups))
-        object.__setattr__(self, "steps", _whole_list("steps", self.steps))
+        try:
+            geometry = PlaceGeometry(self.geometry)
+        except ValueError:
+            raise VPRInputError(f"geometry {self.geometry!r}: choose "
+                                f"{', '.join(g.value for g in PlaceGeometry)}") from None
+        object.__setattr__(self, "geometry", geometry)
+        object.__setattr__(self, "groups", _grid_values("groups", self.groups, geometry))
+        object.__setattr__(self, "steps", _grid_values("steps", self.steps, geometry))
         readings = [self.readings] if isinstance(self.readings, str) else list(self.readings)
         if not readings:
             raise VPRInputError("readings: give stride, skip or both")
@@ -165,12 +225,15 @@ class SweepSpec:
         try:
             protocol = Protocol(self.protocol)
         except ValueError:
-            protocol = None
-        if protocol not in SWEEP_PROTOCOLS:
-            runs = ", ".join(p.value for p in SWEEP_PROTOCOLS)
-            raise VPRInputError(f"protocol {self.protocol!r}: a sweep runs {runs} "
-                                "(the protocols whose places group/step make)")
+            raise VPRInputError(f"protocol {self.protocol!r}: a sweep runs "
+                                f"{', '.join(p.value for p in SWEEP_PROTOCOLS)}") from None
         object.__setattr__(self, "protocol", protocol)
+        if geometry is not PlaceGeometry.FRAMES and protocol is not Protocol.DATABASE:
+            raise VPRInputError(f"geometry {geometry.value}: the {protocol.value} protocol makes places of aligned "
+                                "traversals' frames; sweep metres with the database-queries protocol")
+        if protocol is Protocol.DATABASE and self.tolerance:
+            raise VPRInputError(f"tolerance={self.tolerance}: the database-queries protocol reads which images are "
+                                "right from the dataset's ground truth; leave tolerance at 0")
         if self.method not in SWEEP_METHODS:
             raise VPRInputError(f"method {self.method!r}: choose one of {', '.join(SWEEP_METHODS)}")
         k = check_finite("k", self.k, example="0, the paper's θ_p")
@@ -187,12 +250,26 @@ class SweepSpec:
                                 f"readings = {n} cells: at most {MAX_CELLS} (each is a protocol run); "
                                 "give fewer values")
 
-    def cells(self) -> list[tuple[int, int, Reading]]:
+    @property
+    def unit(self) -> str:
+        """What group and step count: ``"frames"`` or ``"m"``."""
+        return "frames" if self.geometry is PlaceGeometry.FRAMES else "m"
+
+    def cells(self) -> list[tuple[int | float, int | float, Reading]]:
         """Every ``(group, step, reading)`` of the grid, reading by reading, group by group."""
         return [(g, s, r) for r in self.readings for g in self.groups for s in self.steps]
 
+    def place_spec(self, group: int | float, step: int | float, reading: Reading) -> PlaceSpec | MetricPlaceSpec:
+        """The places of one cell: a ``PlaceSpec`` (frames) or a ``MetricPlaceSpec`` (metres); ``VPRInputError``
+        when they are not valid (overlapping places in the stride reading)."""
+        if self.geometry is PlaceGeometry.FRAMES:
+            return PlaceSpec(group, step, reading)
+        return MetricPlaceSpec(group, step, reading, self.geometry)
+
     def options(self) -> dict:
         """The keyword options of ``pipeline.run_protocol`` (and ``check_options``) for this protocol."""
+        if self.protocol is Protocol.DATABASE:
+            return {"user_theta": self.user_theta}
         o: dict = {"user_theta": self.user_theta, "tolerance": self.tolerance}
         if self.protocol is Protocol.TRAVERSAL:
             o.update(database=list(self.database) if self.database else None, queries=self.queries)
@@ -205,11 +282,11 @@ class SweepSpec:
     def settings(self) -> dict:
         """Every setting that shapes the cells' numbers (the CSV's and JSON's columns)."""
         o = self.options()
-        return {"protocol": self.protocol.value, "method": self.method,
+        return {"protocol": self.protocol.value, "geometry": self.geometry.value, "method": self.method,
                 "k": self.k if self.protocol is Protocol.OPEN_SET else None, "pr": self.pr,
                 "runs": o.get("runs"), "seed": o.get("seed"), "cross_condition": o.get("cross_condition"),
                 "unknown_share": o.get("unknown_share"), "k_grid": o.get("k_grid"),
-                "database": o.get("database"), "queries": o.get("queries"), "tolerance": self.tolerance,
+                "database": o.get("database"), "queries": o.get("queries"), "tolerance": o.get("tolerance"),
                 "theta": self.user_theta}
 
 
@@ -221,19 +298,20 @@ class Cell:
     """One group/step of a sweep and its numbers (rates in [0, 1]; NaN where ``empty`` or ``missing`` says why).
 
     Attributes:
+        group, step: frames, or metres (``SweepSpec.geometry``).
         r1: place-level baseline R@1; gain: the method's R@1 minus it; rejection: unknown-place
-            rejection at k (open set); auc: the method's precision–recall AUC.
+            rejection (open set at k, database/queries at θ_p); auc: the method's precision–recall AUC.
         n_places: places of this group/step (0 when the spec itself is invalid).
         empty: why the cell has no numbers, or ``None``.
         missing: metric -> why that one number is absent (e.g. rejection in a closed set).
         same_as: the ``(group, step, reading)`` whose evaluation this cell shares (same places).
         seconds: time this cell took here (0 when shared or cached).
-        cost: image pairs the protocol scores for this cell (``traversal.protocol_pairs``).
+        cost: image pairs the protocol scores for this cell (``cost.protocol_pairs``).
         evaluation: the full ``Evaluation`` behind the numbers (``None`` when empty).
     """
 
-    group: int
-    step: int
+    group: int | float
+    step: int | float
     reading: Reading
     n_places: int = 0
     r1: float = math.nan
@@ -242,14 +320,14 @@ class Cell:
     auc: float = math.nan
     empty: str | None = None
     missing: dict[str, str] = field(default_factory=dict)
-    same_as: tuple[int, int, str] | None = None
+    same_as: tuple[int | float, int | float, str] | None = None
     cached: bool = False
     seconds: float = 0.0
     cost: int = 0
     evaluation: Evaluation | None = field(default=None, repr=False)
 
     @property
-    def spec(self) -> tuple[int, int, str]:
+    def spec(self) -> tuple[int | float, int | float, str]:
         return (self.group, self.step, self.reading.value)
 
     def value(self, metric: Metric | str) -> float:
@@ -273,7 +351,8 @@ def cell_numbers(ev: Evaluation, method: str, k: float) -> tuple[dict[str, float
     """The four numbers of one evaluation (``Metric`` values), and why any of them is absent.
 
     R@1 are means over runs; the gain is the difference of the two means. The rejection is
-    the open set's trade-off row of the method's family (its threshold and rule) at ``k``.
+    the open set's trade-off row of the method's family (its threshold and rule) at ``k``,
+    or the database/queries protocol's rejection of the queries with no positive (θ_p, k = 0).
     """
     m = METHODS_BY_KEY[method]
     base = ev.row(BASELINE).recall[1][0]
@@ -287,6 +366,12 @@ def cell_numbers(ev: Evaluation, method: str, k: float) -> tuple[dict[str, float
             missing["rejection"] = f"k = {k:g} is not on the run's k grid"
         else:
             numbers["rejection"] = row.unknown_rejection[0]
+    elif ev.protocol is Protocol.DATABASE:
+        rejected = ev.row(method).unknown_rejection
+        if rejected is None:
+            missing["rejection"] = "every query has a positive: the dataset has no unknown-place query"
+        else:
+            numbers["rejection"] = rejected[0]
     else:
         missing["rejection"] = f"the {ev.protocol.value} protocol has no unknown places: run the open-set protocol"
     if not ev.pr:
@@ -305,10 +390,11 @@ def cell_numbers(ev: Evaluation, method: str, k: float) -> tuple[dict[str, float
     return numbers, missing
 
 
-def _restate(ev: Evaluation, spec: PlaceSpec, other: PlaceSpec) -> Evaluation:
+def _restate(ev: Evaluation, spec: PlaceSpec | MetricPlaceSpec, other: PlaceSpec | MetricPlaceSpec) -> Evaluation:
     """``ev`` (run for ``other``) with its settings naming ``spec``: the same places, described in ``spec``'s words."""
     s = dict(ev.settings)
-    s.update(group=spec.group, step=spec.step, reading=spec.reading.value)
+    s.update({k: v for k, v in (("group", spec.group), ("step", spec.step), ("reading", spec.reading.value))
+              if k in s})
     if isinstance(s.get("places"), str):
         s["places"] = s["places"].replace(other.describe(), spec.describe())
     return dataclasses.replace(ev, settings=s)
@@ -327,7 +413,7 @@ class SweepCache:
 
     def __init__(self, size: int = CACHE_ENTRIES) -> None:
         self.size = size
-        self.items: OrderedDict[tuple, tuple[Evaluation | str, PlaceSpec]] = OrderedDict()
+        self.items: OrderedDict[tuple, tuple[Evaluation | str, PlaceSpec | MetricPlaceSpec]] = OrderedDict()
         self.lock = threading.Lock()
 
     def get(self, key: tuple):
@@ -348,8 +434,8 @@ class SweepCache:
         return len(self.items)
 
 
-def _places_key(frame_place: np.ndarray) -> str:
-    return hashlib.sha256(np.ascontiguousarray(frame_place, dtype=np.int64).tobytes()).hexdigest()
+def _places_key(labels: np.ndarray) -> str:
+    return hashlib.sha256(np.ascontiguousarray(labels, dtype=np.int64).tobytes()).hexdigest()
 
 
 def _freeze(value):
@@ -366,7 +452,7 @@ class SweepCost:
     Attributes:
         cells: cells in the grid; valid: those whose group/step make places;
         runs: distinct evaluations to run (valid cells, less those sharing places, less cached ones);
-        pairs: image pairs those evaluations score (``traversal.protocol_pairs``, summed).
+        pairs: image pairs those evaluations score (``cost.protocol_pairs``, summed).
     """
 
     cells: int
@@ -388,60 +474,109 @@ class SweepCost:
                 f"about {self.pairs:.2g} image pairs")
 
 
-def _plan(dataset: Dataset, spec: SweepSpec):
-    """Each cell's ``(group, step, reading, PlaceSpec | None, Places | None, why empty)``."""
+@dataclass(frozen=True, eq=False)
+class _Planned:
+    """One cell before it runs: its place spec and places (``None`` with ``why`` when it has none)."""
+
+    group: int | float
+    step: int | float
+    reading: Reading
+    spec: PlaceSpec | MetricPlaceSpec | None = None
+    places: Places | None = None
+    n_places: int = 0
+    key: str = ""
+    why: str | None = None
+
+
+def check_data(dataset: Dataset | RetrievalDataset, spec: SweepSpec) -> None:
+    """Refuse data the sweep's protocol cannot run on, or whose places group/step do not make.
+
+    Raises:
+        VPRInputError: an aligned traversals' protocol on another layout, the database/queries
+            protocol on aligned traversals given as traversals, or places named by the layout.
+    """
+    if spec.protocol is Protocol.DATABASE:
+        if not isinstance(dataset, RetrievalDataset):
+            raise VPRInputError(f"protocol {spec.protocol.value}: give {dataset.name!r} as its database/queries "
+                                "value (data.aligned.database_queries) with the descriptors in its order")
+        if dataset.database_place is not None:
+            raise VPRInputError(f"group/step do not apply: the {dataset.layout.value} layout of {dataset.name!r} "
+                                "names its places, so there is nothing to sweep; evaluate it with "
+                                "`vpr-explorer evaluate`")
+        return
+    if not isinstance(dataset, Dataset):
+        raise VPRInputError(f"protocol {spec.protocol.value}: it needs aligned traversals (frame f of every traversal "
+                            f"the same spot); {dataset.name!r} is a {dataset.layout.value} layout: sweep it with the "
+                            f"{Protocol.DATABASE.value} protocol")
     if dataset.prepared_places is not None:
-        raise VPRInputError(f"{dataset.name!r} has places fixed by its file names (Place####_…): group/step do not "
-                            "apply, so there is nothing to sweep; evaluate it with `vpr-explorer evaluate`")
+        raise VPRInputError(f"group/step do not apply: {dataset.name!r} names its places in its file names "
+                            "(Place####_…), so there is nothing to sweep; evaluate it with `vpr-explorer evaluate`")
+
+
+def _plan(dataset: Dataset | RetrievalDataset, spec: SweepSpec) -> list[_Planned]:
+    """Each cell's place spec and places, or why it has none."""
+    check_data(dataset, spec)
     out = []
     for g, s, r in spec.cells():
         try:
-            ps = PlaceSpec(g, s, r)
+            ps = spec.place_spec(g, s, r)
         except VPRInputError as exc:
-            out.append((g, s, r, None, None, str(exc)))
+            out.append(_Planned(g, s, r, why=str(exc)))
             continue
         try:
-            places = make_places(dataset, ps)
+            if isinstance(dataset, Dataset):
+                places = make_places(dataset, ps)
+                labels, n = places.frame_place, places.n_places
+            else:
+                places = None
+                labels, n = (retrieval_places(dataset, metric=ps) if isinstance(ps, MetricPlaceSpec)
+                             else retrieval_places(dataset, ps))
         except VPRInputError as exc:
-            out.append((g, s, r, ps, None, str(exc)))
+            out.append(_Planned(g, s, r, ps, why=str(exc)))
             continue
-        out.append((g, s, r, ps, places, None))
+        out.append(_Planned(g, s, r, ps, places, n, _places_key(labels)))
     return out
 
 
-def sweep_cost(dataset: Dataset, spec: SweepSpec, *, cache: SweepCache | None = None,
+def _cost(dataset: Dataset | RetrievalDataset, spec: SweepSpec, cell: _Planned) -> int:
+    o = spec.options()
+    return protocol_pairs(spec.protocol.value, cell.places, dataset, runs=spec.runs, database=o.get("database"),
+                          unknown_share=spec.unknown_share)
+
+
+def _cache_key(descriptors_key: str, dataset: Dataset | RetrievalDataset, spec: SweepSpec, places_key: str) -> tuple:
+    options = tuple(sorted((k, _freeze(v)) for k, v in spec.options().items()))
+    truth = ((dataset.layout.value, dataset.ground_truth.description, dataset.n_database)
+             if isinstance(dataset, RetrievalDataset) else ())
+    return (descriptors_key, str(dataset.root), dataset.name, dataset.n_images, *truth, spec.protocol.value,
+            spec.geometry.value, options, spec.pr, places_key)
+
+
+def sweep_cost(dataset: Dataset | RetrievalDataset, spec: SweepSpec, *, cache: SweepCache | None = None,
                descriptors_key: str | None = None) -> SweepCost:
     """The cost of ``sweep(dataset, …, spec)`` before running it (no descriptors needed).
 
     With ``cache`` and ``descriptors_key``, cells already in the cache are not counted.
-    """
-    from vpr_explorer.views.traversal import protocol_pairs
 
+    Raises:
+        VPRInputError: as ``check_data``.
+    """
     plan = _plan(dataset, spec)
-    o = spec.options()
     seen: set[str] = set()
     runs = pairs = valid = 0
-    for g, s, r, ps, places, why in plan:
-        if places is None:
+    for cell in plan:
+        if cell.why is not None:
             continue
         valid += 1
-        pk = _places_key(places.frame_place)
-        if pk in seen:
+        if cell.key in seen:
             continue
-        seen.add(pk)
+        seen.add(cell.key)
         if cache is not None and descriptors_key is not None and \
-                cache.get(_cache_key(descriptors_key, dataset, spec, pk)) is not None:
+                cache.get(_cache_key(descriptors_key, dataset, spec, cell.key)) is not None:
             continue
         runs += 1
-        pairs += protocol_pairs(spec.protocol.value, places, dataset, runs=spec.runs, database=o.get("database"),
-                                unknown_share=spec.unknown_share)
+        pairs += _cost(dataset, spec, cell)
     return SweepCost(cells=len(plan), valid=valid, runs=runs, pairs=int(pairs), n_images=dataset.n_images)
-
-
-def _cache_key(descriptors_key: str, dataset: Dataset, spec: SweepSpec, places_key: str) -> tuple:
-    options = tuple(sorted((k, _freeze(v)) for k, v in spec.options().items()))
-    return (descriptors_key, str(dataset.root), dataset.name, dataset.n_images, spec.protocol.value, options,
-            spec.pr, places_key)
 
 
 # --------------------------------------------------------------------------- the sweep
@@ -463,7 +598,7 @@ class SweepResult:
     seconds: float
     source: dict[str, str] = field(default_factory=dict)
 
-    def cell(self, group: int, step: int, reading: Reading | str) -> Cell:
+    def cell(self, group: int | float, step: int | float, reading: Reading | str) -> Cell:
         want = (group, step, Reading(reading).value)
         return next(c for c in self.cells if c.spec == want)
 
@@ -511,10 +646,23 @@ class SweepResult:
         return buf.getvalue()
 
 
+def _evaluate(stages: Stages, dataset: Dataset | RetrievalDataset, descriptors: np.ndarray, spec: SweepSpec,
+              cell: _Planned, *, descriptor: str, shared: SharedScores | None, progress: Progress | None) -> Evaluation:
+    """One cell's protocol run, as ``vpr-explorer evaluate`` of its settings runs it."""
+    settings = {"descriptor": descriptor, "dtype": str(descriptors.dtype)}
+    if spec.protocol is Protocol.DATABASE:
+        metric = cell.spec if isinstance(cell.spec, MetricPlaceSpec) else None
+        return stages.evaluate_retrieval(dataset, descriptors, spec=None if metric else cell.spec, metric=metric,
+                                         user_theta=spec.user_theta, settings=settings, progress=progress, pr=spec.pr)
+    return stages.run_protocol(spec.protocol, dataset, cell.places, descriptors, progress=progress, settings=settings,
+                               pr=spec.pr, shared=shared, **spec.options())
+
+
 def sweep(
-    dataset: Dataset,
+    dataset: Dataset | RetrievalDataset,
     descriptors: np.ndarray,
     spec: SweepSpec,
+    stages: Stages,
     *,
     descriptor: str = "",
     descriptors_key: str | None = None,
@@ -527,7 +675,11 @@ def sweep(
     """Evaluate every cell of ``spec``'s grid on ``dataset`` with ``descriptors`` (module doc).
 
     Args:
-        descriptors: ``(n_images, D)`` L2-normalised, computed once by the caller.
+        dataset: aligned traversals (``traversals.Dataset``) for the paper, traversal and open-set
+            protocols; a dataset value (``layouts.RetrievalDataset``) for the database/queries protocol.
+        descriptors: ``(n_images, D)`` L2-normalised in ``dataset``'s image order, computed once by the caller.
+        stages: the protocol runs (``vpr_explorer.pipeline``: its ``check_options``, ``run_protocol``
+            and ``evaluate_retrieval``).
         descriptor: its name, for the settings.
         source: for descriptors read from a file, its path and sha256 for the settings
             (``ImportedDescriptors.settings()``).
@@ -535,71 +687,67 @@ def sweep(
         cache: evaluations kept between sweeps; default a fresh one (within this sweep only).
         progress: ``progress(done, total, message)`` after each cell (``total`` = cells).
         cell_progress: the running cell's own protocol progress (its splits or blocks).
-        shared: the ``SharedScores`` of ``descriptors`` to reuse (e.g. kept between sweeps);
-            default one built for this sweep (its matrices on first use, and only up to
-            ``shared_scores.SHARED_LIMIT`` images).
+        shared: the ``SharedScores`` of aligned traversals' ``descriptors`` to reuse (e.g. kept
+            between sweeps); default one built for this sweep (its matrices on first use, and only
+            up to ``shared_scores.SHARED_LIMIT`` images). Not read by the database/queries protocol.
 
     Raises:
-        VPRInputError: bad protocol options, a dataset whose places are fixed by file names, or
-            descriptors that do not match the dataset. A cell's own refusal is its ``empty``.
+        VPRInputError: bad protocol options, data the protocol does not run on (``check_data``),
+            or descriptors that do not match the dataset. A cell's own refusal is its ``empty``.
     """
     t0 = time.perf_counter()
-    check_options(spec.protocol, dataset, **spec.options())
+    check_data(dataset, spec)
+    stages.check_options(spec.protocol, dataset, **spec.options())
+    plan = _plan(dataset, spec)
     if len(descriptors) != dataset.n_images:
         raise VPRInputError(f"{len(descriptors)} descriptors for {dataset.n_images} images of {dataset.name!r}: "
                             "recompute them")
-    from vpr_explorer.views.traversal import protocol_pairs
-
     if descriptors_key is None:
         from vpr_explorer.descriptors import fingerprint
 
         descriptors_key = fingerprint(descriptors)
-    scores = SharedScores(descriptors) if shared is None else shared
-    scores.check(descriptors)
+    scores = None
+    if spec.protocol is not Protocol.DATABASE:
+        scores = SharedScores(descriptors) if shared is None else shared
+        scores.check(descriptors)
     cache = SweepCache() if cache is None else cache
-    plan = _plan(dataset, spec)
-    o = spec.options()
-    first_of: dict[str, PlaceSpec] = {}
+    first_of: dict[str, PlaceSpec | MetricPlaceSpec] = {}
     cells = []
-    for i, (g, s, r, ps, places, why) in enumerate(plan):
-        if places is None:
-            cells.append(Cell(g, s, r, n_places=0, empty=why))
+    for i, cell in enumerate(plan):
+        g, s, r = cell.group, cell.step, cell.reading
+        if cell.why is not None:
+            cells.append(Cell(g, s, r, n_places=0, empty=cell.why))
         else:
-            pk = _places_key(places.frame_place)
-            key = _cache_key(descriptors_key, dataset, spec, pk)
-            cost = protocol_pairs(spec.protocol.value, places, dataset, runs=spec.runs, database=o.get("database"),
-                                  unknown_share=spec.unknown_share)
-            earlier = first_of.get(pk)  # a cell of the same places, evaluated before
+            key = _cache_key(descriptors_key, dataset, spec, cell.key)
+            cost = _cost(dataset, spec, cell)
+            earlier = first_of.get(cell.key)  # a cell of the same places, evaluated before
             hit = cache.get(key)
             start = time.perf_counter()
             if hit is None:
                 try:
-                    value = run_protocol(spec.protocol, dataset, places, descriptors, progress=cell_progress,
-                                         settings={"descriptor": descriptor, "dtype": str(descriptors.dtype)},
-                                         pr=spec.pr, shared=scores, **o)
+                    value = _evaluate(stages, dataset, descriptors, spec, cell, descriptor=descriptor, shared=scores,
+                                      progress=cell_progress)
                 except VPRInputError as exc:
                     value = str(exc)
-                hit = (value, ps)
+                hit = (value, cell.spec)
                 cache.put(key, hit)
                 cached = False
             else:
                 cached = earlier is None
             value, ran_as = hit
             seconds = 0.0 if (cached or earlier is not None) else time.perf_counter() - start
-            first_of.setdefault(pk, ps)
-            same_as = None
-            if earlier is not None:
-                same_as = (earlier.group, earlier.step, earlier.reading.value)
+            first_of.setdefault(cell.key, cell.spec)
+            same_as = None if earlier is None else (earlier.group, earlier.step, earlier.reading.value)
             if isinstance(value, str):
-                cells.append(Cell(g, s, r, n_places=places.n_places, empty=value, same_as=same_as, cached=cached,
+                cells.append(Cell(g, s, r, n_places=cell.n_places, empty=value, same_as=same_as, cached=cached,
                                   seconds=seconds, cost=cost))
             else:
-                ev = value if ran_as == ps else _restate(value, ps, ran_as)
+                ev = value if ran_as == cell.spec else _restate(value, cell.spec, ran_as)
                 numbers, missing = cell_numbers(ev, spec.method, spec.k)
-                cells.append(Cell(g, s, r, n_places=places.n_places, **numbers, missing=missing, same_as=same_as,
+                cells.append(Cell(g, s, r, n_places=cell.n_places, **numbers, missing=missing, same_as=same_as,
                                   cached=cached, seconds=seconds, cost=cost, evaluation=ev))
         if progress:
-            progress(i + 1, len(plan), f"group {g}, step {s} ({r.value})")
+            progress(i + 1, len(plan), f"group {g:g}, step {s:g} ({r.value})")
     return SweepResult(spec, tuple(cells), dataset.name, descriptor, dataset.n_images, time.perf_counter() - t0,
                        dict(source or {}))
 
@@ -610,8 +758,8 @@ def table(result: SweepResult, metric: Metric | str, reading: Reading | str) -> 
     z = result.grid(metric, reading)
     scale = 1.0 if metric is Metric.AUC else 100.0
     fmt = "{:.3f}" if metric is Metric.AUC else "{:+.1f}" if metric is Metric.GAIN else "{:.1f}"
-    header = ["group \\ step", *map(str, result.spec.steps)]
-    rows = [[str(g), *("—" if not np.isfinite(v) else fmt.format(scale * v) for v in z[i])]
+    header = [f"group \\ step ({result.spec.unit})", *(f"{s:g}" for s in result.spec.steps)]
+    rows = [[f"{g:g}", *("—" if not np.isfinite(v) else fmt.format(scale * v) for v in z[i])]
             for i, g in enumerate(result.spec.groups)]
     widths = [max(len(h), *(len(row[j]) for row in rows)) for j, h in enumerate(header)]
     line = lambda cells: "  ".join(c.ljust(w) if j == 0 else c.rjust(w) for j, (c, w) in enumerate(zip(cells, widths)))
@@ -624,7 +772,7 @@ def empty_reasons(result: SweepResult) -> list[str]:
     by: dict[str, list[str]] = {}
     for c in result.cells:
         if c.empty:
-            by.setdefault(c.empty, []).append(f"{c.group}/{c.step} {c.reading.value}")
+            by.setdefault(c.empty, []).append(f"{c.group:g}/{c.step:g} {c.reading.value}")
     return [f"{', '.join(where)}: {why}" for why, where in by.items()]
 
 
@@ -642,7 +790,7 @@ def missing_reasons(result: SweepResult) -> list[str]:
 
 
 def sweep_figure(result: SweepResult, metric: Metric | str, reading: Reading | str, *,
-                 marked: tuple[int, int] | None = None):
+                 marked: tuple[int | float, int | float] | None = None):
     """A Plotly heatmap of ``metric`` over group (rows) × step (columns) in one reading; click a cell to pick it.
 
     Plotly heatmaps emit no selection events in Streamlit (streamlit#8760), so a marker
@@ -657,7 +805,7 @@ def sweep_figure(result: SweepResult, metric: Metric | str, reading: Reading | s
     spec = result.spec
     z = result.grid(metric, reading)
     scale = 1.0 if metric is Metric.AUC else 100.0
-    xs, ys = [str(s) for s in spec.steps], [str(g) for g in spec.groups]
+    xs, ys = [f"{s:g}" for s in spec.steps], [f"{g:g}" for g in spec.groups]
     fmt = ".3f" if metric is Metric.AUC else "+.1f" if metric is Metric.GAIN else ".1f"
     text = [["" if not np.isfinite(v) else format(scale * v, fmt) for v in row] for row in z]
     full = {"x": [], "y": [], "hover": [], "data": []}
@@ -666,7 +814,7 @@ def sweep_figure(result: SweepResult, metric: Metric | str, reading: Reading | s
         for j, s in enumerate(spec.steps):
             c = result.cell(g, s, reading)
             why = c.why(metric)
-            where = f"group {g}, step {s} ({c.n_places} places)" if c.n_places else f"group {g}, step {s}"
+            where = f"group {g:g}, step {s:g} {spec.unit}" + (f" ({c.n_places} places)" if c.n_places else "")
             if c.empty:
                 empty["x"].append(xs[j])
                 empty["y"].append(ys[i])
@@ -703,23 +851,27 @@ def sweep_figure(result: SweepResult, metric: Metric | str, reading: Reading | s
                       line=dict(color="#e4572e", width=3), name="marked")
     fig.update_layout(
         title=dict(text=f"{reading.value} reading", x=0.0, xanchor="left"),
-        xaxis=dict(title="step (frames)", type="category", range=[-0.5, len(xs) - 0.5]),
-        yaxis=dict(title="group (frames)", type="category", range=[-0.5, len(ys) - 0.5]),
+        xaxis=dict(title=f"step ({spec.unit})", type="category", range=[-0.5, len(xs) - 0.5]),
+        yaxis=dict(title=f"group ({spec.unit})", type="category", range=[-0.5, len(ys) - 0.5]),
         height=max(340, 120 + 56 * len(ys)), margin=dict(l=60, r=20, t=60, b=50),
         hovermode="closest",
     )
     return fig
 
 
-def selected_cell(point) -> tuple[int, int, str] | None:
-    """``(group, step, reading)`` of a clicked ``sweep_figure`` cell, from a selection point, else ``None``."""
+def selected_cell(point) -> tuple[int | float, int | float, str] | None:
+    """``(group, step, reading)`` of a clicked ``sweep_figure`` cell, from a selection point, else ``None``.
+
+    Group and step are whole numbers when they are (frames), else metres.
+    """
     data = point.get("customdata") if hasattr(point, "get") else None
     if isinstance(data, dict):
         data = [data[k] for k in sorted(data, key=int)]
     if not isinstance(data, (list, tuple)) or len(data) != 3:
         return None
     try:
-        return int(data[0]), int(data[1]), Reading(str(data[2])).value
-    except ValueError:
+        group, step = (float(x) for x in data[:2])
+        return (*(int(x) if x.is_integer() else x for x in (group, step)), Reading(str(data[2])).value)
+    except (TypeError, ValueError):
         return None
 

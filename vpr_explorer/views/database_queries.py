@@ -22,6 +22,7 @@ Pure functions over arrays; never imports streamlit.
 from __future__ import annotations
 
 import functools
+import math
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -35,6 +36,7 @@ from vpr_explorer.protocols.evaluation import KS, Evaluation, RetrievalTally
 from vpr_explorer.data.layouts import Layout, RetrievalDataset
 from vpr_explorer.method.places import GEOMETRY_LABELS, MetricPlaceSpec, PlaceGeometry, PlaceSpec, retrieval_places
 from vpr_explorer.method.retrieval import (
+    METHODS_BY_KEY,
     TIE_TOLERANCE,
     Outcome,
     PlaceLayout,
@@ -348,13 +350,33 @@ def explain_query(fitted: RetrievalFitted, descriptors: np.ndarray, query: int, 
                   np.flatnonzero(truth))
 
 
+def place_queries(fitted: RetrievalFitted, place: int) -> np.ndarray:
+    """``(m,)`` ascending query indices whose right places include ``place`` (a positive of theirs lies in it).
+
+    For aligned traversals (ground truth: the same frame) these are the query traversal's
+    frames in the place. Read from the ground truth's positives, never a queries × places matrix.
+    """
+    gt = fitted.dataset.ground_truth
+    hits = np.flatnonzero(fitted.database_place[gt.indices] == place)
+    return np.unique(np.searchsorted(gt.indptr, hits, side="right") - 1).astype(np.int64)
+
+
 def place_detail(fitted: RetrievalFitted, descriptors: np.ndarray, place: int) -> PlaceDetail:
     """One place's negative mixture, its scores and thresholds (``traversal.PlaceDetail``, for ``plots.mixture_figure``).
 
     Scores only the place's own rows: its database images against every database image in a
     place (n_p × n_placed, a block of the database at a time on a memory map), never all
-    pairs. There are no query frames of a place here (queries are decided against places):
-    ``query_images`` is empty.
+    pairs; and the queries whose right places include it (``place_queries``) against its
+    database images.
+
+    Returns:
+        The detail; its ``images`` and ``query_images`` are indices into the dataset's images
+        (database images first, so ``images`` are database positions and ``query_images``
+        are ``n_database`` + the query indices), ``query_raw`` each of those queries' raw_p
+        (its best score against the place's database images).
+
+    Raises:
+        VPRInputError: ``place`` is not one of the places.
     """
     model = fitted.model
     if isinstance(place, bool) or not isinstance(place, (int, np.integer)) or not 0 <= place < fitted.n_places:
@@ -364,11 +386,14 @@ def place_detail(fitted: RetrievalFitted, descriptors: np.ndarray, place: int) -
     mu, sigma, weight = model.stats.components(int(place))
     sims = score_rows(descriptors, own, model.images) if len(own) else np.zeros((0, len(model.images)), np.float32)
     same = sims[:, mine]
+    queries = fitted.dataset.n_database + place_queries(fitted, int(place))
+    query_raw = (score_rows(descriptors, queries, own).max(axis=1).astype(np.float64) if len(queries)
+                 else np.zeros(0))
     return PlaceDetail(
         place=int(place), images=own, mu=mu, sigma=sigma, weight=weight,
         negatives=np.compress(~mine, sims, axis=1).ravel(),  # float32 (C order: flattened without a copy)
         positives=same[np.triu_indices(len(own), k=1)].astype(np.float64),
-        query_images=np.zeros(0, dtype=np.int64), query_raw=np.zeros(0),
+        query_images=queries, query_raw=query_raw,
         theta={name: float(t[place]) for name, t in model.theta.items()},
         spread=float(model.spread[place]), auto=float(model.auto), k_adaptive=float(model.k_adaptive[place]),
     )
@@ -663,3 +688,130 @@ def radius_of(dataset: RetrievalDataset) -> float | None:
         return float(desc[len("within "):-len(" m")])
     return None
 
+
+# --------------------------------------------------------------------------- a query's answers in words
+
+
+#: Why a query with no right place is judged as it is (``describe_answer``): (accepted, rejected).
+_NO_RIGHT_PLACE = {
+    BETWEEN: ("not scored: its right database images lie between places",) * 2,
+    UNKNOWN: ("wrong: an unknown-place query accepted: a false positive", "right: an unknown-place query rejected"),
+}
+
+
+def describe_answer(fitted: RetrievalFitted, decision: QueryDecision, key: str, query: int) -> str:
+    """Method ``key``'s answer for query ``query`` in the pages' words, whatever the layout.
+
+    A query with a right place reads as ``decision.describe(key)``; a query with none as what
+    its ground truth makes of it (``query_status``): between places it is not scored,
+    of an unknown place rejecting it is right and accepting it a false positive. An
+    image-level answer names its database image (``database_label``: "day · frame 81" or
+    a file name), never its position among the images in places.
+
+    Args:
+        decision: ``explain_query(fitted, descriptors, query, ...)``.
+    """
+    m = METHODS_BY_KEY[key]
+    o = decision.outcomes[key]
+    ans, img = int(o.answer_place[0]), int(o.answer_image[0])
+    named = (f"{database_label(fitted.dataset, int(fitted.model.images[img]))} → "
+             if m.level == "image" and img >= 0 else "")
+    status = fitted.query_status(query)
+    if status == KNOWN:
+        text = decision.describe(key)
+        return text.replace(f"accepted as image {img} → ", f"accepted as {named}", 1) if named else text
+    theta = decision.thresholds.get(m.threshold) if m.threshold else None
+
+    def scores(p: int) -> str:
+        if theta is None:
+            return f"raw {decision.raw[p]:.3f}"
+        return f"raw {decision.raw[p]:.3f}, threshold {theta[p]:.3f}, margin {decision.raw[p] - theta[p]:+.3f}"
+
+    accepted, rejected = _NO_RIGHT_PLACE[status]
+    if ans >= 0:
+        return f"accepted as {named}place {ans} ({accepted}): {scores(ans)}"
+    ranking = decision.raw if theta is None else decision.raw - theta
+    closest = int(np.argmax(np.where(np.isfinite(ranking), ranking, -np.inf)))
+    return (f"rejected ({rejected}): every place scored below its threshold; the closest, place {closest}: "
+            f"{scores(closest)}")
+
+
+# --------------------------------------------------------------------------- the similarity matrix
+
+
+@dataclass(frozen=True, eq=False)
+class SimilarityGrid:
+    """Queries × database images similarity, max-pooled to a displayable size (``plots.similarity_heatmap``).
+
+    Cell ``(r, c)`` holds the highest s(q, i) over the queries of row block ``r`` and the
+    database images of column block ``c``, and the pair attaining it, so that a click opens
+    exactly that pair. Above the pair budget each row is one sampled query (the centre of
+    its block) against every database image: columns stay exact maxima, rows are a sample.
+
+    Attributes:
+        z: ``(R, C)`` similarities (rows: queries, columns: database images).
+        query_image, db_image: ``(R, C)`` query index and database index of the pair behind each cell.
+        row_frames: ``(R,)`` first query of each row block (the sampled query when ``sampled``);
+            for aligned traversals query q is frame q of the query traversal.
+        col_frames: ``(C,)`` first database image of each column block (database order).
+        block: database images per column block.
+        row_block: queries per row block.
+        sampled: rows are single sampled queries, not block maxima.
+    """
+
+    z: np.ndarray
+    query_image: np.ndarray
+    db_image: np.ndarray
+    row_frames: np.ndarray
+    col_frames: np.ndarray
+    block: int
+    row_block: int
+    sampled: bool = False
+
+
+def similarity_grid(dataset: RetrievalDataset, descriptors: np.ndarray, *, max_side: int = 200,
+                    pair_budget: int | None = None) -> SimilarityGrid:
+    """The queries against the database images, at most ``max_side`` blocks a side.
+
+    Every query is scored while queries × database images stay within ``pair_budget``
+    (default ``PAIR_BUDGET``, read at call time); above it, one query per row block, with
+    at most ``pair_budget`` similarities in all. Scores come a band of queries at a time
+    (``score_rows``: at most ``SCORE_ELEMS`` of them; a memory-mapped database is read a
+    block at a time), each band pooled before the next.
+
+    Args:
+        descriptors: ``(n_images, D)`` unit rows, database rows first.
+    """
+    n_q, n_db = dataset.n_queries, dataset.n_database
+    budget = PAIR_BUDGET if pair_budget is None else pair_budget
+    block = math.ceil(n_db / max_side)
+    n_cols = math.ceil(n_db / block)
+    n_rows = min(n_q, max_side)
+    sampled = n_q * n_db > budget
+    if sampled:
+        n_rows = max(1, min(n_rows, budget // n_db))
+    row_block = math.ceil(n_q / n_rows)
+    n_rows = math.ceil(n_q / row_block)
+    if sampled:  # one query per row: the centre of each row block
+        queries = row_frames = np.minimum(np.arange(n_rows) * row_block + row_block // 2, n_q - 1)
+        step = 1
+    else:
+        queries, step = np.arange(n_q), row_block
+        row_frames = np.arange(n_rows) * row_block
+    z = np.empty((n_rows, n_cols))
+    q_img = np.empty((n_rows, n_cols), dtype=np.int64)
+    db_img = np.empty((n_rows, n_cols), dtype=np.int64)
+    band = max(step, SCORE_ELEMS // max(1, n_db) // step * step)  # queries per band: whole row blocks
+    for lo in range(0, len(queries), band):
+        qs = queries[lo:lo + band]
+        rows = math.ceil(len(qs) / step)
+        # padding rows and columns at -inf never win a tile (each tile holds a real score)
+        padded = np.full((rows * step, n_cols * block), -np.inf, dtype=np.float32)
+        padded[:len(qs), :n_db] = score_rows(descriptors, n_db + qs, n_db)
+        tiles = padded.reshape(rows, step, n_cols, block).transpose(0, 2, 1, 3).reshape(rows, n_cols, step * block)
+        arg = tiles.argmax(axis=2)
+        r0 = lo // step
+        z[r0:r0 + rows] = np.take_along_axis(tiles, arg[..., None], axis=2)[..., 0]
+        q_img[r0:r0 + rows] = qs[np.arange(rows)[:, None] * step + arg // block]
+        db_img[r0:r0 + rows] = np.arange(n_cols)[None, :] * block + arg % block
+    return SimilarityGrid(z, q_img, db_img, row_frames, np.arange(n_cols) * block, block, row_block, sampled)

@@ -360,8 +360,8 @@ def mixture_figure(
 
     Thin curves: each training image's component wᵢ·N(x; μᵢ, σᵢ²) (its share of the
     mixture); bold: the mixture M(p) = Σ wᵢ N(μᵢ, σᵢ²); light bars: the actual negative
-    scores (density); rugs: the place's same-place database scores and the raw_p of its
-    own query frames; vertical lines: θ_p simple, θ_p weighted, θ_p(k) of ``method``, the
+    scores (density); rugs: the place's same-place database scores and the raw_p of the
+    queries whose right places include it; vertical lines: θ_p simple, θ_p weighted, θ_p(k) of ``method``, the
     automatic global θ and the user's θ.
     """
     x = mixture_grid(detail, n)
@@ -399,7 +399,7 @@ def mixture_figure(
     if detail.query_raw.size:
         fig.add_trace(go.Scatter(x=detail.query_raw, y=np.full(detail.query_raw.size, 2 * rug_y), mode="markers",
                                  marker=dict(symbol="triangle-up", size=10, color=QUERY),
-                                 name="raw_p of this place's query frames", meta="query_raw",
+                                 name="raw_p of the queries right in this place", meta="query_raw",
                                  customdata=detail.query_images,
                                  hovertemplate="query image %{customdata}: raw_p %{x:.3f}<extra></extra>"))
     lines = [_vline("θ_p simple", detail.theta["simple"], top, dash="dot"),

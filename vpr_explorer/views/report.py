@@ -5,9 +5,9 @@ from __future__ import annotations
 import csv
 import io
 import math
-from collections.abc import Mapping
 
-from vpr_explorer.protocols.evaluation import Evaluation, Protocol
+# strict is read from here by views.traversal
+from vpr_explorer.protocols.evaluation import Evaluation, Protocol, strict  # noqa: F401
 
 
 def _pct(stat, with_std: bool = True) -> str:
@@ -117,16 +117,3 @@ def method_csv(ev: Evaluation) -> str:
         w.writerow([ev.protocol.value, f"tradeoff:{t.series}:{t.rule}:{t.param}", t.series, t.known_recall1[0],
                     t.known_recall1[1], "", "", "", "", "", "", t.accepted[0], t.precision[0], t.unknown_rejection[0], ""])
     return buf.getvalue()
-
-
-def strict(x):
-    """``x`` made strict JSON: NaN and ±inf as ``None``, numpy scalars as Python numbers, keys as strings."""
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    if isinstance(x, Mapping):
-        return {str(k): strict(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [strict(v) for v in x]
-    if hasattr(x, "item") and not isinstance(x, (str, bytes)):  # a numpy scalar
-        return strict(x.item())
-    return x

@@ -410,25 +410,6 @@ def similarity_grid(
 AUTO_RUN_PAIRS = 100_000_000
 
 
-def protocol_pairs(protocol: str, places: Places, dataset: Dataset, *, runs: int = 50, database=None, queries=None,
-                   unknown_share: float = 0.3, **_) -> int:
-    """Image pairs a protocol run scores: its cost, to say before running it.
-
-    Paper: one pass over all pairs of place images (``scale.fast_paper_protocol``).
-    Open set: per split, each query against the training images. Traversal: each query
-    frame against the database images.
-    """
-    n = int((places.image_place >= 0).sum())
-    if protocol == "traversal":
-        n_db = max(1, dataset.n_traversals - 1) if database is None else len(database)
-        return dataset.n_frames * n_db * dataset.n_frames
-    if protocol == "open-set":  # one query per place against the known places' images less one each
-        known = places.n_places - int(round(unknown_share * places.n_places))
-        training = round(n * known / max(1, places.n_places)) - known
-        return int(runs) * places.n_places * max(0, training)
-    return n * n
-
-
 def evaluation_rows(ev: Evaluation) -> list[dict[str, object]]:
     """One row per method: Recall@K mean and std, accepted, precision and the protocol's extra columns, in %."""
     rows = []

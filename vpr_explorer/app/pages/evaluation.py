@@ -1,5 +1,12 @@
-"""Evaluation page: the paper, traversal and open-set protocols; Recall@K, precision–recall, the trade-off,
+"""Evaluation page: the protocols that apply to the dataset value; Recall@K, precision–recall, the trade-off,
 runs side by side, the similarity matrix.
+
+The database/queries protocol (``pipeline.evaluate_retrieval`` on the value) runs on every
+layout; on aligned traversals it is the traversal protocol: database traversals against a
+query traversal, right database images within a tolerance of the query's frame. Aligned
+traversals with places made of frames also offer the paper's random splits and the open
+set (``pipeline.run_protocol`` on the traversals). A protocol that does not apply is
+refused by name, with what is shown instead.
 
 Every setting of the page lives in the URL beside the view (``eval_protocol``, ``eval_runs``,
 ``eval_seed``, ``eval_cross``, ``eval_share``, ``eval_database``, ``eval_query``,
@@ -17,16 +24,18 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
+import numpy as np
 import pandas as pd  # before plotly: plotly.py#2433
 import streamlit as st
 
-from vpr_explorer.views import plots
-from vpr_explorer.method.auto_theta import auto_parts, rejects_all_note
 from vpr_explorer.errors import VPRInputError
+from vpr_explorer.method.auto_theta import auto_parts, rejects_all_note
+from vpr_explorer.method.places import make_places, retrieval_places
+from vpr_explorer.protocols.cost import protocol_pairs
 from vpr_explorer.protocols.evaluation import PROTOCOL_LABELS, Protocol
-from vpr_explorer.method.places import make_places
+from vpr_explorer.views import plots
 from vpr_explorer.views.report import method_csv
-from vpr_explorer.views.traversal import AUTO_RUN_PAIRS, evaluation_json, evaluation_rows, protocol_pairs
+from vpr_explorer.views.traversal import AUTO_RUN_PAIRS, evaluation_json, evaluation_rows
 
 from vpr_explorer.app.ui import cache, runs as runs_ui, state
 from vpr_explorer.app.ui.current import current
@@ -45,7 +54,8 @@ RUNS_RANGE = (1, 50)
 SEED_RANGE = (0, 10_000)
 SHARE_RANGE = (0.1, 0.6)
 TOLERANCE_RANGE = (0, 20)
-PROTOCOLS = (Protocol.PAPER.value, Protocol.TRAVERSAL.value, Protocol.OPEN_SET.value)
+#: Settings of the aligned traversals' protocols only: another layout fixes its database, queries and ground truth.
+ALIGNED_ONLY = ("runs", "seed", "cross", "share", "database", "query", "tolerance", "rule")
 
 if st.session_state.pop("goto_inspector", False):
     st.switch_page(INSPECTOR)
@@ -53,12 +63,25 @@ if st.session_state.pop("goto_inspector", False):
 st.title("Evaluation")
 with stop_on_input_error():
     cur = current()
-    if cur.retrieval is not None:  # a database/queries layout: its own protocol (ui.retrieval_eval)
-        from vpr_explorer.app.ui import retrieval_eval
-        retrieval_eval.render(cur)
-        st.stop()
-ds = cur.data.dataset
+ds, aligned = cur.dataset, cur.aligned
 v = state.view()
+#: The database/queries protocol's name here: on aligned traversals it is the traversal protocol.
+VALUE_PROTOCOL = (Protocol.TRAVERSAL if aligned is not None else Protocol.DATABASE).value
+
+
+def refusal(protocol: str) -> str | None:
+    """Why ``protocol`` does not apply to this dataset and its places; ``None`` when it does."""
+    if protocol in (Protocol.TRAVERSAL, Protocol.DATABASE):
+        return None
+    what = "the random split" if protocol == Protocol.PAPER else "the held-out places"
+    if aligned is None:
+        return f"{what} needs aligned traversals ({ds.name!r} is read in the {ds.layout.value} layout)"
+    if cur.places.metric is not None:
+        return f"{what} needs places made of frames (these are in metres: choose frames on the **Places** page)"
+    return None
+
+
+PROTOCOLS = tuple(p for p in (Protocol.PAPER.value, VALUE_PROTOCOL, Protocol.OPEN_SET.value) if refusal(p) is None)
 
 
 # --------------------------------------------------------------------------- settings (URL ⇄ form)
@@ -68,7 +91,7 @@ v = state.view()
 class EvalSettings:
     """Every setting of the page; ``database``/``query`` ``None``: the Places page's traversals."""
 
-    protocol: str = Protocol.PAPER.value
+    protocol: str = PROTOCOLS[0]
     runs: int = 20
     seed: int = 0
     cross: bool = False
@@ -84,6 +107,7 @@ _PARAMS = {"protocol": "eval_protocol", "runs": "eval_runs", "seed": "eval_seed"
            "share": "eval_share", "database": "eval_database", "query": "eval_query", "tolerance": "eval_tolerance",
            "pr": "eval_pr", "rule": "eval_rule"}
 _DEFAULT = EvalSettings()
+TRAVERSALS = aligned.traversals if aligned is not None else ()
 
 
 def _whole(text: str, low: int, high: int) -> int:
@@ -99,8 +123,10 @@ def _whole(text: str, low: int, high: int) -> int:
 def _parse(field: str, text: str) -> object:
     """One ``eval_*`` value of a link; ``ValueError`` saying why it cannot be used."""
     if field == "protocol":
+        if text in (Protocol.TRAVERSAL, Protocol.DATABASE):  # one protocol, named for the layout
+            return VALUE_PROTOCOL
         if text not in PROTOCOLS:
-            raise ValueError(f"choose {', '.join(PROTOCOLS)}")
+            raise ValueError(refusal(text) if text in {p.value for p in Protocol} else f"choose {', '.join(PROTOCOLS)}")
         return text
     if field == "runs":
         return _whole(text, *RUNS_RANGE)
@@ -122,14 +148,14 @@ def _parse(field: str, text: str) -> object:
         return round(value, 2)
     if field == "database":
         names = tuple(t for t in text.split("+") if t)
-        missing = [t for t in names if t not in ds.traversals]
+        missing = [t for t in names if t not in TRAVERSALS]
         if not names or missing:
             raise ValueError(f"{'no traversal named' if not names else 'not a traversal of ' + ds.name}: "
-                             f"{', '.join(missing) or text!r}; choose among {', '.join(ds.traversals)} joined by +")
+                             f"{', '.join(missing) or text!r}; choose among {', '.join(TRAVERSALS)} joined by +")
         return names
     if field == "query":
-        if text not in ds.traversals:
-            raise ValueError(f"not a traversal of {ds.name}; choose one of {', '.join(ds.traversals)}")
+        if text not in TRAVERSALS:
+            raise ValueError(f"not a traversal of {ds.name}; choose one of {', '.join(TRAVERSALS)}")
         return text
     if field == "pr":
         if text not in ("auto", "on", "off"):
@@ -155,23 +181,35 @@ def settings_from_params(params: dict[str, str]) -> tuple[EvalSettings, list[str
     """Settings from a link's ``eval_*`` parameters, and a warning for each one refused."""
     values, refused = {}, []
     for field, name in _PARAMS.items():
-        if name in params:
-            try:
-                values[field] = _parse(field, params[name])
-            except ValueError as exc:
-                refused.append(f"{name}={params[name]!r}: {exc}; using {_instead(field)}")
-    return EvalSettings(**values), refused
+        if name not in params:
+            continue
+        if aligned is None and field in ALIGNED_ONLY:
+            refused.append(f"{name}={params[name]!r}: applies to aligned traversals ({ds.name!r} is read in the "
+                           f"{ds.layout.value} layout, which fixes its database, queries and ground truth); ignored")
+            continue
+        try:
+            values[field] = _parse(field, params[name])
+        except ValueError as exc:
+            refused.append(f"{name}={params[name]!r}: {exc}; using {_instead(field)}")
+    return replace(_DEFAULT, **values), refused
 
 
 def _valid_here(s: EvalSettings) -> tuple[EvalSettings, list[str]]:
-    """Settings whose traversals this dataset has (another dataset may have been opened since)."""
+    """Settings that apply to this dataset (another dataset may have been opened since)."""
     notes = []
-    if s.database is not None and any(t not in ds.traversals for t in s.database):
-        notes.append(f"database traversals {' + '.join(s.database)} are not all in {ds.name}; "
-                     f"using {_instead('database')}")
+    if s.protocol in (Protocol.TRAVERSAL, Protocol.DATABASE):
+        s = replace(s, protocol=VALUE_PROTOCOL)
+    elif s.protocol not in PROTOCOLS:
+        notes.append(f"eval_protocol={s.protocol!r}: {refusal(s.protocol)}; using {_instead('protocol')}")
+        s = replace(s, protocol=_DEFAULT.protocol)
+    if s.database is not None and any(t not in TRAVERSALS for t in s.database):
+        if aligned is not None:
+            notes.append(f"database traversals {' + '.join(s.database)} are not all in {ds.name}; "
+                         f"using {_instead('database')}")
         s = replace(s, database=None)
-    if s.query is not None and s.query not in ds.traversals:
-        notes.append(f"query traversal {s.query!r} is not in {ds.name}; using {_instead('query')}")
+    if s.query is not None and s.query not in TRAVERSALS:
+        if aligned is not None:
+            notes.append(f"query traversal {s.query!r} is not in {ds.name}; using {_instead('query')}")
         s = replace(s, query=None)
     return s, notes
 
@@ -191,8 +229,9 @@ def committed() -> EvalSettings:
 
 
 def to_url(s: EvalSettings) -> None:
-    """Every setting into the address bar (``state.sync_url`` writes it)."""
-    state.set_page_params(**{name: _text(getattr(s, field)) for field, name in _PARAMS.items()})
+    """The settings that apply here into the address bar (``state.sync_url`` writes it)."""
+    state.set_page_params(**{name: None if aligned is None and field in ALIGNED_ONLY else _text(getattr(s, field))
+                             for field, name in _PARAMS.items()})
 
 
 def _text(value: object) -> str | None:
@@ -208,12 +247,14 @@ def _text(value: object) -> str | None:
 def _commit() -> None:
     """The form's **Run**: its widgets become the committed settings (and the URL)."""
     ss = st.session_state
-    database = tuple(ss["w_database"])
-    s = EvalSettings(protocol=ss["w_protocol"], runs=int(ss["w_runs"]), seed=int(ss["w_seed"]),
-                     cross=bool(ss["w_cross"]), share=round(float(ss["w_share"]), 2),
-                     database=None if database == tuple(cur.database) else database,
-                     query=None if ss["w_eval_query"] == cur.query else ss["w_eval_query"],
-                     tolerance=int(ss["w_tolerance"]), pr=ss["w_pr"], rule=ss["eval_settings"].rule)
+    s = ss["eval_settings"]
+    database = tuple(ss.get("w_database", cur.database))
+    query = ss.get("w_eval_query", cur.query)
+    s = replace(s, protocol=ss["w_protocol"], runs=int(ss.get("w_runs", s.runs)), seed=int(ss.get("w_seed", s.seed)),
+                cross=bool(ss.get("w_cross", s.cross)), share=round(float(ss.get("w_share", s.share)), 2),
+                database=None if database == tuple(cur.database) else database,
+                query=None if query == cur.query else query,
+                tolerance=int(ss.get("w_tolerance", s.tolerance)), pr=ss["w_pr"])
     ss["eval_settings"] = s
     ss["eval_submitted"] = True
     to_url(s)
@@ -243,47 +284,56 @@ for key, value in (("w_protocol", settings.protocol), ("w_runs", settings.runs),
 
 with st.form("protocol_form"):
     st.radio("Protocol", PROTOCOLS, format_func=lambda p: PROTOCOL_LABELS[Protocol(p)], key="w_protocol")
-    c = st.columns(4)
-    c[0].slider("runs (paper: 50)", *RUNS_RANGE, key="w_runs",
-                help="How many seeded random splits the paper and open-set protocols average over (mean ± std).")
-    c[1].number_input("seed", *SEED_RANGE, key="w_seed",
-                      help="Seeds the random splits: the same seed draws the same query images.")
-    c[2].checkbox("cross-condition", key="w_cross",
-                  help="Score each query only against database images of other traversals, so that a query "
-                       "cannot be matched by its own traversal's neighbouring frames.")
-    c[3].slider("unknown share (open set)", *SHARE_RANGE, step=0.05, key="w_share",
-                help="The share of places held out of the database in each open-set split: their queries must "
-                     "be rejected.")
-    c = st.columns(4)
-    c[0].multiselect("database traversals (traversal protocol)", list(ds.traversals), key="w_database")
-    c[1].selectbox("query traversal (traversal protocol)", list(ds.traversals), key="w_eval_query")
-    c[2].number_input("tolerance ± frames", *TOLERANCE_RANGE, key="w_tolerance",
-                      help="A place holding a frame within this many frames of the query's is right too "
-                           "(the authors count ±2); 0: only the query's own place.")
-    c[3].selectbox("precision–recall", ["auto", "on", "off"], key="w_pr",
-                   format_func={"auto": "on when quick", "on": "on", "off": "off"}.get,
-                   help="PR curves, AUC, R@100P, R@99P and max F1. The per-place curves score every query "
-                        "against every place at ~200 values of k: 'on when quick' leaves them off on large datasets.")
-    st.form_submit_button("Run", type="primary", on_click=_commit)
+    pr_box = st
+    if aligned is not None:
+        c = st.columns(4)
+        c[0].slider("runs (paper: 50)", *RUNS_RANGE, key="w_runs",
+                    help="How many seeded random splits the paper and open-set protocols average over (mean ± std).")
+        c[1].number_input("seed", *SEED_RANGE, key="w_seed",
+                          help="Seeds the random splits: the same seed draws the same query images.")
+        c[2].checkbox("cross-condition", key="w_cross",
+                      help="Score each query only against database images of other traversals, so that a query "
+                           "cannot be matched by its own traversal's neighbouring frames.")
+        c[3].slider("unknown share (open set)", *SHARE_RANGE, step=0.05, key="w_share",
+                    help="The share of places held out of the database in each open-set split: their queries must "
+                         "be rejected.")
+        c = st.columns(4)
+        c[0].multiselect("database traversals (traversal protocol)", list(TRAVERSALS), key="w_database")
+        c[1].selectbox("query traversal (traversal protocol)", list(TRAVERSALS), key="w_eval_query")
+        c[2].number_input("tolerance ± frames", *TOLERANCE_RANGE, key="w_tolerance",
+                          help="A database image within this many frames of the query's is right too (the authors "
+                               "count ±2); 0: only the query's own frame.")
+        pr_box = c[3]
+    pr_box.selectbox("precision–recall", ["auto", "on", "off"], key="w_pr",
+                     format_func={"auto": "on when quick", "on": "on", "off": "off"}.get,
+                     help="PR curves, AUC, R@100P, R@99P and max F1. The per-place curves score every query "
+                          "against every place at ~200 values of k: 'on when quick' leaves them off on large "
+                          "datasets.")
+    st.form_submit_button("Run", type="primary", on_click=_commit, key="w_run")
 
-with stop_on_input_error(hint=PLACES_HINT):
-    places = make_places(ds, cur.spec)
 protocol = settings.protocol
-runs = 1 if protocol == Protocol.TRAVERSAL else settings.runs
-cells = (ds.n_frames * places.n_places if protocol == Protocol.TRAVERSAL else runs * places.n_places ** 2)
+with stop_on_input_error(hint=PLACES_HINT):
+    if protocol == VALUE_PROTOCOL:
+        places = None
+        cells = ds.n_queries * retrieval_places(ds, cur.places.spec, cur.places.metric)[1]
+    else:
+        places = make_places(aligned, cur.spec)
+        cells = settings.runs * places.n_places ** 2
 with_pr = settings.pr == "on" or (settings.pr == "auto" and cells <= PR_AUTO_CELLS)
-options = {"user_theta": v.theta, "tolerance": settings.tolerance, "pr": with_pr}
-if protocol == Protocol.TRAVERSAL:
-    options.update(database=list(database), queries=query)
-else:
-    options.update(runs=settings.runs, seed=settings.seed, cross_condition=settings.cross)
-    if protocol == Protocol.OPEN_SET:
-        options["unknown_share"] = settings.share
-cost = protocol_pairs(protocol, places, ds, runs=settings.runs, database=database, unknown_share=settings.share)
+
+
+def value_to_run() -> cache.Loaded:
+    """The dataset value the database/queries protocol runs on: the chosen traversals on aligned ones."""
+    if aligned is None:
+        return cur.data
+    default = tuple(t for t in TRAVERSALS if t != query)
+    return cache.value(cur.source, query, database=None if database == default else database,
+                       tolerance=settings.tolerance)
+
 
 results_box = st.container()  # filled last: the controls and the page show before anything is computed
 runs_box = st.container()
-st.subheader("Similarity matrix: click a cell to open that query in the inspector")
+st.subheader("Similarity matrix: click a cell to open that pair in the inspector")
 grid_box = st.container()
 
 
@@ -333,24 +383,45 @@ def _column_config(table: pd.DataFrame, one_run: bool) -> dict:
     return config
 
 
-def show_auto_note(ev) -> None:
-    """Say why the automatic global θ accepts nothing, beside the table that shows its 0% recall."""
+def show_auto_note(ev, data: cache.Loaded | None) -> None:
+    """Say why the automatic global θ accepts nothing, beside the table that shows its 0% recall.
+
+    ``data``: the value the database/queries protocol ran on (``None`` for the paper and open-set protocols).
+    """
     auto = next((r for r in ev.rows if r.key == "global-auto"), None)
     if auto is None or auto.accepted[0] > 0:
         return
-    if ev.protocol is Protocol.TRAVERSAL:
-        db = [ds.traversal_index(t) for t in database]
-        rows = [i for i in range(ds.n_images) if ds.image_traversal[i] in db and places.image_place[i] >= 0]
-        over, seed = f"the database images ({' + '.join(database)})", 0
+    if data is not None:
+        place, _ = retrieval_places(data.dataset, cur.places.spec, cur.places.metric)
+        descriptors, rows, seed = data.descriptors, np.flatnonzero(place >= 0), 0
+        over = f"the database images in places ({' + '.join(sides(data)[0])})"
     else:
-        rows = [i for i in range(ds.n_images) if places.image_place[i] >= 0]
-        over, seed = "all place images (each run's training images: all but its queries)", settings.seed
-    parts = auto_parts(cur.data.descriptors[rows], seed=seed)
+        descriptors, rows, seed = cur.source.descriptors, np.flatnonzero(places.image_place >= 0), settings.seed
+        over = "all place images (each run's training images: all but its queries)"
+    parts = auto_parts(np.asarray(descriptors[rows]), seed=seed)
     note = rejects_all_note(parts, over=over)
     if note is None:  # θ ≤ 1 but above every query's top score
         note = (f"**global θ, automatic = {parts.theta:.3f}** (median {parts.median:.3f}, MAD {parts.mad:.3f} of "
                 f"the training similarities) is above every query's top score here, so it accepts no query.")
     st.warning(note, icon=":material/block:")
+
+
+def sides(data: cache.Loaded) -> tuple[list[str], str]:
+    """The database traversals (in order) and the query traversal of a dataset value, by name."""
+    d = data.dataset
+    return [d.traversals[int(t)] for t in pd.unique(d.database_traversal)], d.traversals[int(d.query_traversal[0])]
+
+
+def value_caption(ev, data: cache.Loaded) -> str:
+    """What the database/queries protocol ran on and counted apart."""
+    s = ev.settings
+    db, q = sides(data)
+    return (f"database: {' + '.join(db)} ({s['database_images']:,} images) · queries: {q} ({s['queries']:,}) · "
+            f"ground truth: {s['ground_truth']} · **{s['queries_without_positive']:,} with no right database "
+            f"image** (unknown places: counted apart, as their rejection rate) · {s['queries_between_places']:,} "
+            f"whose right images all lie between places (left out of the place-level rows) · "
+            f"{s['database_images_in_places']:,} of {s['database_images']:,} database images in {s['places']} · "
+            f"descriptor: {s.get('descriptor')} · {ev.seconds:.1f} s")
 
 
 def show_pr(ev) -> None:
@@ -387,10 +458,17 @@ def show_pr(ev) -> None:
         st.caption(f"note: {n}")
 
 
-def show_results(ev) -> None:
-    st.subheader(f"{PROTOCOL_LABELS[ev.protocol]}")
-    shown = {k: val for k, val in ev.settings.items() if k not in ("k_grid", "group", "step", "reading") and val is not None}
-    st.caption(", ".join(f"{k}: {val}" for k, val in shown.items()) + f" · {ev.seconds:.1f} s")
+def show_results(ev, data: cache.Loaded | None) -> None:
+    """The table, Recall@K, downloads, the open set's trade-off and precision–recall of one run."""
+    st.subheader(PROTOCOL_LABELS[ev.protocol])
+    if data is not None:
+        st.caption(value_caption(ev, data))
+        st.caption("The database/queries protocol: thresholds from the database images in places, every query "
+                   "decided once; the image-level baseline ranks every database image (the field's Recall@K).")
+    else:
+        shown = {k: val for k, val in ev.settings.items()
+                 if k not in ("k_grid", "group", "step", "reading") and val is not None}
+        st.caption(", ".join(f"{k}: {val}" for k, val in shown.items()) + f" · {ev.seconds:.1f} s")
     for note in ev.notes:
         st.caption(f"note: {note}")
     st.caption("The image-level baseline ranks images (the authors' 'Baseline'); the place-level baseline ranks places "
@@ -400,7 +478,7 @@ def show_results(ev) -> None:
     one_run = not (isinstance(ev.settings.get("runs"), int) and ev.settings["runs"] > 1)
     st.dataframe(table, hide_index=True, key="results", width="stretch", placeholder=MISSING,
                  column_config=_column_config(table, one_run))
-    show_auto_note(ev)
+    show_auto_note(ev, data)
     st.plotly_chart(plots.recall_figure(ev), key="recall", width="stretch")
     d1, d2 = st.columns(2)
     stem = runs_ui.file_stem(ev)
@@ -414,32 +492,55 @@ def show_results(ev) -> None:
         st.caption("k = 0 (circled) is the paper: it sits near zero rejection, because θ_p lies in the centre of the "
                    "negative scores. Raising k trades known-place recall for rejection of unknown places; the grey "
                    "line is one global θ for every place, the stars its automatic and oracle values.")
-    else:
+    elif aligned is not None:
         st.caption("Run the open-set protocol to see the trade-off between rejecting unknown places and Recall@1.")
     show_pr(ev)
 
 
+def run() -> tuple[object, cache.Loaded | None, int]:
+    """The committed protocol's run (``None`` when it waits for **Run**), the value it ran on, and its cost."""
+    options = {"user_theta": v.theta, "pr": with_pr}
+    if protocol == VALUE_PROTOCOL:
+        data = value_to_run()
+        cost = data.dataset.n_queries * data.dataset.n_database
+        ready = cache.queries_evaluated(data, cur.places, **options)
+        start = ready or submitted or (cost <= AUTO_RUN_PAIRS and (not with_pr or cells <= PR_AUTO_CELLS))
+        if not start:
+            return None, data, cost
+        ev = cache.queries_evaluation(data, cur.places, **options)
+        # named for the layout, as pipeline.run_protocol names the traversal protocol it runs on the value
+        return replace(ev, protocol=Protocol(VALUE_PROTOCOL)), data, cost
+    options.update(tolerance=settings.tolerance, runs=settings.runs, seed=settings.seed,
+                   cross_condition=settings.cross)
+    if protocol == Protocol.OPEN_SET:
+        options["unknown_share"] = settings.share
+    cost = protocol_pairs(protocol, places, aligned, runs=settings.runs, unknown_share=settings.share)
+    ev = cache.evaluation(cur.source, cur.spec, protocol, peek=True, **options)
+    if ev is None and (submitted or (cost <= AUTO_RUN_PAIRS and (not with_pr or cells <= PR_AUTO_CELLS))):
+        ev = cache.evaluation(cur.source, cur.spec, protocol, **options)
+    return ev, None, cost
+
+
 with results_box:
-    failed = False
     try:
-        ev = cache.evaluation(cur.data, cur.spec, protocol, peek=True, **options)
-        if ev is None and (submitted or (cost <= AUTO_RUN_PAIRS and (not with_pr or cells <= PR_AUTO_CELLS))):
-            ev = cache.evaluation(cur.data, cur.spec, protocol, **options)
+        ev, data, cost = run()
     except VPRInputError as exc:  # the rest of the page (the kept runs, the matrix) stays usable
         show_error(exc, hint=getattr(exc, "hint", None)
                    or "Change the protocol settings above, or group/step on the **Places** page.")
-        ev, failed = None, True
-    if failed:
-        pass
-    elif ev is None:
-        why = (f"the {PROTOCOL_LABELS[Protocol(protocol)]} scores about {cost:.1e} image pairs" if cost > AUTO_RUN_PAIRS
-               else f"precision–recall scores {cells:.1e} query × place cells at each of ~200 k")
-        st.info(f"{ds.n_images:,} images: {why} (a minute or more on a laptop), so it does not start by itself. "
-                "Choose the settings and press **Run**; a progress bar shows how far it is, and the result stays in "
-                "memory for this dataset.", icon=":material/timer:")
     else:
-        show_results(ev)
-        runs_ui.keep(ev, extra={"precision_recall": "on" if with_pr else "off"}, pressed=submitted)
+        if ev is None:
+            why = (f"the {PROTOCOL_LABELS[Protocol(protocol)]} scores about {cost:.1e} image pairs"
+                   if cost > AUTO_RUN_PAIRS else f"precision–recall scores {cells:.1e} query × place cells at each "
+                                                 "of ~200 k")
+            st.info(f"{ds.n_images:,} images: {why} (a minute or more on a laptop), so it does not start by itself. "
+                    "Choose the settings and press **Run**; a progress bar shows how far it is, and the result stays "
+                    "in memory for this dataset.", icon=":material/timer:")
+        else:
+            show_results(ev, data)
+            extra = {"precision_recall": "on" if with_pr else "off"}
+            if data is not None:
+                extra.update(zip(("database", "query"), sides(data)))
+            runs_ui.keep(ev, extra=extra, pressed=submitted)
 
 with runs_box:
     runs_ui.render()
@@ -449,24 +550,32 @@ with runs_box:
 
 
 def open_pair() -> None:
+    """A clicked cell: its query and database image open in the inspector."""
     points = st.session_state["simgrid"].selection.points
     pair = plots.selected_pair(points[0]) if points else None
     if pair is None:
         return
-    q_image, db_image = pair
-    st.session_state["picked_pair"] = (q_image, db_image)
-    state.update(query=ds.traversals[ds.image_traversal[q_image]], frame=int(ds.image_frame[q_image]))
+    st.session_state["picked_pair"] = pair
+    state.update(frame=pair[0])
     st.session_state["goto_inspector"] = True
 
 
 with grid_box:
-    with stop_on_input_error(hint="Pick the query traversal on the **Places** page."):
-        grid = cache.grid(cur.data, cur.database, cur.query)
+    grid = cache.similarity_grid(cur.data)
+    n_q, n_db = ds.n_queries, ds.n_database
     if grid.sampled:
-        st.caption(f"{ds.n_frames:,} frames: each row is one query frame (the centre of its block of {grid.block}) "
-                   "against every database frame, each column the best of its block; computing every block's rows "
-                   f"too would take {ds.n_frames:,}² × {len(cur.database)} similarities.")
+        st.caption(f"{n_q:,} queries × {n_db:,} database images: each row is one query (the centre of its block of "
+                   f"{grid.row_block}) against every database image, each column the best of its block of "
+                   f"{grid.block}; computing every query's row would take {n_q * n_db:.1e} similarities.")
     picked = st.session_state.get("picked_pair")
-    marked = (int(ds.image_frame[picked[0]]), int(ds.image_frame[picked[1]])) if picked else None
-    st.plotly_chart(plots.similarity_heatmap(grid, query=cur.query, database=cur.database, marked=marked),
-                    key="simgrid", on_select=open_pair, selection_mode="points", width="stretch")
+    marked = picked if picked and picked[0] < n_q and picked[1] < n_db else None
+    fig = plots.similarity_heatmap(grid, query=cur.query, database=cur.database, marked=marked)
+    pooled = ("" if grid.block == grid.row_block == 1 else
+              f" (each cell: one query × the best of {grid.block} database images)" if grid.sampled else
+              f" (each cell: the best of {grid.row_block} queries × {grid.block} database images)")
+    fig.update_layout(title=f"Similarity: {n_q:,} queries ({cur.query}) × {n_db:,} database images{pooled}",
+                      xaxis_title=f"database image ({' + '.join(cur.database)}, in database order)",
+                      yaxis_title=f"query ({cur.query})")
+    fig.update_traces(selector=dict(meta="cells"),
+                      hovertemplate="query %{y}, database image %{x}: s = %{text}<br>click to inspect<extra></extra>")
+    st.plotly_chart(fig, key="simgrid", on_select=open_pair, selection_mode="points", width="stretch")

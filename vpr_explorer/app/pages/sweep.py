@@ -1,5 +1,12 @@
 """Group/step sweep page: one protocol over a grid of group × step, as heatmaps; a click sets group/step everywhere.
 
+One body for every layout whose places group/step make. Aligned traversals sweep frames
+under the paper, traversal and open-set protocols (on the traversals as loaded,
+``cur.source``); any other dataset value sweeps the database/queries protocol (on
+``cur.data``), group/step counting its database images in listed order, or metres along
+its route or over a lattice when that is the geometry in use (set on the Places page).
+Places the layout names (prepared places, a manifest's place column) leave nothing to sweep.
+
 Widgets → one library call (``sweep.sweep``, with progress bars, its cells memoised in one
 ``SweepCache`` per server) → render (``sweep.sweep_figure``). The sweep's own settings (groups, steps, readings,
 protocol, runs, method, metric) live in the URL as ``sweep_*`` page parameters; group/step
@@ -9,17 +16,19 @@ and the reading chosen by a click go into the view (``state.commit``), so every 
 import pandas as pd  # before plotly: plotly.py#2433
 import streamlit as st
 
+from vpr_explorer import pipeline
 from vpr_explorer.errors import VPRInputError
+from vpr_explorer.method.places import GEOMETRY_LABELS, READING_LABELS, PlaceGeometry, Reading
 from vpr_explorer.protocols.evaluation import PROTOCOL_LABELS, Protocol
-from vpr_explorer.method.places import READING_LABELS, Reading
 from vpr_explorer.protocols.sweep import (
+    ALIGNED_PROTOCOLS,
     METRIC_HELP,
     METRIC_LABELS,
     SWEEP_METHODS,
-    SWEEP_PROTOCOLS,
     Metric,
     SweepCache,
     SweepSpec,
+    check_data,
     empty_reasons,
     missing_reasons,
     selected_cell,
@@ -35,10 +44,12 @@ from vpr_explorer.app.ui.routing import ensure_routed, page_file
 
 ensure_routed(__file__)
 
-DEFAULTS = {"sweep_groups": "1 2 3 5", "sweep_steps": "3 5 10 20", "sweep_readings": "stride skip",
-            "sweep_protocol": Protocol.PAPER.value, "sweep_runs": "5", "sweep_method": SWEEP_METHODS[0],
+GRIDS = {"frames": {"sweep_groups": "1 2 3 5", "sweep_steps": "3 5 10 20"},
+         "m": {"sweep_groups": "10 25 50", "sweep_steps": "50 100 200"}}
+# the sweep's settings when the URL names none: a 4 × 4 grid of frames (3 × 3 of metres) in both readings,
+# 5 splits a cell (the paper uses 50)
+SETTINGS = {"sweep_readings": "stride skip", "sweep_runs": "5", "sweep_method": SWEEP_METHODS[0],
             "sweep_metric": Metric.R1.value}
-# the sweep's settings when the URL names none: a 4 × 4 grid in both readings, 5 splits a cell (the paper uses 50)
 MAX_SWEEP_RUNS = 50
 
 
@@ -48,13 +59,29 @@ def _cells() -> SweepCache:
     return SweepCache()
 
 
-def _numbers(text: str, name: str) -> tuple[int, ...]:
+def _numbers(text: str, name: str) -> tuple[int | float, ...]:
+    """Numbers separated by spaces (or commas); whole ones as ``int``."""
     try:
-        values = [int(x) for x in str(text).replace(",", " ").split()]
+        values = [float(x) for x in str(text).replace(",", " ").split()]
     except ValueError:
-        raise VPRInputError(f"{name} {text!r}: give whole numbers of frames separated by spaces, "
-                            "e.g. 1 2 3 5") from None
-    return tuple(values)
+        raise VPRInputError(f"{name} {text!r}: give numbers separated by spaces, e.g. 1 2 3 5") from None
+    return tuple(int(v) if v.is_integer() else v for v in values)
+
+
+st.title("Group/step sweep")
+with stop_on_input_error():
+    cur = current()
+geometry = cur.places.geometry
+if geometry is None:
+    st.info(f"Group/step do not apply: the layout names its places ({cur.dataset.layout.value}), so there is nothing "
+            "to sweep. Its numbers are on the **Evaluation** page.", icon=":material/info:")
+    st.stop()
+aligned = cur.aligned is not None and geometry is PlaceGeometry.FRAMES
+data = cur.source if aligned else cur.data  # aligned traversals' protocols read the traversals as loaded
+protocols = ALIGNED_PROTOCOLS if aligned else (Protocol.DATABASE,)
+unit = "frames" if geometry is PlaceGeometry.FRAMES else "m"
+metres = "" if unit == "frames" else " m"  # after a number of metres; frames go unsaid
+DEFAULTS = {**GRIDS[unit], **SETTINGS, "sweep_protocol": protocols[0].value}
 
 
 def _spec(p: dict) -> SweepSpec:
@@ -65,14 +92,21 @@ def _spec(p: dict) -> SweepSpec:
         raise VPRInputError(f"runs {p['sweep_runs']!r}: give a whole number from 1 to {MAX_SWEEP_RUNS}") from None
     if not 1 <= runs <= MAX_SWEEP_RUNS:
         raise VPRInputError(f"runs={runs}: give a whole number from 1 to {MAX_SWEEP_RUNS}")
-    return SweepSpec(groups=_numbers(p["sweep_groups"], "groups"), steps=_numbers(p["sweep_steps"], "steps"),
-                     readings=tuple(p["sweep_readings"].split()), protocol=p["sweep_protocol"],
+    spec = SweepSpec(groups=_numbers(p["sweep_groups"], "groups"), steps=_numbers(p["sweep_steps"], "steps"),
+                     readings=tuple(p["sweep_readings"].split()), protocol=p["sweep_protocol"], geometry=geometry,
                      method=p["sweep_method"], runs=runs, k=float(state.view().k), user_theta=state.view().theta)
+    if spec.protocol not in protocols:
+        if not aligned:
+            check_data(data.dataset, spec)  # names why: the protocol needs aligned traversals
+        raise VPRInputError(f"protocol {spec.protocol.value}: with these places the sweep runs "
+                            f"{', '.join(p.value for p in protocols)}")
+    return spec
 
 
 def _canonical(p: dict, spec: SweepSpec) -> dict:
     """``p`` with the lists as the sweep reads them: sorted, each value once."""
-    return {**p, "sweep_groups": " ".join(map(str, spec.groups)), "sweep_steps": " ".join(map(str, spec.steps)),
+    return {**p, "sweep_groups": " ".join(f"{g:g}" for g in spec.groups),
+            "sweep_steps": " ".join(f"{s:g}" for s in spec.steps),
             "sweep_readings": " ".join(r.value for r in spec.readings)}
 
 
@@ -120,53 +154,51 @@ def _submit() -> None:
 
 
 def _pick(reading: str) -> None:
-    """A click on a heatmap cell: that group/step and reading, for every page."""
+    """A click on a heatmap cell: that group/step (frames, or metres) and reading, for every page."""
     points = st.session_state[f"sweep_{reading}"].selection.points
     cell = selected_cell(points[0]) if points else None
     if cell is None:
         return
     group, step, reading = cell
-    state.commit(group=group, step=step, reading=reading)
+    if unit == "frames":
+        state.commit(group=group, step=step, reading=reading)
+    else:
+        state.commit(group_m=float(group), step_m=float(step), reading=reading)
     st.session_state["sweep_picked"] = cell
 
 
-st.title("Group/step sweep")
-with stop_on_input_error():
-    cur = current()
-if cur.retrieval is not None:
-    st.info("A database/queries dataset: its places come from its own geometry; the sweep reads group/step of aligned "
-            "traversal folders. Set group/step on the **Places** page.", icon=":material/info:")
-    st.stop()
-ds = cur.data.dataset
-if cur.spec is None:
-    st.info("This dataset names its places in its file names (Place####_Cond##_G##): group/step do not apply, so "
-            "there is nothing to sweep.", icon=":material/info:")
-    st.stop()
+how = (f"group/step in metres ({GEOMETRY_LABELS[geometry]}; the geometry is set on the **Places** page)"
+       if unit == "m" else "group/step in frames" if cur.aligned is not None
+       else "group/step counting database images in listed order")
+protocols_run = ("the paper, traversal or open-set protocol of aligned traversals" if aligned
+                 else f"the {Protocol.DATABASE.value} protocol")
 st.markdown("Every cell of the grid is one run of the protocol with that group and step, on the descriptors already "
             "loaded (they are per image, so only the places change). Click a cell to use its group/step and reading "
-            "on every page.")
+            f"on every page. Here: {protocols_run}, {how}.")
 
 params, spec = _settings()
 ss = st.session_state
 # the form starts from the settings in use (a widget's state is dropped when the page is left)
-ss.setdefault("w_sweep_groups", " ".join(map(str, spec.groups)))
-ss.setdefault("w_sweep_steps", " ".join(map(str, spec.steps)))
+ss.setdefault("w_sweep_groups", params["sweep_groups"])
+ss.setdefault("w_sweep_steps", params["sweep_steps"])
 ss.setdefault("w_sweep_readings", [r.value for r in spec.readings])
-ss.setdefault("w_sweep_protocol", spec.protocol.value)
+if ss.get("w_sweep_protocol") not in [p.value for p in protocols]:
+    ss["w_sweep_protocol"] = spec.protocol.value
 ss.setdefault("w_sweep_runs", spec.runs)
 ss.setdefault("w_sweep_method", spec.method)
 
 with st.form("sweep_form"):
     c = st.columns([3, 3, 3])
-    c[0].text_input("groups (frames per place)", key="w_sweep_groups", help="whole numbers separated by spaces")
-    c[1].text_input("steps (frames)", key="w_sweep_steps", help="whole numbers separated by spaces")
+    c[0].text_input(f"groups ({unit} per place)", key="w_sweep_groups", help="numbers separated by spaces")
+    c[1].text_input(f"steps ({unit})", key="w_sweep_steps", help="numbers separated by spaces")
     c[2].multiselect("readings", [r.value for r in Reading], key="w_sweep_readings",
                      help=" · ".join(READING_LABELS[r] for r in Reading))
     c = st.columns([4, 2, 3])
-    c[0].radio("protocol", [p.value for p in SWEEP_PROTOCOLS], key="w_sweep_protocol",
+    c[0].radio("protocol", [p.value for p in protocols], key="w_sweep_protocol",
                format_func=lambda p: PROTOCOL_LABELS[Protocol(p)])
-    c[1].number_input("runs per cell (paper: 50)", 1, MAX_SWEEP_RUNS, key="w_sweep_runs",
-                      help="random splits of the paper and open-set protocols; the traversal protocol runs once")
+    c[1].number_input("runs per cell (paper: 50)", 1, MAX_SWEEP_RUNS, key="w_sweep_runs", disabled=not aligned,
+                      help="random splits of the paper and open-set protocols; the traversal and database/queries "
+                           "protocols run once")
     c[2].selectbox("thresholded method (gain, rejection, AUC)", list(SWEEP_METHODS), key="w_sweep_method")
     st.form_submit_button("Run sweep", type="primary", on_click=_submit)
 
@@ -175,14 +207,17 @@ if rejected:
     st.error(f"{rejected}\n\nThe previous sweep settings are kept.", icon=":material/error:")
 state.set_page_params(**params)  # the settings in use, in the URL
 
+ds = data.dataset
 with stop_on_input_error(hint="Change the sweep's settings above."):
-    cost = sweep_cost(ds, spec, cache=_cells(), descriptors_key=cur.data.key)
+    cost = sweep_cost(ds, spec, cache=_cells(), descriptors_key=data.key)
 go = ss.pop("sweep_go", False)
 settings_line = (f"{PROTOCOL_LABELS[spec.protocol]}; {', '.join(r.value for r in spec.readings)} reading"
                  f"{'s' if len(spec.readings) > 1 else ''}"
-                 + (f"; {spec.runs} runs per cell" if spec.protocol is not Protocol.TRAVERSAL else "")
+                 + (f"; {spec.runs} runs per cell" if spec.protocol in (Protocol.PAPER, Protocol.OPEN_SET) else "")
                  + (f"; rejection at k = {spec.k:g} (the k of the **Thresholds** page)"
-                    if spec.protocol is Protocol.OPEN_SET else ""))
+                    if spec.protocol is Protocol.OPEN_SET else "")
+                 + ("; rejection of the queries with no right image, at θ_p (k = 0)"
+                    if spec.protocol is Protocol.DATABASE else ""))
 st.caption(f"**Cost:** {cost.describe()}. {settings_line}.")
 if cost.runs and cost.large and not go:
     st.warning(f"{ds.n_images:,} images: this sweep scores about **{cost.pairs:.1e} image pairs** in "
@@ -202,8 +237,9 @@ def run_sweep():
     progress, clear = progress_reporter(f"Sweeping {cost.valid} cells ({cost.runs} protocol runs to do)")
     inner, clear_inner = progress_reporter("this cell")
     try:
-        return sweep(ds, cur.data.descriptors, spec, descriptor=cur.data.descriptor, descriptors_key=cur.data.key,
-                     cache=_cells(), shared=cache.shared_scores(cur.data), progress=progress, cell_progress=inner)
+        return sweep(ds, data.descriptors, spec, pipeline, descriptor=data.descriptor, descriptors_key=data.key,
+                     cache=_cells(), shared=cache.shared_scores(data) if aligned else None, progress=progress,
+                     cell_progress=inner)
     finally:
         clear_inner()
         clear()
@@ -214,7 +250,8 @@ with stop_on_input_error(hint="Change the sweep's settings above, or the dataset
 
 picked = ss.pop("sweep_picked", None)
 if picked:
-    st.success(f"group {picked[0]}, step {picked[1]} ({picked[2]} reading) is now in use on every page.",
+    st.success(f"group {picked[0]:g}{metres}, step {picked[1]:g}{metres} ({picked[2]} reading) is now in use on "
+               "every page.",
                icon=":material/check_circle:")
     st.page_link(page_file("places"), label="See it on the Places page", icon=":material/place:")
 
@@ -222,7 +259,7 @@ metric = st.radio("metric", [m.value for m in Metric], format_func=lambda m: MET
                   index=[m.value for m in Metric].index(params["sweep_metric"]), horizontal=True, key="w_sweep_metric",
                   on_change=lambda: state.set_page_params(sweep_metric=ss["w_sweep_metric"]))
 st.caption(METRIC_HELP[Metric(metric)] + (f" Method: {spec.method}." if metric != Metric.R1 else ""))
-v = cur.spec
+v = cur.spec if unit == "frames" else cur.places.metric
 for col, reading in zip(st.columns(len(spec.readings)), spec.readings):
     with col:
         marked = (v.group, v.step) if v.reading is reading else None
@@ -230,9 +267,9 @@ for col, reading in zip(st.columns(len(spec.readings)), spec.readings):
                         on_select=lambda r=reading.value: _pick(r), selection_mode="points", width="stretch")
 best = result.best(metric)
 ran = sum(c.evaluation.seconds for c in result.cells if c.evaluation is not None and c.same_as is None)
-st.caption(f"In use: group {v.group}, step {v.step} ({v.reading.value}), outlined. "
-           + (f"Best {METRIC_LABELS[Metric(metric)]}: group {best.group}, step {best.step} ({best.reading.value}). "
-              if best else "")
+st.caption(f"In use: group {v.group:g}{metres}, step {v.step:g}{metres} ({v.reading.value}), outlined. "
+           + (f"Best {METRIC_LABELS[Metric(metric)]}: group {best.group:g}{metres}, step {best.step:g}{metres} "
+              f"({best.reading.value}). " if best else "")
            + f"The protocol runs took {ran:.1f} s "
            "(each kept in memory); a cell shared by both readings (skip g/s = stride g/g+s) is run once.")
 for line in empty_reasons(result):
@@ -248,8 +285,9 @@ with st.expander("Every cell as a table"):
     st.dataframe(rows, hide_index=True, key="sweep_table", column_config={
         m.value: st.column_config.NumberColumn(METRIC_LABELS[m], format="%.3f" if m is Metric.AUC else "%.1f")
         for m in Metric})
-stem = (f"{ds.name}_{cur.data.descriptor}_{spec.protocol.value}_sweep_g{'-'.join(map(str, spec.groups))}"
-        f"_s{'-'.join(map(str, spec.steps))}_{'-'.join(r.value for r in spec.readings)}")
+stem = (f"{ds.name}_{data.descriptor}_{spec.protocol.value}_sweep_g{'-'.join(f'{g:g}' for g in spec.groups)}"
+        f"_s{'-'.join(f'{s:g}' for s in spec.steps)}{'' if unit == 'frames' else f'_{geometry.value}'}"
+        f"_{'-'.join(r.value for r in spec.readings)}")
 d1, d2 = st.columns(2)
 d1.download_button("Download CSV", result.to_csv(), file_name=f"{stem}.csv", mime="text/csv", key="w_sweep_csv")
 d2.download_button("Download JSON", result.to_json(), file_name=f"{stem}.json", mime="application/json",

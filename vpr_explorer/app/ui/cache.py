@@ -391,23 +391,25 @@ def loaded_in_memory(source: str, descriptor: str, *, layout: str = Layout.AUTO.
 
 
 @st.cache_resource(show_spinner=False, max_entries=8)
-def _value(key: str, query: str, _data: Loaded) -> Loaded:
-    value = database_queries(_data.dataset, query)
+def _value(key: str, query: str, database: tuple[str, ...] | None, tolerance: int, _data: Loaded) -> Loaded:
+    value = database_queries(_data.dataset, query, database, tolerance)
     rows = value_rows(value)
     d = _data.descriptors
     if rows is not None:
         d = d[rows]
         d.setflags(write=False)
-    return Loaded(value, _data.descriptor, d, f"{key}-query-{query}", _data.notes)
+    chosen = "" if database is None and not tolerance else f"-database-{'+'.join(database or ())}-tolerance-{tolerance}"
+    return Loaded(value, _data.descriptor, d, f"{key}-query-{query}{chosen}", _data.notes)
 
 
-def value(data: Loaded, query: str) -> Loaded:
+def value(data: Loaded, query: str, *, database: tuple[str, ...] | None = None, tolerance: int = 0) -> Loaded:
     """``data`` as one dataset value: aligned traversals become a database/queries dataset with ``query`` as the
-    query traversal (``data.aligned.database_queries``) and their descriptors in its order; any other layout
-    is returned as it is."""
+    query traversal (``data.aligned.database_queries``: ``database`` traversals, default every other one, and
+    right images within ``tolerance`` frames) and their descriptors in its order; any other layout is returned
+    as it is."""
     if isinstance(data.dataset, RetrievalDataset):
         return data
-    return _value(data.key, query, data)
+    return _value(data.key, query, None if database is None else tuple(database), int(tolerance), data)
 
 
 # --------------------------------------------------------------------------- derived results
@@ -461,6 +463,18 @@ def decision(data: Loaded, places: RetrievalPlaces, query: int, *, k: float = 0.
     return _decision(data.key, places_key(places), int(query), float(k), user_theta, data)
 
 
+# a resource (returned as is, never mutated): its negative scores are n_p × the database images in
+# places (millions of floats on a large database), which st.cache_data would copy on every rerun
+@st.cache_resource(show_spinner="Scoring the place's images…", max_entries=8)
+def _detail(key: str, places: tuple, place: int, _data: Loaded) -> views.PlaceDetail:
+    return views.place_detail(_fitted(key, places, _data), _data.descriptors, place)
+
+
+def detail(data: Loaded, places: RetrievalPlaces, place: int) -> views.PlaceDetail:
+    """One place's negative mixture, scores and thresholds, and its queries' raw_p (``views.place_detail``)."""
+    return _detail(data.key, places_key(places), int(place), data)
+
+
 @st.cache_data(show_spinner=False, max_entries=256)
 def _image_answer(key: str, query: int, _data: Loaded) -> views.ImageAnswer:
     return views.image_answer(_data.dataset, _data.descriptors, query)
@@ -505,16 +519,17 @@ def evaluation(data: Loaded, spec: PlaceSpec | None, protocol: str, *, peek: boo
     computed (nothing is run): how a page decides whether showing it costs anything.
     """
     from vpr_explorer.method.places import make_places
+    from vpr_explorer.protocols.options import ProtocolOptions
 
     places = make_places(data.dataset, spec)
-    key = ("evaluation", data.key, None if spec is None else (spec.group, spec.step, spec.reading.value), protocol,
-           tuple(sorted((k, tuple(v) if isinstance(v, (list, tuple)) else v) for k, v in options.items())))
+    run = ProtocolOptions(**options)
+    key = ("evaluation", data.key, None if spec is None else (spec.group, spec.step, spec.reading.value), protocol, run)
     if peek:
         hit = _memo().get(key)
         return hit if isinstance(hit, Evaluation) else None
     return _memoised(key, f"Running the {protocol} protocol", lambda progress: run_protocol(
-        protocol, data.dataset, places, data.descriptors, progress=progress,
-        settings={"descriptor": data.descriptor}, shared=shared_scores(data), **options))
+        protocol, data.dataset, places, data.descriptors, run, progress=progress,
+        settings={"descriptor": data.descriptor}, shared=shared_scores(data)))
 
 
 def _queries_evaluation_key(data: Loaded, places: RetrievalPlaces, user_theta: float | None, pr: bool) -> tuple:
@@ -531,10 +546,23 @@ def queries_evaluation(data: Loaded, places: RetrievalPlaces, *, user_theta: flo
                        pr: bool = False) -> Evaluation:
     """The database/queries protocol (``pipeline.evaluate_retrieval``) on a dataset value, with a progress bar
     the first time."""
+    from vpr_explorer.protocols.options import ProtocolOptions
+
+    options = ProtocolOptions(user_theta=user_theta, pr=pr)
     key = _queries_evaluation_key(data, places, user_theta, pr)
     return _memoised(key, "Running the database/queries protocol", lambda progress: evaluate_retrieval(
-        data.dataset, data.descriptors, spec=places.spec, metric=places.metric, user_theta=user_theta,
-        settings={"descriptor": data.descriptor}, progress=progress, pr=pr))
+        data.dataset, data.descriptors, options, spec=places.spec, metric=places.metric,
+        settings={"descriptor": data.descriptor}, progress=progress))
+
+
+@st.cache_resource(show_spinner="Computing the similarity matrix…", max_entries=4)
+def _similarity_grid(key: str, _data: Loaded) -> views.SimilarityGrid:
+    return views.similarity_grid(_data.dataset, _data.descriptors)
+
+
+def similarity_grid(data: Loaded) -> views.SimilarityGrid:
+    """The value's queries × database images similarity, pooled (``database_queries.similarity_grid``)."""
+    return _similarity_grid(data.key, data)
 
 
 # --------------------------------------------------------------------------- images

@@ -1,7 +1,7 @@
-"""The inspector's candidate places, shared by aligned traversals and database/queries datasets.
+"""The Query inspector's candidate places: one chart per method, then the best candidates' images.
 
-One chart per method (raw_p against the method's threshold, the answer outlined, the right
-places starred), then the best candidates' images beside the query's.
+Each chart shows raw_p against the method's threshold, the answer outlined and the right
+places starred; the images beside the query's are the best candidates' best database images.
 """
 
 from __future__ import annotations
@@ -24,16 +24,15 @@ BEST_IMAGES = 4
 
 
 def show_candidates(dec: QueryDecision, methods: Sequence[str], cands: np.ndarray, describe: Callable[[str], str], *,
-                    query_image: Path, query_caption: str, database_image: Callable[[int], tuple[Path, str]],
-                    star: str = "the right place") -> None:
+                    query_image: Path, query_caption: str, database_image: Callable[[int], tuple[Path, str]]) -> None:
     """The method charts and the best candidates' images.
 
     ``database_image(i)`` gives the path and the label of database image ``i`` (an index of
-    the decision's model images); ``star`` says what ★ marks in the caption.
+    the decision's model images).
     """
     st.subheader("Candidate places: raw_p, threshold and margin")
     st.caption("Dots: raw_p, the query's best score against the place's database images; green = kept, grey = "
-               f"dropped by the method's threshold (red tick); black outline = the answer; ★ = {star}; labels "
+               "dropped by the method's threshold (red tick); black outline = the answer; ★ = a right place; labels "
                "= margin raw_p − θ (or raw_p where there is no threshold).")
     for row in range(0, len(methods), PER_ROW):
         for col, key in zip(st.columns(PER_ROW), methods[row:row + PER_ROW]):

@@ -1,4 +1,4 @@
-"""Widgets that several pages share: the threshold family's k, the user's global θ, the inspectors' "next"."""
+"""Widgets that several pages share: the threshold family's k, the user's global θ, the inspector's "next"."""
 
 from __future__ import annotations
 
@@ -32,13 +32,13 @@ def threshold_controls(container=st) -> tuple[float, float | None]:
     return v.k, v.theta
 
 
-def jump_to_next(search: Callable[[], tuple[int | None, int]], current: int, n: int, *, kind: str, label: str,
-                 unit: str, short: str) -> None:
-    """The inspectors' "next ▶": move the view's ``frame`` to what ``search()`` found after ``current``.
+def jump_to_next(search: Callable[[], tuple[int | None, int]], current: int, n: int, *, kind: str,
+                 label: str) -> None:
+    """The Query inspector's "next ▶": move the view's ``frame`` to the query ``search()`` found after ``current``.
 
-    ``search`` returns ``(found, last)`` as ``traversal.find_frame`` does (``last``: where a search
-    that ran out of budget stopped); ``unit``/``short`` name the items ("query frame"/"frame").
-    What could not be found is kept for the page to show (``st.session_state["find_none"]``).
+    ``search`` returns ``(found, last)`` as ``database_queries.find_query`` does (``last``: where
+    a search that ran out of budget stopped); ``n`` queries in all. What could not be found is
+    kept for the page to show (``st.session_state["find_none"]``).
     """
     try:
         found, last = search()
@@ -48,8 +48,8 @@ def jump_to_next(search: Callable[[], tuple[int | None, int]], current: int, n: 
     if found is not None:
         state.update(frame=found)
     elif last == current:
-        st.session_state["find_none"] = f"no {unit} was {kind} under {label}; try raising k or another method"
+        st.session_state["find_none"] = f"no query was {kind} under {label}; try raising k or another method"
     else:  # the search budget ran out: move on, so that the next press searches on
         state.update(frame=last)
-        st.session_state["find_none"] = (f"no {unit} {kind} under {label} from {short} {(current + 1) % n} to "
-                                         f"{last}; moved to {short} {last}, press next again to search on")
+        st.session_state["find_none"] = (f"no query {kind} under {label} from query {(current + 1) % n} to {last}; "
+                                         f"moved to query {last}, press next again to search on")

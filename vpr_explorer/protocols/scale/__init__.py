@@ -8,7 +8,9 @@ similarity; this package does one pass over the image pairs for all splits.
 
 Files, in the order data moves
 ------------------------------
-``options``       ``PassOptions``: rows per block, table memory, threads, device; checked once.
+How the pass runs (rows per block, table memory, threads, device) is part of the run's one
+``protocols.options.ProtocolOptions``, checked when it is made.
+
 ``layout``        ``Layout``: the labelled images place by place, slot-padded, in blocks of
                   whole places; ``as_layout32``, its float32 copy, which the pass reads.
 ``full_sums``     ``full_set_sums``: the float64 sums over all images, once (step 1).
@@ -125,14 +127,10 @@ Tuning constants live in the module that reads them (``blocked_pass.PANEL_ROWS``
 """
 
 from vpr_explorer.protocols.scale.layout import Layout, make_layout
-from vpr_explorer.protocols.scale.options import BLOCK_ROWS, TABLE_MEMORY, PassOptions
 from vpr_explorer.protocols.scale.protocol import fast_paper_protocol, scale_splits
 
 __all__ = [
-    "BLOCK_ROWS",
-    "TABLE_MEMORY",
     "Layout",
-    "PassOptions",
     "fast_paper_protocol",
     "make_layout",
     "scale_splits",

@@ -25,8 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from vpr_explorer.method.stats import one_blas_thread
+from vpr_explorer.protocols.options import ProtocolOptions
 from vpr_explorer.protocols.scale.layout import Layout
-from vpr_explorer.protocols.scale.options import PassOptions
 from vpr_explorer.protocols.scale.panel import (
     BlockProducts,
     Panel,
@@ -195,7 +195,7 @@ def _run(panels: list[Panel], task: Callable[[Panel], PanelResult], merge: _Merg
         merge(window.popleft().result())
 
 
-def blocked_pass(inputs: PassInputs, entries: Entries, cap: int, options: PassOptions, *,
+def blocked_pass(inputs: PassInputs, entries: Entries, cap: int, options: ProtocolOptions, *,
                  progress: Callable[[int, str], None] | None = None, panel_rows: int | None = None) -> PassResult:
     """Everything the splits need from the similarities, in one pass over block pairs I ≤ J (module doc).
 

@@ -88,7 +88,7 @@ def make_layout(image_place: np.ndarray, n_places: int, block_rows: int) -> Layo
     Args:
         image_place: ``(n_images,)`` place of each image, ``-1`` for a skipped frame.
         n_places: number of place ids.
-        block_rows: rows per block, as ``PassOptions.block`` checks it.
+        block_rows: rows per block, as ``ProtocolOptions.block`` checks it.
 
     Raises:
         VPRInputError: when the largest place makes a block longer than ``MAX_BLOCK_ROWS``.

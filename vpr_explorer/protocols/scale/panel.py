@@ -60,7 +60,7 @@ class PassInputs:
 class BlockProducts:
     """A panel of S = X_I X_Jᵀ, written into a float32 buffer: numpy (BLAS), or torch on ``device``.
 
-    With a device (a ``torch.device``, as ``PassOptions`` makes it) the layout descriptors are
+    With a device (a ``torch.device``, as ``ProtocolOptions`` makes it) the layout descriptors are
     copied there once (CPU tensors share numpy's memory) and each panel's product comes back
     to the CPU buffer. Its float32 scores may differ from numpy's in the last bits, like
     another BLAS kernel's: the tie tolerance (package doc, step 2) keeps every outcome the same.

@@ -8,7 +8,6 @@ together (package doc).
 from __future__ import annotations
 
 import dataclasses
-import os
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -18,15 +17,17 @@ import numpy as np
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.method.thresholds import pooled_pair_sample
 from vpr_explorer.protocols.evaluation import (
-    KS,
     Evaluation,
     Progress,
     Protocol,
     Split,
     SplitScores,
+    check_cross_condition,
     check_protocol_inputs,
     draw_splits,
+    own_traversal_notes,
     paper_protocol,
+    paper_settings,
     pooled_truth,
     split_pr,
     summarise,
@@ -36,11 +37,11 @@ from vpr_explorer.protocols.scale.downdate import split_mu, split_thresholds
 from vpr_explorer.protocols.scale.full_sums import full_set_sums
 from vpr_explorer.protocols.scale.layout import Layout, as_layout32, make_layout
 from vpr_explorer.protocols.scale.near_ties import error_scale, uncertainty
-from vpr_explorer.protocols.scale.options import BLOCK_ROWS, TABLE_MEMORY, PassOptions
 from vpr_explorer.protocols.scale.panel import PassInputs
 from vpr_explorer.protocols.scale.scoring import assemble, score_splits
 from vpr_explorer.protocols.scale.table import Entries
 from vpr_explorer.protocols.scale.twins import content_classes
+from vpr_explorer.protocols.options import ProtocolOptions
 from vpr_explorer.protocols.shared_scores import SharedScores
 
 #: ``pr=True`` hands runs × places² up to this to ``paper_protocol`` (the per-place PR curves
@@ -78,9 +79,8 @@ def _row_traversal(image_traversal: np.ndarray, lay: Layout) -> np.ndarray:
 
 
 def _scale_splits(d: np.ndarray, image_place: np.ndarray, image_traversal: np.ndarray, n_places: int,
-                  splits: list[Split], options: PassOptions, *, cross_condition: bool, user_theta: float | None,
-                  seed: int, max_k: int, progress: Progress | None) -> list[SplitScores]:
-    """``scale_splits`` with its options checked and its splits without unknown places."""
+                  splits: list[Split], options: ProtocolOptions, progress: Progress | None) -> list[SplitScores]:
+    """``scale_splits`` on splits without unknown places."""
     lay = make_layout(image_place, n_places, options.block)
     query_rows = np.stack([lay.row_of_image[sp.queries] for sp in splits])  # (R, P): queries by place index
     held = lay.slot_of_row[query_rows]
@@ -93,7 +93,7 @@ def _scale_splits(d: np.ndarray, image_place: np.ndarray, image_traversal: np.nd
         # pooled sample, drawn once for the run) and the twins' content classes, which need
         # neither the sums nor the pass
         later = aside.submit if threads > 1 else _now
-        autos, content = later(automatic_thetas, d, splits, seed), later(content_classes, d, lay)
+        autos, content = later(automatic_thetas, d, splits, options.seed), later(content_classes, d, lay)
         x = as_layout32(d, lay, threads)  # the pass's float32 rows, which the full-set sums read too
         sums = full_set_sums(d, lay, query_rows, threads, x)
         mus = [split_mu(r, lay.row_of_image[sp.train], lay, sums, held[r]) for r, sp in enumerate(splits)]
@@ -104,16 +104,18 @@ def _scale_splits(d: np.ndarray, image_place: np.ndarray, image_traversal: np.nd
             report(r + 1, f"split {r + 1}/{runs}: automatic θ")
     # every θ_p is a convex combination of its place's μᵢ: all lie in [min μ, max μ] (the pass's floor)
     mu_range = (min(float(mu.min()) for mu, _ in mus), max(float(mu.max()) for mu, _ in mus))
-    inputs = PassInputs(x, lay, query_rows, _row_traversal(image_traversal, lay) if cross_condition else None,
-                        mu_range, sums.centre)
+    inputs = PassInputs(x, lay, query_rows,
+                        _row_traversal(image_traversal, lay) if options.cross_condition else None, mu_range,
+                        sums.centre)
     entries = Entries(lay, options.table_memory, options.spill_dir)
     try:
-        pas = blocked_pass(inputs, entries, max_k, options, progress=_counting_from(progress, steps, runs))
+        pas = blocked_pass(inputs, entries, max(options.ks), options, progress=_counting_from(progress, steps, runs))
         del inputs, x  # the float32 layout rows: the pass was their last reader
         with ThreadPoolExecutor(threads) as pool:  # splits side by side: each writes only its own results
             data = list(pool.map(lambda r: split_thresholds(r, splits[r], lay, sums, pas.v, held[r], n_places,
-                                                            autos[r], user_theta, content, mus[r]), range(runs)))
-            kappa = error_scale(d, lay, sums, data, seed)
+                                                            autos[r], options.user_theta, content, mus[r]),
+                                 range(runs)))
+            kappa = error_scale(d, lay, sums, data, options.seed)
             for sd in data:
                 sd.uncertainty = uncertainty(sd, lay, kappa)
             outs, tops = score_splits(entries, data, lay, pas, d, sums, _counting_from(progress, steps, runs + n_pairs))
@@ -130,17 +132,9 @@ def scale_splits(
     image_traversal: np.ndarray,
     n_places: int,
     splits: list[Split],
+    options: ProtocolOptions = ProtocolOptions(),
     *,
-    cross_condition: bool = False,
-    user_theta: float | None = None,
-    seed: int = 0,
-    max_k: int = max(KS),
-    block: int = BLOCK_ROWS,
-    table_memory: int = TABLE_MEMORY,
-    spill_dir: str | os.PathLike | None = None,
-    threads: int | None = None,
     progress: Progress | None = None,
-    device: object | None = None,
 ) -> list[SplitScores]:
     """The paper protocol's splits scored through one blocked pass (see the package doc).
 
@@ -150,11 +144,10 @@ def scale_splits(
         image_place, image_traversal: ``(n_images,)`` labels (place ``-1``: a skipped frame).
         n_places: number of place ids.
         splits: from ``evaluation.draw_splits`` without unknown places.
-        cross_condition: queries match other traversals only.
-        user_theta: a global θ of the user's, scored beside the automatic one.
-        seed: the protocol's seed (the automatic threshold's pooled sample is drawn with it).
-        max_k: image-level ranks beyond it are reported as ``max_k + 1``.
-        block, table_memory, spill_dir, threads, device: ``PassOptions``.
+        options: cross_condition (queries match other traversals only), user_theta (a global θ
+            scored beside the automatic one), seed (the automatic threshold's pooled sample is
+            drawn with it), ks (image-level ranks beyond max(ks) are reported as max(ks) + 1),
+            and how the pass runs: block, table_memory, spill_dir, threads, device.
         progress: ``progress(done, total, message)`` over the splits (their automatic θ), the
             pass's block pairs, then the scoring's row blocks.
 
@@ -164,15 +157,13 @@ def scale_splits(
         are what this path avoids holding) and every ``Outcome.n_kept`` is ``-1``.
 
     Raises:
-        VPRInputError: bad options (``PassOptions``), or splits with unknown places.
+        VPRInputError: splits with unknown places.
     """
-    options = PassOptions(block=block, table_memory=table_memory, spill_dir=spill_dir, threads=threads, device=device)
     if any(sp.unknown.any() for sp in splits):
         raise VPRInputError("scale_splits: splits with unknown places (the open set) are not supported; "
                             "use evaluation.open_set_protocol")
     return _scale_splits(descriptors, np.asarray(image_place), np.asarray(image_traversal), n_places, splits,
-                         options, cross_condition=cross_condition, user_theta=user_theta, seed=seed, max_k=max_k,
-                         progress=progress)
+                         options, progress)
 
 
 def fast_paper_protocol(
@@ -180,83 +171,56 @@ def fast_paper_protocol(
     image_place: np.ndarray,
     image_traversal: np.ndarray,
     n_places: int,
+    options: ProtocolOptions = ProtocolOptions(),
     *,
-    runs: int = 50,
-    seed: int = 0,
-    cross_condition: bool = False,
-    user_theta: float | None = None,
-    ks: tuple[int, ...] = KS,
-    progress: Progress | None = None,
-    settings: dict | None = None,
-    block: int = BLOCK_ROWS,
-    table_memory: int = TABLE_MEMORY,
-    spill_dir: str | os.PathLike | None = None,
-    threads: int | None = None,
-    tolerance: int = 0,
     image_frame: np.ndarray | None = None,
     frame_place: np.ndarray | None = None,
-    pr: bool = False,
-    device: object | None = None,
+    progress: Progress | None = None,
+    settings: dict | None = None,
     shared: SharedScores | None = None,
 ) -> Evaluation:
     """``evaluation.paper_protocol`` through one blocked pass: the same ``Evaluation``.
 
-    Same arguments and meaning as ``paper_protocol`` (``runs`` seeded splits, one query image
-    per place, thresholds from each split's training images, ``cross_condition``,
-    ``user_theta``, ``ks``), plus:
+    The same arguments and meaning as ``paper_protocol``; ``options``' block, table_memory,
+    spill_dir, threads and device say how the pass runs (no number depends on them). The
+    run goes to ``paper_protocol`` itself, and says so in the notes, when:
 
-    Args:
-        block, table_memory, spill_dir, threads, device: ``PassOptions`` (checked even when
-            the run goes to ``paper_protocol``); the numbers depend on none of them.
-        tolerance, image_frame, frame_place: as for ``paper_protocol``. When the tolerance
-            makes a neighbouring place right for some query (places closer than the
-            tolerance), this path, built on one right place per query, hands the run to
-            ``paper_protocol`` and says so in the notes.
-        pr: also the precision–recall rows and curves. The per-place family curves need every
-            query's raw_p, which the pass does not keep: up to ``PR_FAMILY_CELLS`` runs × places²
-            the run goes to ``paper_protocol`` (the same numbers), above it they are left out.
-        shared: ``shared_scores.SharedScores`` of ``descriptors``, for a run handed to
-            ``paper_protocol`` (a sweep builds one for all its cells); the pass does not need it.
+    * the tolerance makes a neighbouring place right for some query (places closer than
+      the tolerance): the pass is built on one right place per query;
+    * ``options.pr`` and runs × places² is at most ``PR_FAMILY_CELLS``: the per-place
+      family curves need every query's raw_p, which the pass does not keep (above, they
+      are left out). ``shared`` serves such a run only (a sweep builds one for all its cells).
 
     Returns:
         The ``Evaluation`` of ``paper_protocol``, its ``seconds`` this call's.
 
     Raises:
-        VPRInputError: what ``paper_protocol`` raises on, and bad ``PassOptions``.
+        VPRInputError: what ``paper_protocol`` raises on.
     """
     t0 = time.perf_counter()
-    d, image_place, image_traversal, ks = check_protocol_inputs(descriptors, image_place, image_traversal, runs, ks)
-    options = PassOptions(block=block, table_memory=table_memory, spill_dir=spill_dir, threads=threads, device=device)
-    if cross_condition and len(np.unique(image_traversal[image_place >= 0])) < 2:
-        raise VPRInputError("cross_condition needs at least 2 traversals")
+    d, image_place, image_traversal = check_protocol_inputs(descriptors, image_place, image_traversal)
+    check_cross_condition(image_place, image_traversal, options)
+    runs, pr = options.runs, options.pr
     straight = None
-    if pooled_truth(image_place, image_frame, frame_place, tolerance, n_places) is not None:
-        straight = (f"a frame tolerance of {tolerance} makes neighbouring places right: scored by the straightforward "
-                    "protocol (one right place per query is what the blocked pass assumes)")
+    if pooled_truth(image_place, image_frame, frame_place, options.tolerance, n_places) is not None:
+        straight = (f"a frame tolerance of {options.tolerance} makes neighbouring places right: scored by the "
+                    "straightforward protocol (one right place per query is what the blocked pass assumes)")
     elif pr and runs * n_places**2 <= PR_FAMILY_CELLS:
         straight = ("precision–recall of the per-place methods needs every query's raw_p: scored by the "
                     "straightforward protocol (the same numbers)")
     if straight is not None:
-        ev = paper_protocol(d, image_place, image_traversal, n_places, runs=runs, seed=seed,
-                            cross_condition=cross_condition, user_theta=user_theta, ks=ks, progress=progress,
-                            settings=settings, tolerance=tolerance, image_frame=image_frame, frame_place=frame_place,
-                            pr=pr, shared=shared)
+        ev = paper_protocol(d, image_place, image_traversal, n_places, options, image_frame=image_frame,
+                            frame_place=frame_place, progress=progress, settings=settings, shared=shared)
         return dataclasses.replace(ev, notes=(*ev.notes, straight), seconds=time.perf_counter() - t0)
-    splits = draw_splits(image_place, n_places, runs=runs, seed=seed)
-    scored = _scale_splits(d, image_place, image_traversal, n_places, splits, options, cross_condition=cross_condition,
-                           user_theta=user_theta, seed=seed, max_k=max(ks), progress=progress)
-    notes = []
-    if not cross_condition:
-        notes.append("queries are matched against all traversals, their own included: see the own-traversal "
-                     "share, and the cross-condition variant")
+    splits = draw_splits(image_place, n_places, runs=runs, seed=options.seed)
+    scored = _scale_splits(d, image_place, image_traversal, n_places, splits, options, progress)
+    notes = list(own_traversal_notes(options))
     pr_rows, pr_curves = split_pr(scored) if pr else ((), {})
     if pr:
         notes.append(f"precision–recall of the per-place methods left out: {runs} runs × {n_places:,}² places "
                      f"exceed {PR_FAMILY_CELLS:,} cells (the blocked pass keeps no raw_p)")
     return Evaluation(
-        protocol=Protocol.PAPER,
-        settings={**(settings or {}), "runs": runs, "seed": seed, "cross_condition": cross_condition,
-                  "tolerance": int(tolerance), "queries_per_run": len(scored[0].known)},
-        ks=ks, rows=summarise(scored, ks, own_traversal=True), notes=tuple(notes),
+        protocol=Protocol.PAPER, settings=paper_settings(options, settings, len(scored[0].known)),
+        ks=options.ks, rows=summarise(scored, options.ks, own_traversal=True), notes=tuple(notes),
         seconds=time.perf_counter() - t0, pr=pr_rows, pr_curves=pr_curves,
     )
