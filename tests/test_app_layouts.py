@@ -585,12 +585,6 @@ def test_the_traversal_places_page_offers_to_move_step_along():
     assert metric(at, "places") == str(60 // 8)
 
 
-def test_pages_that_show_traversals_only_say_where_the_layout_opens(layouts, npz):
-    at = page(opened(layouts["database-queries"], npz), "playback")
-    assert_clean(at, errors=True)
-    assert "database-queries layout" in errors(at)
-
-
 def test_frames_places_of_a_layout_count_database_images(layouts, dq_effnet, dq, npz):
     at = page(opened(layouts["database-queries"], npz, geometry="frames", group=2, step=5), "places")
     assert_clean(at)

@@ -209,10 +209,10 @@ def test_sweep_and_record_refuse_radius(tmp_path, capsys, command, value, fragme
 
 
 @pytest.mark.parametrize("layout", ["vpr-bench", "database-queries", "manifest", "prepared"])
-def test_record_refuses_a_layout_it_does_not_play_back(tmp_path, capsys, layout):
+def test_record_refuses_a_layout_the_dataset_is_not_in(tmp_path, capsys, layout):
     r = refused(capsys, "record", "--dataset", "demo", "--descriptor", "pixels", "--cache-dir", str(tmp_path / "c"),
                 "--layout", layout, "--database", "day", "--queries", "night", "--out", str(tmp_path / "run.rrd"))
-    assert_one_error_line(r, f"--layout {layout}: record plays back aligned traversal folders only")
+    assert_one_error_line(r, f"--layout {layout}: the demo route is traversal folders")
     assert not (tmp_path / "run.rrd").exists()
 
 
