@@ -7,27 +7,33 @@ Writes a synthetic route of real PNG files (Nordland Mini's shape: 27,591 frames
 traversals, 64x32 greyscale; a smooth procedural panorama the camera moves along, each
 traversal with its own lighting, noise and jitter) into ``--out`` (kept, so a second run
 reuses it), extracts the ``pixels`` descriptors through the real pipeline and cache, then
-drives the real app with Streamlit's AppTest (``app.py`` and its pages, in process) and
-times each page's script run and the main interactions: the Places page (overview: a
-sample of query frames decided), Thresholds (one place), Query inspector (one query, the
-"next rejected" search), Evaluation (no automatic protocol run; the similarity matrix
-from sampled rows), a group/step move.
+drives the real app with Streamlit's AppTest (its entry script ``vpr_explorer.app.ENTRY``
+and its pages, in process; the data root is ``--out``) and times each page's script run and
+the main interactions: the Places page (overview: a sample of query frames decided),
+Thresholds (one place), Query inspector (one query, the "next rejected" search), Evaluation
+(the similarity matrix from sampled rows; the protocol runs on arrival only under
+``numbers.AUTO_RUN_PAIRS`` image pairs, so at full size it waits for Run), a group/step
+move.
 
-Side by side, in the same run: deciding every query frame against the database
-(``decide_traversal`` on all 27,591 frames, what a page that ignored the budget would
-compute), and the ratio of each page to it.
+The pages read the traversals as one dataset value (``data.aligned.database_queries``: the
+query traversal's frames against the other three traversals, as the app builds it). Side by
+side, in the same run: deciding every query frame against the database
+(``views.numbers.decide_queries`` on all 27,591 queries, what a page that ignored the budget
+would compute), and the ratio of each page to it.
 
-Against the machine's limit: before the pages, a group/step move (``views.regroup``
-at group 4, step 10, as the Places page's slider move) is timed outside the app, split into
-its fit (``views.fit``: closed-form statistics, automatic θ, positive means) and its
-decisions, beside its floor: the flops it needs (``gemm_peak.fit_flops`` + 2·F·N·D) at
-numpy's float32 GEMM peak measured in the same run (``gemm_peak``, which names the BLAS
-kernel), its CPU seconds against the peak per CPU second (steadier on a shared machine), and
-the same frames decided again by ``decide_traversal``'s fused and straightforward paths,
-alternating, best of two each, with their decisions compared. ``--move-only`` stops there. AppTest runs the scripts, not a browser;
-``--browser`` then also starts a real ``streamlit run`` server and walks the same pages in
-Debian's Chromium (Playwright), timing each from the click to the last Plotly chart drawn,
-and saves a screenshot of each page next to the route.
+Against the machine's limit: before the pages, a group/step move at group 4, step 10 (the
+Places page's slider move: ``views.numbers.fit_retrieval`` then ``views.numbers.overview``)
+is timed outside the app, split into its fit (closed-form statistics, automatic θ, positive
+means) and its decisions (the overview's sampled queries), beside its floor: the flops it
+needs (``gemm_peak.fit_flops`` + 2·F·N·D) at numpy's float32 GEMM peak measured in the same
+run (``gemm_peak``, which names the BLAS kernel), its CPU seconds against the peak per CPU
+second (steadier on a shared machine), and the same queries decided again by
+``decide_queries`` (scores by place pieces) and by the straightforward path (query ×
+database scores, ``retrieval.place_scores``, ``retrieval.score_queries``), alternating, best
+of two each, with their decisions compared. ``--move-only`` stops there. AppTest runs the
+scripts, not a browser; ``--browser`` then also starts a real ``streamlit run`` server and
+walks the same pages in Debian's Chromium (Playwright), timing each from the click to the
+last Plotly chart drawn, and saves a screenshot of each page next to the route.
 """
 
 from __future__ import annotations
@@ -97,16 +103,19 @@ def main(argv: list[str] | None = None) -> None:
     route = args.out / f"route{args.frames}"
     written = write_route(route, args.frames)
     os.environ["VPR_EXPLORER_CACHE"] = str(args.cache or Path(f"{args.out}-cache"))
+    os.environ["VPR_EXPLORER_DATA_ROOT"] = str(args.out.resolve())  # the app opens only what lies under its data root
 
     # Imported after the cache is set, as the app would be started with it.
     import streamlit as st
     from streamlit.testing.v1 import AppTest
 
-    from vpr_explorer.method.database import decide_traversal
+    from vpr_explorer.app import ENTRY, PAGES
+    from vpr_explorer.app.ui.current import effective_places
+    from vpr_explorer.app.ui.state import View
+    from vpr_explorer.data.aligned import database_queries, value_rows
     from vpr_explorer.pipeline import dataset_descriptors, resolve_dataset
-    from vpr_explorer.views.traversal import fit
+    from vpr_explorer.views.numbers import decide_queries, fit_retrieval
 
-    sys.path.insert(0, str(ROOT))
     sys.path.insert(0, str(ROOT / "benchmarks"))
     dataset = resolve_dataset(route)
     print(f"route: {dataset.n_traversals} traversals x {dataset.n_frames:,} frames = {dataset.n_images:,} PNG files"
@@ -114,24 +123,29 @@ def main(argv: list[str] | None = None) -> None:
     start = time.perf_counter()
     descriptors = dataset_descriptors(dataset, "pixels")
     print(f"pixels descriptors {descriptors.shape} through the cache: {time.perf_counter() - start:.1f} s")
+    # the value the app's pages read: the default query traversal against every other one
+    value = database_queries(dataset, dataset.traversals[dataset.default_roles().query])
+    rows = value_rows(value)
+    d = descriptors if rows is None else descriptors[rows]
+    print(f"value: {value.n_database:,} database images, {value.n_queries:,} queries")
 
-    time_move(descriptors, dataset)
+    time_move(d, value)
     if args.move_only:
         return
-    # What a page ignoring the budget would compute: every query frame against the database.
-    f = fit(descriptors, dataset, None if dataset.prepared_places is not None else _default_spec(dataset))
+    # What a page ignoring the budget would compute: every query against the database.
+    f = fit_retrieval(d, value, effective_places(View(), value))
     start = time.perf_counter()
-    everything = decide_traversal(f.model, descriptors, dataset, f.places, f.query)
+    everything = decide_queries(f, d, np.arange(value.n_queries))
     all_pairs = time.perf_counter() - start
-    n_pairs = dataset.n_frames * len(f.model.images)
-    print(f"all query frames decided (decide_traversal, {dataset.n_frames:,} x {len(f.model.images):,} = "
+    n_pairs = value.n_queries * len(f.model.images)
+    print(f"all queries decided (decide_queries, {value.n_queries:,} x {len(f.model.images):,} = "
           f"{n_pairs:.2e} pairs): {all_pairs:.1f} s")
     del everything
 
     _route_all_pages_through_app()
     st.cache_data.clear()
     st.cache_resource.clear()
-    at = AppTest.from_file(str(ROOT / "app.py"), default_timeout=600)
+    at = AppTest.from_file(str(ENTRY), default_timeout=600)
     at.query_params.update({"source": str(route), "descriptor": "pixels"})
     rows: list[tuple[str, float]] = []
 
@@ -146,72 +160,78 @@ def main(argv: list[str] | None = None) -> None:
         print(f"  {label:<58} {seconds:7.2f} s   {seconds / all_pairs:6.3f}x", flush=True)
         return result
 
-    print(f"  {'page run (AppTest, server side)':<58} {'seconds':>9}   ratio to deciding all frames")
+    def page(name: str):
+        return lambda: at.switch_page(str(PAGES / f"{name}.py")).run()
+
+    print(f"  {'page run (AppTest, server side)':<58} {'seconds':>9}   ratio to deciding all queries")
     at = timed("Dataset page, first open (descriptors from the disk cache)", at.run)
+    assert not any("data root" in w.value for w in at.warning), [w.value for w in at.warning]
     at = timed("Dataset page, again", at.run)
-    at = timed("Places: overview (sampled query frames)", lambda: at.switch_page("pages/places.py").run())
+    at = timed("Places: overview (sampled query frames)", page("places"))
     at = timed("Places: again (cached)", at.run)
     at = timed("Places: group 3 -> 4 (refit + new sample)", lambda: at.slider(key="w_group").set_value(4).run())
     at = timed("Places: back to group 3 (cached)", lambda: at.slider(key="w_group").set_value(3).run())
-    at = timed("Thresholds: one place", lambda: at.switch_page("pages/thresholds.py").run())
+    at = timed("Thresholds: one place", page("thresholds"))
     places = at.selectbox(key="w_place")
     at = timed("Thresholds: another place", lambda: places.set_value(int(len(places.options) * 0.9)).run())
-    at = timed("Inspector: one query", lambda: at.switch_page("pages/inspector.py").run())
-    at = timed("Inspector: another frame", lambda: at.slider(key="w_frame").set_value(dataset.n_frames // 2).run())
+    at = timed("Inspector: one query", page("inspector"))
+    at = timed("Inspector: another frame", lambda: at.slider(key="w_frame").set_value(value.n_queries // 2).run())
     at = timed("Inspector: next rejected (margin, weighted θ)", lambda: at.button(key="w_find_next").click().run())
-    at = timed("Evaluation: page (similarity matrix; protocol waits for Run)", lambda: at.switch_page("pages/evaluation.py").run())
+    at = timed("Evaluation: page (protocol only under AUTO_RUN_PAIRS)", page("evaluation"))
     print(f"peak resident memory of this process: {peak_rss_gib():.2f} GiB")
     slowest = max(rows[2:], key=lambda r: r[1])
     print(f"slowest page run after the first load: {slowest[0]}, {slowest[1]:.2f} s = {slowest[1] / all_pairs:.3f}x "
-          "deciding every query frame")
+          "deciding every query")
     if args.browser:
         browser_walk(route, args.out, all_pairs)
 
 
-def time_move(descriptors, dataset, group: int = 4, step: int = 10) -> None:
-    """One group/step move (``views.regroup``), its fit and decisions, against the GEMM floor."""
+def time_move(descriptors, value, group: int = 4, step: int = 10) -> None:
+    """One group/step move (``fit_retrieval`` then ``overview``), its fit and decisions, against the GEMM floor;
+    then the same queries decided by ``decide_queries`` and by the straightforward path, side by side."""
     from gemm_peak import decision_flops, fit_flops, measure_peak, share
 
-    from vpr_explorer.method.database import decide_traversal
-    from vpr_explorer.method.places import PlaceSpec
-    from vpr_explorer.views.traversal import fit, regroup
+    from vpr_explorer.method.places import PlaceGeometry, PlaceSpec
+    from vpr_explorer.views.numbers import RetrievalPlaces, decide_queries, fit_retrieval, overview
+
+    def places(g: int, s: int) -> RetrievalPlaces:
+        return RetrievalPlaces(PlaceGeometry.FRAMES, spec=PlaceSpec(g, s))
 
     dim = descriptors.shape[1]
-    regroup(descriptors, dataset, PlaceSpec(3, step))  # warm-up: imports, thread pools, page cache
+    overview(fit_retrieval(descriptors, value, places(3, step)), descriptors)  # warm-up: imports, thread pools
     before = measure_peak(m=4096, k=dim, n=2048)
     start, cpu = time.perf_counter(), time.process_time()
-    f = fit(descriptors, dataset, PlaceSpec(group, step))
+    f = fit_retrieval(descriptors, value, places(group, step))
     t_fit = time.perf_counter() - start
-    r = regroup(descriptors, dataset, PlaceSpec(group, step), fitted=f)
+    ov = overview(f, descriptors)
     t_move, cpu_move = time.perf_counter() - start, time.process_time() - cpu
-    # Side by side, the same frames: the straightforward decisions (no fused pieces),
-    # then the fused ones again, alternating, best of each (the load on a shared machine changes).
-    t_plain, t_fused, raw_same, raw_gap, differ = [], [], True, 0.0, np.zeros(len(r.frames), bool)
+    # Side by side, the same queries: the straightforward decisions, then decide_queries again,
+    # alternating, best of each (the load on a shared machine changes).
+    t_plain, t_pieces, differ = [], [], np.zeros(len(ov.queries), bool)
     for _ in range(2):
-        for fused, times in ((False, t_plain), (True, t_fused)):
+        for plain, times in ((True, t_plain), (False, t_pieces)):
             start = time.perf_counter()
-            again = decide_traversal(f.model, descriptors, dataset, f.places, f.query, frames=r.frames, fused=fused)
+            _, again = (decide_straightforward(f, descriptors, ov.queries) if plain
+                        else decide_queries(f, descriptors, ov.queries))
             times.append(time.perf_counter() - start)
-            gap, frames = _differences(again, r.decisions)
-            raw_same = raw_same and np.array_equal(again.raw, r.decisions.raw)
-            raw_gap, differ = max(raw_gap, gap), differ | frames
-    same = raw_same and not differ.any()
-    n_db, n_q = len(r.model.images), len(r.frames)
+            differ |= _differences(again, ov.outcomes)
+    n_db, n_q = len(f.model.images), len(ov.queries)
     peak = before.best(measure_peak(m=4096, k=dim, n=2048))  # best of before and after: the load changes
     for line in peak.lines():
         print(line)
     flops_fit, flops_dec = fit_flops(n_db, dim), decision_flops(n_q, n_db, dim)
     floor = (flops_fit + flops_dec) / peak.float32 / 1e9
-    print(f"group/step move to {group}/{step} (views.regroup: {n_db:,} database images x {dim}, {n_q:,} sampled "
-          f"query frames): {t_move:.2f} s = fit {t_fit:.2f} s + decisions {t_move - t_fit:.2f} s")
+    print(f"group/step move to {group}/{step} (fit_retrieval + overview: {n_db:,} database images x {dim}, {n_q:,} "
+          f"of {value.n_queries:,} queries decided): {t_move:.2f} s = fit {t_fit:.2f} s + decisions "
+          f"{t_move - t_fit:.2f} s")
     print(f"  fit:       {share(flops_fit, t_fit, peak.float32)}")
     print(f"  decisions: {share(flops_dec, t_move - t_fit, peak.float32)}")
-    print(f"  decisions again, best of 2 (decide_traversal): fused {min(t_fused):.2f} s, straightforward "
-          f"(fused=False) {min(t_plain):.2f} s = {min(t_plain) / min(t_fused):.1f}x the fused; ranks, answers, "
-          f"images and raw_p " + ("identical" if same else
-          f"not identical: raw_p within {raw_gap:.1e}, {int(differ.sum())} of {len(differ):,} frames differ in a "
-          "rank, answer or image (a kernel that rounds by operand order; the tolerance rule allows it on frames "
-          "with a score within 5e-7 of a boundary: tests/test_decide_fused.py)"))
+    print(f"  decisions again, best of 2: decide_queries {min(t_pieces):.2f} s, straightforward (score_rows + "
+          f"place_scores + score_queries) {min(t_plain):.2f} s = {min(t_plain) / min(t_pieces):.1f}x decide_queries; "
+          "ranks, answers, images and kept counts " + ("identical" if not differ.any() else
+          f"not identical: {int(differ.sum())} of {len(differ):,} queries differ in a rank, answer, image or kept "
+          "count (a kernel that rounds by operand order; the tolerance rule allows it on queries with a score "
+          "within 5e-7 of a boundary: tests/test_decide_fused.py)"))
     print(f"  the move in CPU seconds (all threads; steadier on a shared machine): {cpu_move:.2f} CPU s, "
           f"{share(flops_fit + flops_dec, cpu_move, peak.float32_cpu)} per CPU second")
     print(f"summary: move {t_move:.2f} s (goal <= 3 s), floor {floor:.2f} s at the float32 GEMM peak, "
@@ -220,15 +240,36 @@ def time_move(descriptors, dataset, group: int = 4, step: int = 10) -> None:
           flush=True)
 
 
-def _differences(a, b) -> tuple[float, np.ndarray]:
-    """max |Δraw_p| and the frames whose best image, rank, answer or kept count differ."""
-    frames = (a.best != b.best).any(axis=1)
-    for k in a.outcomes:
-        for f in ("rank", "answer_place", "answer_image", "n_kept"):
-            frames |= getattr(a.outcomes[k], f) != getattr(b.outcomes[k], f)  # (n_frames,) each
-    with np.errstate(invalid="ignore"):
-        delta = np.nan_to_num(np.abs(a.raw.astype(np.float64) - b.raw.astype(np.float64)), nan=0.0)
-    return float(delta.max(initial=0.0)), frames
+OUTCOME_FIELDS = ("rank", "answer_place", "answer_image", "n_kept")
+
+
+def decide_straightforward(fitted, descriptors, queries):
+    """``decide_queries``' right places and outcomes the straightforward way, in its blocks of queries: the
+    query × database scores (``numbers.score_rows``), their place maxima (``retrieval.place_scores``) and every
+    method (``retrieval.score_queries``)."""
+    from vpr_explorer.method.retrieval import Outcome, place_scores, score_queries
+    from vpr_explorer.views.numbers import SCORE_ELEMS, score_rows
+
+    model = fitted.model
+    th = model.thresholds()
+    truth = fitted.right_places(queries)
+    block = max(1, min(2048, SCORE_ELEMS // max(1, len(model.images))))
+    parts = []
+    for lo in range(0, len(queries), block):
+        sims = score_rows(descriptors, fitted.dataset.n_database + queries[lo:lo + block], model.images)
+        raw_best = place_scores(sims, model.places, fitted.n_places)
+        parts.append(score_queries(sims, model.places, fitted.n_places, th, truth[lo:lo + block], raw_best=raw_best))
+    return truth, {key: Outcome(parts[0][key].method, *(np.concatenate([getattr(p[key], f) for p in parts])
+                                                         for f in OUTCOME_FIELDS)) for key in parts[0]}
+
+
+def _differences(a: dict, b: dict) -> np.ndarray:
+    """The queries whose rank, answer, image or kept count differ between two outcome mappings, under any method."""
+    differ = np.zeros(len(next(iter(a.values())).rank), bool)
+    for key in a:
+        for f in OUTCOME_FIELDS:
+            differ |= getattr(a[key], f) != getattr(b[key], f)
+    return differ
 
 
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -285,13 +326,6 @@ def browser_walk(route: Path, out: Path, all_pairs: float) -> None:
         timed("Places again (cached)", nav("Places (group/step)"))
         browser.close()
     print(f"screenshots: {out}/{{home,places,thresholds,inspector,evaluation}}.png")
-
-
-def _default_spec(dataset):
-    from ui.current import effective_spec
-    from ui.state import View
-
-    return effective_spec(View(), dataset.n_frames, False)
 
 
 def _route_all_pages_through_app() -> None:

@@ -1,4 +1,4 @@
-"""The automatic global θ's sample: dense tiles (one GEMM per tile) against independent pairs (issue 13 §3).
+"""The automatic global θ's sample: dense tiles (one GEMM per tile) against independent pairs.
 
     python benchmarks/bench_auto_sample.py                  # the app's 110k route: 24,831 database images × 2,048
     python benchmarks/bench_auto_sample.py --n 100000 --dim 1280 --seeds 3   # a protocol split at Nordland scale
@@ -11,7 +11,7 @@ Side by side in one process, on seeded Nordland-like descriptors with place stru
 
 1. time of one sample: ``sample="tiles"`` (the default: a seeded permutation cut into groups,
    every pair between neighbouring groups, each tile one float32 GEMM) against
-   ``sample="pairs"`` (the former default: 2·10⁶ independent pairs, each a gathered row pair),
+   ``sample="pairs"`` (2·10⁶ independent pairs, each a gathered row pair),
    their ratio, and the tiles' GEMM rate as a share of numpy's float32 GEMM peak measured
    in the same run (``gemm_peak``; the step's flops: 2·D per pair);
 2. the automatic θ over ``--seeds`` seeds of each sample: mean and standard deviation (its
@@ -20,15 +20,15 @@ Side by side in one process, on seeded Nordland-like descriptors with place stru
    with the independent-pairs θ within that error.
 
 Above ``thresholds.AUTO_TILE_IMAGES`` (131,072) training images the tiles are drawn over a
-seeded subset of that many images (issue 14 §2): the run then also times and compares the tiles
-over all ``--n`` images (``images=n``, before). ``--mmap`` reads the descriptors from a float16
+seeded subset of that many images: the run then also times and compares the tiles
+over all ``--n`` images (``images=n``). ``--mmap`` reads the descriptors from a float16
 memory map (a temporary file), as the app reads a million-image database, instead of memory.
 
-``--pooled RUNS`` instead compares the protocols' two ways of taking each split's θ (issue 13
-§4), on the ``--n`` images as places of 12 and ``RUNS`` seeded splits (one query per place):
-a tile sample of each split's own training images (``training_pair_scores(rows=train)``,
-before) against one tile sample per run over all images, of which each split keeps its
-training pairs (``thresholds.pooled_pair_sample``, now). It prints the time of all the
+``--pooled RUNS`` instead compares two ways of taking each split's θ in a protocol,
+on the ``--n`` images as places of 12 and ``RUNS`` seeded splits (one query per place):
+a tile sample of each split's own training images (``training_pair_scores(rows=train)``)
+against one tile sample per run over all images, of which each split keeps its
+training pairs (``thresholds.pooled_pair_sample``). It prints the time of all the
 splits' θ each way (best of ``--seeds``), and split 0's θ over ``--seeds`` seeds of each:
 mean, standard deviation, and the difference of the means in standard errors.
 """
@@ -126,7 +126,7 @@ def tiles_against_pairs(d: np.ndarray, args: argparse.Namespace) -> None:
     if n > AUTO_TILE_IMAGES:  # the default tiles are a subset's: the tiles over every image too
         kinds["all-image tiles"] = {"sample": "tiles", "images": n}
         print(f"tiles over a seeded subset of {AUTO_TILE_IMAGES:,} of the {n:,} images (AUTO_TILE_IMAGES); "
-              f"all-image tiles: over all {n:,} (before)")
+              f"all-image tiles: over all {n:,}")
     theta: dict[str, list[float]] = {k: [] for k in kinds}
     seconds: dict[str, list[float]] = {k: [] for k in kinds}
     cpu: dict[str, list[float]] = {k: [] for k in kinds}

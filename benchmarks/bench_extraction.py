@@ -9,7 +9,7 @@ For each extractor, on the same GardensPoint images and batch size:
 * **cached**: ``extract_descriptors`` again, every image now a cache hit.
 
 The pipeline's goal is end-to-end >= 0.8x bare forward: decoding should hide behind
-the model. Against the machine's limit (issue 13), each torch model's bare forward also
+the model. Against the machine's limit, each torch model's bare forward also
 prints its achieved rate, the convolution and matrix flops torch counts for one batch
 (``torch.utils.flop_counter``) times the batches over the time, as a share of a GEMM peak
 measured in the same process: numpy's float32 GEMM on the CPU (``gemm_peak``, which names

@@ -11,7 +11,7 @@ memory is its own, it reads all N vectors back the way ``extract_descriptors`` d
 warm run (``DescriptorCache.lookup``, then ``renormalise_in_place`` for a float32 result):
 
 * storage float32, dtype float32 (the default),
-* storage float16, dtype float32 (float16 on disk only: what the cache could do before),
+* storage float16, dtype float32 (float16 on disk only, float32 in memory),
 * storage float16, dtype float16 (``--dtype float16``).
 
 Prints per configuration the median wall time of the lookup (and of the renormalisation),

@@ -1,4 +1,4 @@
-"""The explorer on a synthetic 1,000,000-image position-tagged database (issue 14 §2).
+"""The explorer on a synthetic 1,000,000-image position-tagged database.
 
 Writes (once, into ``--out``) a route of ``--database`` images one metre apart and
 ``--queries`` queries (``vpr_explorer.data.example_million``: a manifest ``path,role,x,y``,
@@ -22,7 +22,8 @@ memory after it (``ru_maxrss``; the memory map's pages count in it while residen
   the Places page's sampled overview; each fit with its GEMM floor (2·N·D² flops, the Gram
   and the quadratic forms, at the floor pass's rate), and at the end whether any refit can
   be under 3 s on this machine (at D = 2,048 and 500,000 images in places it cannot);
-* one place (its images against the database), one query, the next rejected query;
+* one place (its images against the database: the Thresholds page), one query, the next
+  rejected query (the Query inspector);
 * the evaluation of every query with the database/queries protocol;
 * ``--faiss``: the image-level top-10 of every query by ``faiss.IndexFlatIP`` against the
   same blocked numpy pass (numbers side by side, results compared);
@@ -110,7 +111,7 @@ def main(argv: list[str] | None = None) -> None:
 
     from gemm_peak import blas_kernel, load_average
 
-    from vpr_explorer.views import database_queries as rv
+    from vpr_explorer.views import numbers as rv
     from vpr_explorer.data.example_million import write_route_database
     from vpr_explorer.pipeline import evaluate_retrieval, imported_descriptors, open_dataset
     from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry
@@ -237,11 +238,11 @@ def app_pages(manifest: Path, npy: Path, dataset, args, floor: float, report) ->
     import streamlit as st
     from streamlit.testing.v1 import AppTest
 
-    from vpr_explorer.app import ENTRY
-
+    from vpr_explorer.app import DATA_ROOT_ENV, ENTRY, PAGES
     from vpr_explorer.descriptors.store import MMAP_ENV
 
     os.environ[MMAP_ENV] = "0"  # the same memory-mapped path at any size (by itself the app maps from 1 GiB)
+    os.environ[DATA_ROOT_ENV] = str(manifest.parent.resolve())  # the app opens only what lies under its data root
     st.cache_data.clear()
     st.cache_resource.clear()
     at = AppTest.from_file(str(ENTRY), default_timeout=1800)
@@ -259,21 +260,27 @@ def app_pages(manifest: Path, npy: Path, dataset, args, floor: float, report) ->
         return result
 
     at = timed("Dataset page, first open", at.run)
+    assert not any("data root" in w.value for w in at.warning), [w.value for w in at.warning]
     at = timed("Dataset page, again", at.run)
-    at = timed("Places (fit, sampled overview, map)", lambda: at.switch_page("pages/places.py").run())
-    at = timed("Places: one place", lambda: at.number_input(key="w_place_one").set_value(7).run())
+
+    def page(name: str):
+        return lambda: at.switch_page(str(PAGES / f"{name}.py")).run()
+
+    at = timed("Places (fit, sampled overview, map)", page("places"))
+    at = timed("Thresholds: one place", page("thresholds"))
+    at = timed("Thresholds: another place", lambda: at.selectbox(key="w_place").set_value(7).run())
+    at = timed("Places: again (kept fit)", page("places"))
     at = timed(f"Places: step {args.step:g} -> {args.step2:g} m",
                lambda: at.number_input(key="w_step_m").set_value(args.step2).run())
     at = timed(f"Places: back to {args.step:g} m (kept)",
                lambda: at.number_input(key="w_step_m").set_value(args.step).run())
-    at = timed("Inspector: one query", lambda: at.switch_page("pages/inspector.py").run())
-    at = timed("Inspector: another query", lambda: at.number_input(key="w_query_number").set_value(
+    at = timed("Inspector: one query", page("inspector"))
+    at = timed("Inspector: another query", lambda: at.number_input(key="w_frame_number").set_value(
         dataset.n_queries // 2).run())
     at = timed("Inspector: next rejected", lambda: at.button(key="w_find_next").click().run())  # the paper's method
-    at = timed("Evaluation: page (waits for Run)", lambda: at.switch_page("pages/evaluation.py").run())
+    at = timed("Evaluation: page (Run above the pair budget)", page("evaluation"))
     if not args.skip_eval:
-        at = timed(f"Evaluation: Run ({dataset.n_queries:,} queries)",
-                   lambda: at.button(key="w_retrieval_run").click().run())
+        at = timed(f"Evaluation: Run ({dataset.n_queries:,} queries)", lambda: at.button(key="w_run").click().run())
 
 
 if __name__ == "__main__":

@@ -4,9 +4,9 @@
         [--pair-n 20000] [--pair-places 2000] [--shared 0.0] [--repeats 3] [--device cuda]
 
 1. The closed form (O(N·D²)) at N = 100,000, D = 1,280, 12,500 places, with float32
-   products (the default) and in float64 (the code before issue 13, with its block of
-   8,192 rows): times, ratio, max |Δμ| and |Δσ| between them, the flops the step needs and
-   those it does, and the share of this process's float32 GEMM peak (``gemm_peak``).
+   products (the default) and in float64 (in blocks of 8,192 rows): times, ratio, max |Δμ|
+   and |Δσ| between them, the flops the step needs and those it does, and the share of this
+   process's float32 GEMM peak (``gemm_peak``).
 2. The closed form against the pairwise computation (O(N²·D)) at N = 20,000, 2,000 places:
    the pairwise side is the reference done in row blocks (never holding N×N).
 
@@ -27,7 +27,7 @@ import numpy as np
 from gemm_peak import load_average, measure_peak, share
 from vpr_explorer.method.stats import BLOCK, negative_stats
 
-FLOAT64_BLOCK = 8192  # the float64 code's block before issue 13
+FLOAT64_BLOCK = 8192  # rows per block of the float64 closed form
 
 
 def pairwise(d: np.ndarray, labels: np.ndarray, block: int = 2048) -> tuple[np.ndarray, np.ndarray]:

@@ -1,14 +1,18 @@
-"""Traversal playback cost: logging a traversal to rerun beside the decisions themselves, and its memory.
+"""Playback cost: logging a query traversal to rerun beside the decisions themselves, and its memory.
+
+Each dataset is the value of two aligned traversals (``data.aligned.database_queries``),
+fitted with ``views.numbers.fit_retrieval`` (places over frames); its queries are decided
+by ``recording.decide_every_query`` and logged by ``recording.log_queries``.
 
 * **GardensPoint**: night_right against day_right, all 200 query frames with their images
-  at original size (960×540 JPEG): the time of ``decide_traversal`` (the decisions)
-  beside the time of ``log_traversal`` (writing them, and 600 images, to an ``.rrd``).
+  at original size (960×540 JPEG): the time of ``decide_every_query`` (the decisions)
+  beside the time of ``log_queries`` (writing them, and 600 images, to an ``.rrd``).
 * **Nordland_64x32**: winter against summer, 3,576 query frames. Images are read from
-  disk one frame at a time; the resident memory added while logging is sampled and
+  disk one query at a time; the resident memory added while logging is sampled and
   printed beside the bytes of all images logged. As a control, the same logging into an
   in-memory sink (which keeps everything) shows what holding every image costs.
 
-Against the machine's limit (issue 13): the decisions' achieved rate, counting only the
+Against the machine's limit: the decisions' achieved rate, counting only the
 similarities they need (2·F·N·D flops for F query frames against N database images), as a
 share of numpy's float32 GEMM rate on a comparable shape measured in the same run
 (``gemm_peak``, which names the BLAS kernel). Run::
@@ -29,11 +33,12 @@ import numpy as np
 
 from gemm_peak import decision_flops, measure_peak, share
 from vpr_explorer import settings
-from vpr_explorer.method.database import decide_traversal, fit_database
+from vpr_explorer.data.aligned import database_queries, value_rows
 from vpr_explorer.data.traversals import load_dataset
+from vpr_explorer.method.places import PlaceGeometry, PlaceSpec
 from vpr_explorer.pipeline import dataset_descriptors
-from vpr_explorer.method.places import PlaceSpec, make_places
-from vpr_explorer.recording import RECORDED, log_traversal, new_recording
+from vpr_explorer.recording import RECORDED, decide_every_query, log_queries, new_recording
+from vpr_explorer.views.numbers import RetrievalPlaces, fit_retrieval
 
 MB = 1024 * 1024
 
@@ -45,11 +50,11 @@ def rss() -> int:
 
 
 class FrameLoopMemory:
-    """Memory added while ``log_traversal`` streams the images, frame by frame.
+    """Memory added while ``log_queries`` streams the images, query by query.
 
-    Use as its ``progress`` callback: at the first frame it notes the resident set size and
+    Use as its ``progress`` callback: at the first query it notes the resident set size and
     resets tracemalloc's peak; a thread samples the resident size every 5 ms until ``stop``.
-    Everything logged before the frame loop (the series, as columns) is excluded.
+    Everything logged before the query loop (the series, as columns) is excluded.
     """
 
     def __init__(self) -> None:
@@ -70,7 +75,7 @@ class FrameLoopMemory:
             self.start = self.peak = rss()
 
     def stop(self) -> tuple[int, int]:
-        """(resident growth, Python heap peak) in bytes over the frame loop."""
+        """(resident growth, Python heap peak) in bytes over the query loop."""
         self._stop.set()
         self._thread.join()
         self.peak = max(self.peak, rss())
@@ -79,11 +84,13 @@ class FrameLoopMemory:
 
 
 def setup(root: Path, descriptor: str, spec: PlaceSpec, database: str, query: str):
+    """The value of traversals ``query`` against ``database``, its descriptors in its order, and its fit."""
     dataset = load_dataset(root, [database, query])
     desc = dataset_descriptors(dataset, descriptor)
-    places = make_places(dataset, spec)
-    model = fit_database(desc, dataset, places, [database])
-    return dataset, desc, places, model
+    value = database_queries(dataset, query, [database])
+    rows = value_rows(value)
+    d = desc if rows is None else desc[rows]
+    return d, fit_retrieval(d, value, RetrievalPlaces(PlaceGeometry.FRAMES, spec=spec))
 
 
 def timed(fn, repeat: int) -> tuple[float, object]:
@@ -96,39 +103,39 @@ def timed(fn, repeat: int) -> tuple[float, object]:
     return best, out
 
 
-def logged_image_bytes(dataset, model, decisions) -> tuple[int, int]:
+def logged_image_bytes(decisions) -> tuple[int, int]:
     """(files, bytes) of the images one recording logs: each query and each method's answer image."""
-    files = [dataset.image_paths[q] for q in decisions.query_images]
+    value, model = decisions.fitted.dataset, decisions.fitted.model
+    files = [Path(p) for p in value.query_paths]
     for key in RECORDED:
         a = decisions.outcomes[key].answer_image
-        files += [dataset.image_paths[model.images[i]] for i in a[a >= 0]]
+        files += [Path(value.database_paths[model.images[i]]) for i in a[a >= 0]]
     return len(files), sum(p.stat().st_size for p in files)
 
 
-def record_to_file(path: Path, dataset, places, model, decisions, progress=None) -> None:
+def record_to_file(path: Path, decisions, progress=None) -> None:
     rec = new_recording()
     rec.save(path)
-    log_traversal(rec, dataset, places, model, decisions, progress=progress)
+    log_queries(rec, decisions, progress=progress)
     rec.flush()
     rec.disconnect()
 
 
 def bench_gardens_point(data: Path, descriptor: str, repeat: int) -> None:
-    dataset, desc, places, model = setup(data / "GardensPointWalking", descriptor, PlaceSpec(3, 10),
-                                         "day_right", "night_right")
-    t_decide, decisions = timed(lambda: decide_traversal(model, desc, dataset, places, "night_right"), repeat)
-    n_files, n_bytes = logged_image_bytes(dataset, model, decisions)
+    desc, fitted = setup(data / "GardensPointWalking", descriptor, PlaceSpec(3, 10), "day_right", "night_right")
+    t_decide, decisions = timed(lambda: decide_every_query(fitted, desc), repeat)
+    n_files, n_bytes = logged_image_bytes(decisions)
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "gp.rrd"
-        t_log, _ = timed(lambda: record_to_file(out, dataset, places, model, decisions), repeat)
+        t_log, _ = timed(lambda: record_to_file(out, decisions), repeat)
         size = out.stat().st_size
-    n = len(decisions.query_images)
-    print(f"GardensPoint: night_right against day_right, {descriptor}, {places.describe()}, {n} query frames")
-    print(f"  decisions (decide_traversal)     {t_decide * 1e3:8.1f} ms")
-    print(f"  recording (log_traversal → .rrd) {t_log * 1e3:8.1f} ms   {t_log / n * 1e3:.2f} ms/frame; "
+    n = decisions.n_queries
+    print(f"GardensPoint: night_right against day_right, {descriptor}, {fitted.describe()}, {n} query frames")
+    print(f"  decisions (decide_every_query)   {t_decide * 1e3:8.1f} ms")
+    print(f"  recording (log_queries → .rrd)   {t_log * 1e3:8.1f} ms   {t_log / n * 1e3:.2f} ms/query; "
           f"{n_files} images at original size ({n_bytes / MB:.1f} MB of JPEG), .rrd {size / MB:.1f} MB")
     print(f"  recording / decisions            {t_log / t_decide:8.1f} x   (best of {repeat})")
-    print_share(t_decide, n, len(model.images), desc.shape[1])
+    print_share(t_decide, n, len(fitted.model.images), desc.shape[1])
 
 
 def print_share(seconds: float, n_frames: int, n_database: int, dim: int) -> None:
@@ -139,18 +146,18 @@ def print_share(seconds: float, n_frames: int, n_database: int, dim: int) -> Non
 
 
 def bench_nordland(data: Path, descriptor: str, spec: PlaceSpec) -> None:
-    dataset, desc, places, model = setup(data / "Nordland_64x32", descriptor, spec, "summer", "winter")
+    desc, fitted = setup(data / "Nordland_64x32", descriptor, spec, "summer", "winter")
     t = time.perf_counter()
-    decisions = decide_traversal(model, desc, dataset, places, "winter")
+    decisions = decide_every_query(fitted, desc)
     t_decide = time.perf_counter() - t
-    n_files, n_bytes = logged_image_bytes(dataset, model, decisions)
-    n = len(decisions.query_images)
+    n_files, n_bytes = logged_image_bytes(decisions)
+    n = decisions.n_queries
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "nordland.rrd"
         tracemalloc.start()
         watch = FrameLoopMemory()
         t = time.perf_counter()
-        record_to_file(out, dataset, places, model, decisions, progress=watch)
+        record_to_file(out, decisions, progress=watch)
         t_log = time.perf_counter() - t
         file_growth, heap_peak = watch.stop()
         tracemalloc.stop()
@@ -158,15 +165,16 @@ def bench_nordland(data: Path, descriptor: str, spec: PlaceSpec) -> None:
     watch = FrameLoopMemory()
     rec = new_recording()
     held = rec.memory_recording()
-    log_traversal(rec, dataset, places, model, decisions, progress=watch)
+    log_queries(rec, decisions, progress=watch)
     rec.flush()
     memory_growth, _ = watch.stop()
     memory_size = len(held.drain_as_bytes())
     del held, rec
-    print(f"Nordland_64x32: winter against summer, {descriptor}, {places.describe()}, {n} query frames")
-    print(f"  decisions (decide_traversal)     {t_decide * 1e3:8.1f} ms")
-    print_share(t_decide, n, len(model.images), desc.shape[1])
-    print(f"  recording (log_traversal → .rrd) {t_log * 1e3:8.1f} ms   {t_log / n * 1e3:.2f} ms/frame; .rrd {size / MB:.1f} MB")
+    print(f"Nordland_64x32: winter against summer, {descriptor}, {fitted.describe()}, {n} query frames")
+    print(f"  decisions (decide_every_query)   {t_decide * 1e3:8.1f} ms")
+    print_share(t_decide, n, len(fitted.model.images), desc.shape[1])
+    print(f"  recording (log_queries → .rrd)   {t_log * 1e3:8.1f} ms   {t_log / n * 1e3:.2f} ms/query; "
+          f".rrd {size / MB:.1f} MB")
     print(f"  images logged                    {n_files} files, {n_bytes / MB:.1f} MB on disk")
     print(f"  while streaming the images       Python heap peak {heap_peak / MB:.2f} MB (tracemalloc), "
           f"resident +{file_growth / MB:.1f} MB (file sink)")

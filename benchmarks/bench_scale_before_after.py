@@ -1,10 +1,12 @@
-"""The 50-split protocol's pass and whole run, an earlier ``scale.py`` against today's ``scale`` package, side by side.
+"""The 50-split protocol's pass and whole run: an earlier commit's one-file ``scale`` against the package, side by side.
 
-    git show 8ebd70a:vpr_explorer/scale.py > /tmp/scale_before.py
-    python benchmarks/bench_scale_before_after.py /tmp/scale_before.py [--places 2250] [--repeats 2]
+    python benchmarks/bench_scale_before_after.py 69166e8 [--places 2250] [--repeats 2]
 
-Loads the earlier one-file module (its own private names: ``_blocked_pass``, ``_Entries``) from the
-given file beside ``vpr_explorer.protocols.scale``, and on the same
+Reads the earlier commit's ``vpr_explorer`` package with ``git archive`` into a temporary
+folder (the repository is only read) and imports its one-file ``scale`` module
+(``vpr_explorer/protocols/scale.py``, or ``vpr_explorer/scale.py`` in older commits; its own
+private names: ``_blocked_pass``, ``_Entries``) with that commit's package under it, beside
+this checkout's ``vpr_explorer.protocols.scale``; and on the same
 Nordland-like data (``bench_nordland_scale.nordland_like``, places of 12 images, 50 splits)
 times, alternating before/now ``--repeats`` times in this one process:
 
@@ -22,10 +24,17 @@ same outcomes (ranks, answered places and images, global θs) and per-place θs 
 from __future__ import annotations
 
 import argparse
-import importlib.util
+import atexit
+import importlib
+import io
 import os
+import shutil
+import subprocess
 import sys
+import tarfile
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -41,13 +50,52 @@ from vpr_explorer.protocols.scale.panel import PassInputs
 from vpr_explorer.protocols.scale.table import Entries
 
 PASS_THREADS = len(os.sched_getaffinity(0))  # the pass's threads: every CPU this process may use
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = "vpr_explorer"
+#: where the one-file module lies, by commit age
+EARLIER_MODULES = ("vpr_explorer.protocols.scale", "vpr_explorer.scale")
 
 
-def load_before(path: str):
-    spec = importlib.util.spec_from_file_location("scale_before", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["scale_before"] = module  # dataclasses look their module up
-    spec.loader.exec_module(module)
+def _package_modules() -> dict:
+    return {name: m for name, m in sys.modules.items() if name == PACKAGE or name.startswith(PACKAGE + ".")}
+
+
+def load_before(commit: str):
+    """The one-file ``scale`` module of ``commit``, imported with that commit's own ``vpr_explorer``.
+
+    Both packages live in this process: while the earlier one is imported, this checkout's
+    modules are set aside in ``sys.modules`` and put back after; each package's modules keep
+    the references they imported. (A name one of the earlier module's functions imports when
+    it runs resolves to this checkout's module: only ``device`` runs do that.)
+
+    Raises:
+        SystemExit: ``commit`` is not a commit of this repository, or has no one-file ``scale`` module.
+    """
+    try:
+        archive = subprocess.run(["git", "-C", str(ROOT), "archive", "--format=tar", commit, PACKAGE],
+                                 check=True, capture_output=True).stdout
+    except subprocess.CalledProcessError as exc:
+        sys.exit(f"before={commit!r}: git archive failed: {exc.stderr.decode().strip()}")
+    folder = tempfile.mkdtemp(prefix="scale_before_")
+    atexit.register(shutil.rmtree, folder, True)
+    with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
+        tar.extractall(folder)
+    name = next((m for m in EARLIER_MODULES if (Path(folder) / (m.replace(".", "/") + ".py")).is_file()), None)
+    if name is None:
+        sys.exit(f"before={commit!r}: no one-file scale module in that commit; name an earlier one (e.g. 69166e8)")
+    today = _package_modules()
+    for m in today:
+        del sys.modules[m]
+    sys.path.insert(0, folder)
+    try:
+        module = importlib.import_module(name)
+    finally:
+        sys.path.remove(folder)
+        for m in _package_modules():
+            del sys.modules[m]
+        sys.modules.update(today)
+    if not Path(module.__file__).resolve().is_relative_to(Path(folder).resolve()):
+        sys.exit(f"before={commit!r}: {name} was imported from {module.__file__}, not from the commit's files")
     return module
 
 
@@ -80,7 +128,7 @@ def cpu(fn):
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("before", help="path of the earlier scale.py (e.g. from git show COMMIT:vpr_explorer/protocols/scale.py)")
+    ap.add_argument("before", help="an earlier commit with a one-file scale module (e.g. 69166e8)")
     ap.add_argument("--places", type=int, default=2250, help="places of 12 images (default 2,250: 27,000 images)")
     ap.add_argument("--dim", type=int, default=1280)
     ap.add_argument("--runs", type=int, default=50)

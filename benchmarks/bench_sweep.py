@@ -1,8 +1,9 @@
 """A 6 × 6 group/step sweep on GardensPoint and Nordland_64x32: time per cell against one ``evaluate`` of it.
 
 For each dataset: the descriptors are read once (the on-disk cache; timed apart), then
-``sweep.sweep`` runs a 6 × 6 grid (groups 1–6 × steps 5–30, the stride reading: 35 cells
-valid, group 6 step 5 would overlap) with the paper protocol and precision–recall (the AUC).
+``sweep.sweep`` (its stages: ``vpr_explorer.pipeline``) runs a 6 × 6 grid (groups 1–6 ×
+steps 5–30, the stride reading: 35 cells valid, group 6 step 5 would overlap) with the paper
+protocol and precision–recall (the AUC).
 The sweep shares one ``shared_scores.SharedScores`` between its cells (the float32
 similarity of all images and the float64 Gram the negative statistics come from); the
 first cell builds it, and that one-off cost is also timed on its own. Beside it, in the
@@ -28,10 +29,11 @@ import sys
 import time
 from pathlib import Path
 
-from vpr_explorer import settings
+from vpr_explorer import pipeline, settings
 from vpr_explorer.data.traversals import load_dataset
-from vpr_explorer.pipeline import dataset_descriptors, evaluate_dataset, run_protocol
 from vpr_explorer.method.places import PlaceSpec, make_places
+from vpr_explorer.pipeline import dataset_descriptors, evaluate_dataset, run_protocol
+from vpr_explorer.protocols.options import ProtocolOptions
 from vpr_explorer.protocols.shared_scores import SHARED_LIMIT, SharedScores
 from vpr_explorer.protocols.sweep import SweepSpec, sweep
 
@@ -52,7 +54,7 @@ def bench(root: Path, descriptor: str, runs: int, protocol: str) -> None:
         cpu.append(time.process_time())
         print(f"  cell {done}/{total} ({message})", end="\r", file=sys.stderr)
 
-    result = sweep(dataset, d, spec, descriptor=descriptor, progress=progress)
+    result = sweep(dataset, d, spec, pipeline, descriptor=descriptor, progress=progress)
     print(" " * 60, end="\r", file=sys.stderr)
     cell_cpu = {c.spec: cpu[i + 1] - cpu[i] for i, c in enumerate(result.cells)}
     ran = [c for c in result.cells if not c.empty and c.same_as is None]
@@ -83,14 +85,15 @@ def bench(root: Path, descriptor: str, runs: int, protocol: str) -> None:
     print(f"  {'':<16} {'':>6} {'wall/CPU s':>13} {'wall/CPU s':>13} {'wall/CPU s':>13} "
           f"{'wall / CPU':>12} {'wall / CPU':>15}")
     ratios = {"alone": ([], []), "evaluate": ([], [])}
+    options = ProtocolOptions(**spec.options(), pr=spec.pr)  # what each of the sweep's cells runs with
     for c in picks:
         spec_c = PlaceSpec(c.group, c.step, c.reading)
         t, p = time.perf_counter(), time.process_time()
-        solo = run_protocol(protocol, dataset, make_places(dataset, spec_c), d, runs=runs, pr=True,
+        solo = run_protocol(protocol, dataset, make_places(dataset, spec_c), d, options,
                             settings={"descriptor": descriptor, "dtype": str(d.dtype)})
         solo_s = (time.perf_counter() - t, time.process_time() - p)
         t, p = time.perf_counter(), time.process_time()
-        ev = evaluate_dataset(root, spec_c, descriptor, protocol, runs=runs, pr=True)
+        ev = evaluate_dataset(root, spec_c, descriptor, protocol, options)
         eval_s = (time.perf_counter() - t, time.process_time() - p)
         cell_s = (c.seconds, cell_cpu[c.spec])
         auc = next(r.auc for r in ev.pr if r.key == spec.method)

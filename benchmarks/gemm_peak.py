@@ -104,7 +104,7 @@ def decision_flops(n_frames: int, n_database: int, dim: int) -> float:
 
 
 def fit_flops(n_database: int, dim: int) -> float:
-    """Flops a database fit needs (``database.fit_database``, float32 closed form and the automatic θ):
+    """Flops a database fit needs (``numbers.fit_retrieval``, float32 closed form and the automatic θ):
     the symmetric Gram N·D(D+1), the quadratic forms 2·N·D², and 2·D per pair of the automatic
     θ's sample (all pairs, or ``thresholds.tile_groups``' tiles). Per-place terms (O(N·k·D)) are left out."""
     from vpr_explorer.method.thresholds import AUTO_MAX_PAIRS, tile_groups

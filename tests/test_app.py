@@ -27,10 +27,10 @@ from vpr_explorer.method.places import PlaceSpec, make_places
 from vpr_explorer.views.report import method_csv
 from vpr_explorer.data.aligned import database_queries, value_rows
 from vpr_explorer.method.places import PlaceGeometry
-from vpr_explorer.views.database_queries import RetrievalPlaces, fit_retrieval, overview, place_detail
-from vpr_explorer.views.database_queries import database_label, describe_answer, find_query, image_answer
-from vpr_explorer.views.database_queries import explain_query
-from vpr_explorer.views.traversal import regroup, top_candidates
+from vpr_explorer.views.numbers import RetrievalPlaces, fit_retrieval, overview, place_detail
+from vpr_explorer.views.numbers import database_label, describe_answer, find_query, image_answer
+from vpr_explorer.views.numbers import explain_query
+from vpr_explorer.views.numbers import top_candidates
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -188,7 +188,7 @@ def test_playback_page_records_every_query_as_the_library_decides(app, layout, r
     from vpr_explorer.method.database import Verdict
     from vpr_explorer.method.retrieval import METHODS_BY_KEY
     from vpr_explorer.pipeline import dataset_descriptors, open_dataset, resolve_dataset
-    from vpr_explorer.views.database_queries import BETWEEN, UNKNOWN
+    from vpr_explorer.views.numbers import BETWEEN, UNKNOWN
 
     if layout == "demo":
         dataset = resolve_dataset("demo")
@@ -550,7 +550,7 @@ def test_evaluation_bad_protocol_setting_shows_an_error(app):
 
 
 def test_evaluation_similarity_matrix_is_the_library_grid(app, demo, demo_pixels):
-    from vpr_explorer.views.database_queries import similarity_grid
+    from vpr_explorer.views.numbers import similarity_grid
 
     at = page(app.run(), "evaluation")
     value = database_queries(demo)
@@ -574,7 +574,7 @@ def test_evaluation_similarity_matrix_is_the_library_grid(app, demo, demo_pixels
 
 
 def test_places_over_the_pair_budget_decides_a_sample_and_says_so(app, demo, demo_pixels, monkeypatch):
-    from vpr_explorer.views import database_queries as views
+    from vpr_explorer.views import numbers as views
 
     monkeypatch.setattr(views, "PAIR_BUDGET", 1000)
     at = page(app.run(), "places")
@@ -588,7 +588,7 @@ def test_places_over_the_pair_budget_decides_a_sample_and_says_so(app, demo, dem
 
 
 def test_inspector_search_over_the_budget_moves_on_and_says_to_press_again(app, monkeypatch):
-    from vpr_explorer.views import database_queries as views
+    from vpr_explorer.views import numbers as views
 
     at = page(app.run(), "inspector")
     at.selectbox(key="w_find_method").set_value("place-baseline").run()  # never rejects: searches everything
@@ -602,9 +602,9 @@ def test_inspector_search_over_the_budget_moves_on_and_says_to_press_again(app, 
 
 
 def test_evaluation_over_the_auto_run_size_waits_for_run(app, demo, demo_pixels, monkeypatch):
-    from vpr_explorer.views import database_queries as views, traversal
+    from vpr_explorer.views import numbers as views
 
-    monkeypatch.setattr(traversal, "AUTO_RUN_PAIRS", 100)
+    monkeypatch.setattr(views, "AUTO_RUN_PAIRS", 100)
     monkeypatch.setattr(views, "PAIR_BUDGET", 1000)
     at = page(app.run(), "evaluation")
     assert_clean(at)

@@ -25,7 +25,7 @@ from vpr_explorer.data.example_layouts import utm_name, write_gardens_point_layo
 from vpr_explorer.data.aligned import database_queries
 from vpr_explorer.pipeline import dataset_descriptors, evaluate_retrieval, open_dataset
 from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec
-from vpr_explorer.views.database_queries import (
+from vpr_explorer.views.numbers import (
     DEFAULT_GROUP_M,
     DEFAULT_STEP_M,
     RetrievalPlaces,
@@ -39,7 +39,7 @@ from vpr_explorer.views.database_queries import (
     place_queries,
     query_label,
 )
-from vpr_explorer.views.traversal import evaluation_rows
+from vpr_explorer.views.numbers import evaluation_rows
 
 pytestmark = pytest.mark.realdata
 
@@ -122,8 +122,6 @@ def test_a_descriptor_file_typed_in_the_box_opens_and_picking_an_extractor_leave
 
 
 def test_a_descriptor_file_typed_for_aligned_traversals_names_every_page(demo, demo_pixels, tmp_path):
-    from vpr_explorer.views.traversal import regroup
-
     path = tmp_path / "demo-export.h5"  # hloc's layout
     write_descriptor_file(path, demo_pixels, demo.image_paths, demo.root)
     at = AppTest.from_file(str(ENTRY), default_timeout=TIMEOUT).run()
@@ -133,8 +131,10 @@ def test_a_descriptor_file_typed_for_aligned_traversals_names_every_page(demo, d
     assert any("demo-export descriptors ready: 180 × 2048" in s.value for s in at.success)
     at = page(at, "places")
     assert_clean(at)
-    r = regroup(demo_pixels, demo, PlaceSpec(3, 5))
-    assert metric(at, "place-level R@1") == f"{r.recall1['place-baseline']:.0%}"
+    value = database_queries(demo)  # snow queries: the traversals' own order
+    ov = overview(fit_retrieval(demo_pixels, value, RetrievalPlaces(PlaceGeometry.FRAMES, spec=PlaceSpec(3, 5))),
+                  demo_pixels)
+    assert metric(at, "place-level R@1") == f"{ov.recall1['place-baseline']:.0%}"
     at = page(at, "evaluation")
     assert_clean(at)
     assert any("descriptor: demo-export" in c.value for c in at.caption)  # the protocol's settings name it
@@ -187,9 +187,9 @@ def test_every_layout_opens_with_its_ground_truth(layouts, layout, says):
 
 
 def test_a_big_protocol_waits_for_run(layouts, npz, monkeypatch):
-    from vpr_explorer.views import traversal
+    from vpr_explorer.views import numbers
 
-    monkeypatch.setattr(traversal, "AUTO_RUN_PAIRS", 1000)  # GardensPoint's 200 × 200 counts as big
+    monkeypatch.setattr(numbers, "AUTO_RUN_PAIRS", 1000)  # GardensPoint's 200 × 200 counts as big
     at = page(opened(layouts["database-queries"], npz), "evaluation")
     assert_clean(at)
     assert not at.dataframe and any("does not start by itself" in i.value for i in at.info)

@@ -2,7 +2,7 @@
 
 - Nordland 64x32, winter frame 0: the margin rule answers a place far down the raw_p
   order; every method's chart in the Query inspector must still carry its answer
-  (outlined) and the right place (starred). Expected from ``database_queries.explain_query``
+  (outlined) and the right place (starred). Expected from ``numbers.explain_query``
   on the dataset value directly.
 - Playback: a recorded frame opens in the Query inspector on the same query traversal
   and frame.
@@ -22,8 +22,8 @@ from test_browser import assert_no_exception, browser, settle  # noqa: F401  (br
 from vpr_explorer.data.aligned import database_queries, value_rows
 from vpr_explorer.method.places import PlaceGeometry, PlaceSpec
 from vpr_explorer.method.retrieval import METHODS_BY_KEY
-from vpr_explorer.views.database_queries import RetrievalPlaces, explain_query, fit_retrieval
-from vpr_explorer.views.traversal import LIVE_METHODS
+from vpr_explorer.views.numbers import RetrievalPlaces, explain_query, fit_retrieval
+from vpr_explorer.views.numbers import LIVE_METHODS
 
 pytestmark = [pytest.mark.browser, pytest.mark.realdata]
 sync_api = pytest.importorskip("playwright.sync_api")

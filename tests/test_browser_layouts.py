@@ -22,7 +22,7 @@ from vpr_explorer.descriptors.imported import write_descriptor_file
 from vpr_explorer.data.example_layouts import write_gardens_point_layouts
 from vpr_explorer.pipeline import dataset_descriptors, open_dataset
 from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry
-from vpr_explorer.views.database_queries import RetrievalPlaces, find_query, fit_retrieval
+from vpr_explorer.views.numbers import RetrievalPlaces, find_query, fit_retrieval
 
 pytestmark = [pytest.mark.browser, pytest.mark.realdata]
 

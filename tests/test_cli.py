@@ -226,13 +226,19 @@ def record(tmp_path, capsys, name: str, *args: str):
 
 @pytest.fixture(scope="module")
 def demo_day_model():
-    from vpr_explorer.method.database import fit_database
+    """The demo route, its places (group 2, step 2) and the database model ``record`` fits: night against day."""
+    from vpr_explorer.data.aligned import database_queries, value_rows
+    from vpr_explorer.method.places import PlaceGeometry, PlaceSpec, make_places
     from vpr_explorer.pipeline import dataset_descriptors, resolve_dataset
-    from vpr_explorer.method.places import PlaceSpec, make_places
+    from vpr_explorer.views.numbers import RetrievalPlaces, fit_retrieval
 
     dataset = resolve_dataset("demo")
-    places = make_places(dataset, PlaceSpec(2, 2))
-    return dataset, places, fit_database(dataset_descriptors(dataset, "pixels"), dataset, places, ["day"])
+    spec = PlaceSpec(2, 2)
+    value = database_queries(dataset, "night", ["day"])
+    rows = value_rows(value)
+    d = dataset_descriptors(dataset, "pixels")
+    fitted = fit_retrieval(d if rows is None else d[rows], value, RetrievalPlaces(PlaceGeometry.FRAMES, spec=spec))
+    return dataset, make_places(dataset, spec), fitted.model
 
 
 def test_record_k_raises_the_logged_thresholds_and_changes_decisions(tmp_path, capsys, demo_day_model):

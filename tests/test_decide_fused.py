@@ -1,13 +1,13 @@
-"""The fused decisions (``decide_traversal(fused=True)``) equal the straightforward path exactly.
+"""The decisions by place pieces (``views.numbers.decide_queries``) equal the straightforward path exactly.
 
-The fused path groups the database rows by place (``retrieval.PlaceLayout``), computes each
-block's similarities a piece of places at a time with their maxima (``layout_place_scores``)
-and reads back only the places that can change the image-level baseline
-(``score_layout_block``). Every rank, answer and image must equal those of
+``decide_queries`` groups the database images in places by place (``retrieval.PlaceLayout``),
+computes each block's similarities a piece of places at a time with their maxima
+(``layout_place_scores``) and reads back only the places that can change the image-level
+baseline (``score_layout_block``). Every rank, answer and image must equal those of
 ``place_scores`` + ``score_queries`` on the same float32 similarities: checked on real
 GardensPoint and Nordland (whose tunnels are runs of byte-identical frames, so exact and
 near ties are real), and on adversarial score matrices, across block sizes, piece sizes and
-thread counts.
+thread counts. (``tests/test_million.py`` checks the same on a float16 memory map.)
 
 Why decisions are equal, not merely close: every comparison is made in the precision of the
 straightforward path (a place's tie floor raw − 1e-5 in float32, the image-level rank and
@@ -21,20 +21,22 @@ comes first and however rows are cut (bit for bit), while its Haswell kernel (wh
 ``OPENBLAS_CORETYPE=Haswell`` selects) rounds by operand order and position, a few ulp
 (~1e-7). The tolerance rule covers that: ranks, answers and images are equal unless a
 score lies within ``EPS`` of a decision boundary, another score ± 1e-5 or a threshold
-(``retrieval`` module doc). The end-to-end tests compare raw_p within ``EPS`` and every
-decision exactly, except on such borderline queries (``borderline``), which must be rare.
+(``retrieval`` module doc). The end-to-end tests compare every decision exactly, except on
+such borderline queries (``borderline``), which must be rare.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import pytest
 
-from vpr_explorer.method import database
-from vpr_explorer.method.database import decide_traversal, fit_database
-from vpr_explorer.method.places import PlaceSpec, make_places
+from vpr_explorer.data.aligned import database_queries, value_rows
+from vpr_explorer.method.places import PlaceGeometry, PlaceSpec
 from vpr_explorer.method.retrieval import (
     TIE_TOLERANCE,
+    Outcome,
     PlaceLayout,
     layout_place_scores,
     place_scores,
@@ -43,6 +45,8 @@ from vpr_explorer.method.retrieval import (
     similarity,
     similarity_t,
 )
+from vpr_explorer.views import numbers as views
+from vpr_explorer.views.numbers import RetrievalFitted, RetrievalPlaces, decide_queries, fit_retrieval
 
 FIELDS = ("rank", "answer_place", "answer_image", "n_kept")
 #: Two GEMMs of the same unit descriptors differ by a few float32 ulp on any BLAS kernel
@@ -51,51 +55,70 @@ FIELDS = ("rank", "answer_place", "answer_image", "n_kept")
 EPS = 5e-7
 
 
-def borderline(decisions, model, descriptors) -> tuple[np.ndarray, np.ndarray]:
-    """Where a score lies within ``EPS`` of a decision boundary (``retrieval`` module doc).
+@dataclass(frozen=True, eq=False)
+class Straightforward:
+    """The straightforward path's decisions of some queries: query × database scores, their place
+    maxima (``place_scores``) and every method's outcome (``score_queries``)."""
 
-    Returns ``(frames, cells)``: ``cells`` ``(n_frames, n_places)`` marks a place with an image
-    scoring its raw_p − 1e-5 (which of its images is "best" may go either way); ``frames``
-    a frame whose decisions may: an image at its best right score or its top score − 1e-5
-    (ranks, the image-level answer), a place at the top raw_p − 1e-5 (the answer) or at a
-    threshold (kept or not), or a marked cell among the places that can be its answer.
-    Scores from ``similarity``, the straightforward path's own.
+    sims: np.ndarray
+    raw: np.ndarray
+    truth: np.ndarray
+    thresholds: dict
+    db_places: np.ndarray
+    outcomes: dict[str, Outcome]
+
+
+def straightforward(fitted: RetrievalFitted, descriptors: np.ndarray, queries: np.ndarray, *, k: float = 0.0,
+                    user_theta: float | None = None) -> Straightforward:
+    model = fitted.model
+    q = np.asarray(descriptors[fitted.dataset.n_database + queries], dtype=np.float32)
+    sims = similarity(q, np.asarray(descriptors[model.images], dtype=np.float32))
+    raw, best = place_scores(sims, model.places, fitted.n_places)
+    th = model.thresholds(k, user_theta)
+    truth = fitted.right_places(queries)
+    outcomes = score_queries(sims, model.places, fitted.n_places, th, truth, raw_best=(raw, best))
+    return Straightforward(sims, raw, truth, th, model.places, outcomes)
+
+
+def borderline(ref: Straightforward) -> np.ndarray:
+    """``(n_queries,)`` the queries whose decisions may go either way (``retrieval`` module doc).
+
+    A query with a score within ``EPS`` of a decision boundary: an image at its best right
+    score or its top score − 1e-5 (ranks, the image-level answer), a place at the top
+    raw_p − 1e-5 (the answer) or at a threshold (kept or not), or, among the places that can
+    be its answer, a place with an image scoring its raw_p − 1e-5 (which of its images is
+    "best" may go either way). Scores from ``similarity``, the straightforward path's own.
     """
-    sims = similarity(descriptors[decisions.query_images], descriptors[model.images]).astype(np.float64)
-    raw = decisions.raw.astype(np.float64)
+    sims, places = ref.sims.astype(np.float64), ref.db_places
+    raw = ref.raw.astype(np.float64)
     with np.errstate(invalid="ignore"):
         def at(values, edge):
             return np.abs(values - (edge - TIE_TOLERANCE)) <= EPS
 
-        cell_hit = at(sims, raw[:, model.places])
+        cell_hit = at(sims, raw[:, places])
         cells = np.zeros(raw.shape, dtype=bool)
-        for p in np.unique(model.places):
-            cells[:, p] = cell_hit[:, model.places == p].any(axis=1)
-        right = np.where(decisions.truth, raw, -np.inf).max(axis=1, keepdims=True)
+        for p in np.unique(places):
+            cells[:, p] = cell_hit[:, places == p].any(axis=1)
+        right = np.where(ref.truth, raw, -np.inf).max(axis=1, keepdims=True)
         top = raw.max(axis=1, keepdims=True)
-        frames = at(sims, right).any(axis=1) | at(sims, sims.max(axis=1, keepdims=True)).any(axis=1)
-        frames |= at(raw, top).any(axis=1)
-        frames |= (cells & (raw >= top - TIE_TOLERANCE - EPS)).any(axis=1)
-        for th in decisions.thresholds.values():
-            frames |= (np.abs(raw - np.asarray(th, dtype=np.float64)) <= EPS).any(axis=1)
-    return frames, cells
+        queries = at(sims, right).any(axis=1) | at(sims, sims.max(axis=1, keepdims=True)).any(axis=1)
+        queries |= at(raw, top).any(axis=1)
+        queries |= (cells & (raw >= top - TIE_TOLERANCE - EPS)).any(axis=1)
+        for th in ref.thresholds.values():
+            queries |= (np.abs(raw - np.asarray(th, dtype=np.float64)) <= EPS).any(axis=1)
+    return queries
 
 
-def assert_same_decisions(a, b, *, near=None):
-    """raw_p within ``EPS``; equal ranks, answers and images except on the frames and places
-    ``near`` (``borderline``) marks, which must be rare (at most 2% of each; Nordland's
-    tunnels, runs of near-identical frames, have 1.5% of their frames there)."""
-    np.testing.assert_allclose(a.raw, b.raw, rtol=0, atol=EPS)
-    assert a.raw.dtype == b.raw.dtype and a.best.dtype == b.best.dtype
-    assert a.outcomes.keys() == b.outcomes.keys()
-    frames, cells = (np.zeros(len(a.raw), bool), np.zeros(a.raw.shape, bool)) if near is None else near
-    assert frames.mean() <= 0.02 and cells.mean() <= 0.02, f"{frames.sum()} borderline frames, {cells.sum()} places"
-    same = (a.best == b.best) | cells
-    assert same.all(), f"best images differ at {np.argwhere(~same)[:5]}"
-    keep = ~frames
-    for key in a.outcomes:
+def assert_same_decisions(got: dict[str, Outcome], ref: Straightforward):
+    """Equal ranks, answers and images but on the queries ``borderline`` marks, which must be rare
+    (at most 2%; Nordland's tunnels, runs of near-identical frames, have 1.5% of their frames there)."""
+    near = borderline(ref)
+    assert near.mean() <= 0.02, f"{near.sum()} borderline queries"
+    assert got.keys() == ref.outcomes.keys()
+    keep = ~near
+    for key, o in ref.outcomes.items():
         for f in FIELDS:
-            x, y = getattr(a.outcomes[key], f), getattr(b.outcomes[key], f)
+            x, y = getattr(got[key], f), getattr(o, f)
             np.testing.assert_array_equal(x[keep], y[keep], err_msg=f"{key}.{f}")
             assert x.dtype == y.dtype, (key, f)
 
@@ -108,7 +131,7 @@ def assert_same_outcomes(a, b):
 
 
 def layout_decisions(sims, db_places, n_places, th, correct, piece_rows):
-    """The fused path's retrieval steps on a given ``(n_queries, n_database)`` float32 matrix."""
+    """The place-piece path's retrieval steps on a given ``(n_queries, n_database)`` float32 matrix."""
     layout = PlaceLayout.of(db_places, n_places)
     scores_t = np.ascontiguousarray(sims.T[layout.order])
     raw_t = np.empty((len(layout.places), sims.shape[0]), dtype=sims.dtype)
@@ -204,56 +227,56 @@ def test_layout_scores_with_a_small_chunk_of_candidates():
 
 
 @pytest.fixture(scope="module")
-def gp_model(gardens_point, gp_pixels):
-    places = make_places(gardens_point, PlaceSpec(3, 5))
-    return places, fit_database(gp_pixels, gardens_point, places, ["day_left", "day_right"])
+def gp_fit(gardens_point, gp_pixels):
+    """GardensPoint's value: database day_left + day_right, queries night_right (the descriptors' own order)."""
+    value = database_queries(gardens_point, "night_right")
+    assert value_rows(value) is None
+    return fit_retrieval(gp_pixels, value, RetrievalPlaces(PlaceGeometry.FRAMES, spec=PlaceSpec(3, 5)))
+
+
+def pieces_of(monkeypatch, rows: int, dim: int) -> None:
+    """``decide_queries`` cuts the places into pieces of at most ``rows`` database rows."""
+    monkeypatch.setattr(views, "SCORE_BLOCK_ELEMS", rows * dim)
 
 
 @pytest.mark.parametrize("block, threads, piece_rows", [(4096, None, 2048), (7, 2, 4), (64, 1, 64), (200, 3, 1)])
-def test_gardens_point_fused_equals_straightforward(monkeypatch, gardens_point, gp_pixels, gp_model, block, threads,
-                                                    piece_rows):
-    places, model = gp_model
-    expected = decide_traversal(model, gp_pixels, gardens_point, places, "night_right", k=1.0, user_theta=0.6,
-                                fused=False)
-    monkeypatch.setattr(database, "PIECE_ROWS", piece_rows)
-    got = decide_traversal(model, gp_pixels, gardens_point, places, "night_right", k=1.0, user_theta=0.6,
-                           block=block, threads=threads, fused=True)
-    assert_same_decisions(got, expected, near=borderline(expected, model, gp_pixels))
+def test_gardens_point_by_pieces_equals_straightforward(monkeypatch, gp_pixels, gp_fit, block, threads, piece_rows):
+    queries = np.arange(gp_fit.dataset.n_queries)
+    ref = straightforward(gp_fit, gp_pixels, queries, k=1.0, user_theta=0.6)
+    pieces_of(monkeypatch, piece_rows, gp_pixels.shape[1])
+    if threads is not None:
+        monkeypatch.setattr(views, "SCORE_THREADS", threads)
+    _, got = decide_queries(gp_fit, gp_pixels, queries, k=1.0, user_theta=0.6, block=block)
+    assert_same_decisions(got, ref)
 
 
-def test_float16_descriptors_fused_equals_straightforward(gardens_point, gp_pixels, gp_model):
-    # descriptors held as float16 (``--dtype float16``): both paths convert them to float32 exactly
-    places, model = gp_model
-    d = gp_pixels.astype(np.float16)
-    expected = decide_traversal(model, d, gardens_point, places, "night_right", fused=False)
-    got = decide_traversal(model, d, gardens_point, places, "night_right", fused=True)
-    assert_same_decisions(got, expected, near=borderline(expected, model, d))
-
-
-def test_a_nan_query_takes_the_straightforward_path(gardens_point, gp_pixels, gp_model):
-    places, model = gp_model
+def test_a_nan_query_takes_the_straightforward_path(gardens_point, gp_pixels, gp_fit):
     d = gp_pixels.copy()
-    d[gardens_point.image_index("night_right", 7)] = np.nan
-    frames = np.arange(0, 200, 3)
-    expected = decide_traversal(model, d, gardens_point, places, "night_right", frames=frames, fused=False)
-    got = decide_traversal(model, d, gardens_point, places, "night_right", frames=frames, block=10, fused=True)
-    assert_same_decisions(got, expected, near=borderline(expected, model, d))
+    d[gardens_point.image_index("night_right", 7)] = np.nan  # query 7 (the value's rows are the traversals')
+    queries = np.arange(1, 200, 3)  # 1, 4, 7, ...: query 7 in the first block of 10
+    ref = straightforward(gp_fit, d, queries)
+    assert not np.isfinite(ref.raw[queries == 7]).any()
+    truth, got = decide_queries(gp_fit, d, queries, block=10)
+    np.testing.assert_array_equal(truth, ref.truth)
+    assert_same_decisions(got, ref)
 
 
-def test_nordland_tunnels_fused_equals_straightforward(data_root):
+def test_nordland_tunnels_by_pieces_equal_straightforward(data_root):
     # Nordland's tunnels are runs of byte-identical frames: ties at 1.0 and within 1e-5
     from vpr_explorer.data.traversals import load_dataset
     from vpr_explorer.pipeline import dataset_descriptors
 
     dataset = load_dataset(data_root / "Nordland_64x32")
+    value = database_queries(dataset, "winter", ["summer"])
+    rows = value_rows(value)
     d = dataset_descriptors(dataset, "pixels")
-    places = make_places(dataset, PlaceSpec(3, 3))
-    model = fit_database(d, dataset, places, ["summer"])
-    frames = np.arange(0, dataset.n_frames, 2)
-    expected = decide_traversal(model, d, dataset, places, "winter", frames=frames, fused=False)
-    got = decide_traversal(model, d, dataset, places, "winter", frames=frames, block=512, fused=True)
-    assert_same_decisions(got, expected, near=borderline(expected, model, d))
-    image = expected.outcomes["image-baseline"]
+    d = d if rows is None else d[rows]
+    fitted = fit_retrieval(d, value, RetrievalPlaces(PlaceGeometry.FRAMES, spec=PlaceSpec(3, 3)))
+    queries = np.arange(0, value.n_queries, 2)
+    ref = straightforward(fitted, d, queries)
+    _, got = decide_queries(fitted, d, queries, block=512)
+    assert_same_decisions(got, ref)
+    image = ref.outcomes["image-baseline"]
     assert (np.isfinite(image.rank) & (image.rank > 1)).any()
 
 
@@ -282,16 +305,17 @@ def test_first_image_within_the_tolerance_in_places_of_more_than_255_images():
     np.testing.assert_array_equal(best[:, 0], big[-2])  # the image within 1e-5 before the maximum
 
 
-def test_decide_traversal_leaves_blas_threads_as_found(gardens_point, gp_pixels, gp_model):
-    # the fused path holds BLAS at one thread while its pieces run (``stats.one_blas_thread``),
-    # whether it copies the grouped rows (several blocks) or the pieces gather their own (one)
+def test_decide_queries_leaves_blas_threads_as_found(monkeypatch, gp_pixels, gp_fit):
+    # the pieces run side by side with BLAS held at one thread (``stats.one_blas_thread``),
+    # whether the queries make several blocks or one
     from threadpoolctl import threadpool_info
 
     def blas_threads():
         return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
 
-    places, model = gp_model
+    monkeypatch.setattr(views, "SCORE_THREADS", 3)
+    pieces_of(monkeypatch, 64, gp_pixels.shape[1])  # several pieces: they run in the threads
     before = blas_threads()
     for block in (4096, 50):
-        decide_traversal(model, gp_pixels, gardens_point, places, "night_right", block=block, fused=True)
+        decide_queries(gp_fit, gp_pixels, np.arange(gp_fit.dataset.n_queries), block=block)
         assert blas_threads() == before

@@ -1,9 +1,9 @@
-"""The walk-through's defects (issue 12 §4) in the library and the figures, each pinned on real data.
+"""Defects found walking through the explorer, in the library and the figures, each pinned on real data.
 
 - the inspector's candidates always carry every method's answer and the right place(s)
   (Nordland 64x32, winter frame 0: the margin rule answers a place far down the raw_p order);
 - one between-place rule (``places.right_places``): the inspector, the Places overview, the
-  traversal protocol and a recording agree frame by frame on GardensPoint, with and
+  traversal protocol and a recording agree query by query on GardensPoint, with and
   without a tolerance;
 - figures that misled: bars cut off above zero, a legend swatch unlike its bars, threshold
   lines drawn on one another, the modebar over a subplot title, an unreadable 358-bar
@@ -11,9 +11,11 @@
 - labels: images named by traversal and frame, never by database position; missing values
   as "—", never "nan" or "None"; help that defines what a control or number is;
 - playback: view titles that fit, named series and a visible legend, a summary without a
-  wide table, and a frame that opens in the inspector.
+  wide table, and a query that opens in the inspector.
 
-Expectations come from the library's decisions and the dataset directly.
+Aligned traversals are read as their dataset value (``data.aligned.database_queries``: query
+``q`` is frame ``q`` of the query traversal). Expectations come from the library's decisions
+and the dataset directly.
 """
 
 from __future__ import annotations
@@ -25,37 +27,63 @@ import pytest
 import streamlit as st
 from streamlit.testing.v1 import AppTest
 
-from vpr_explorer.views import plots
 from vpr_explorer.app import ENTRY, PAGES as PAGE_FILES
-from vpr_explorer.method.database import (
-    Verdict,
-    between_note,
-    decide_traversal,
-    describe_query,
-    explain_query,
-    query_verdict,
+from vpr_explorer.data.aligned import database_queries
+from vpr_explorer.method.database import Verdict
+from vpr_explorer.method.places import (
+    BETWEEN_PLACES_RULE,
+    PlaceGeometry,
+    PlaceSpec,
+    between_places,
+    frame_places,
+    make_places,
+    right_places,
 )
-from vpr_explorer.protocols.options import ProtocolOptions
 from vpr_explorer.pipeline import dataset_descriptors, run_protocol
-from vpr_explorer.method.places import BETWEEN_PLACES_RULE, PlaceSpec, between_places, right_places
-from vpr_explorer.recording import TITLE_CHARS, _summary, frame_verdicts, playback_blueprint
-from vpr_explorer.views.traversal import LIVE_METHODS, fit, place_detail, regroup, similarity_grid, top_candidates
+from vpr_explorer.protocols.options import ProtocolOptions
+from vpr_explorer.recording import RECORDED, TITLE_CHARS, decide_every_query, playback_blueprint, summary, verdicts
+from vpr_explorer.views import plots
+from vpr_explorer.views.numbers import (
+    BETWEEN,
+    KNOWN,
+    LIVE_METHODS,
+    RetrievalPlaces,
+    describe_answer,
+    explain_query,
+    fit_retrieval,
+    overview,
+    place_detail,
+    similarity_grid,
+    top_candidates,
+)
 
 GP_SPEC = PlaceSpec(3, 10)  # the app's default on GardensPoint (and Nordland): frame 85 lies between places
 DEMO_SPEC = PlaceSpec(3, 5)
+
+
+def frames_fit(dataset, descriptors, spec: PlaceSpec, tolerance: int = 0):
+    """The value of ``dataset`` (database every traversal but the last, queries the last) fitted with group/step
+    ``spec``; the descriptors are in the value's order (the last traversal is the query)."""
+    value = database_queries(dataset, tolerance=tolerance)
+    return fit_retrieval(descriptors, value, RetrievalPlaces(PlaceGeometry.FRAMES, spec=spec))
 
 
 @pytest.fixture(scope="module")
 def nordland(data_root):
     from vpr_explorer.data.traversals import load_dataset
 
-    ds = load_dataset(data_root / "Nordland_64x32")
+    ds = load_dataset(data_root / "Nordland_64x32")  # summer, winter: winter is the query
     return ds, dataset_descriptors(ds, "pixels")
 
 
 @pytest.fixture(scope="module")
 def gp_fit(gardens_point, gp_pixels):
-    return fit(gp_pixels, gardens_point, GP_SPEC)  # database day_left + day_right, queries night_right
+    return frames_fit(gardens_point, gp_pixels, GP_SPEC)  # database day_left + day_right, queries night_right
+
+
+@pytest.fixture(scope="module")
+def demo_fit(demo, demo_pixels):
+    return frames_fit(demo, demo_pixels, DEMO_SPEC)  # database day + night, queries snow
 
 
 def shown_answers(decision) -> set[int]:
@@ -67,8 +95,9 @@ def shown_answers(decision) -> set[int]:
 
 def test_nordland_winter_frame_0_candidates_carry_the_margin_answer(nordland):
     ds, d = nordland
-    f = fit(d, ds, GP_SPEC, "winter")
-    dec = explain_query(f.model, d, ds, f.places, ds.image_index("winter", 0), user_theta=0.9)
+    f = frames_fit(ds, d, GP_SPEC)
+    assert f.dataset.traversals[f.dataset.query_traversal[0]] == "winter"
+    dec = explain_query(f, d, 0, user_theta=0.9)
     top8 = np.argsort(-dec.raw, kind="stable")[:8]
     margin = dec.answer("margin-weighted")
     assert margin not in top8  # the case the walk-through found: the answer is far down the raw_p order
@@ -84,12 +113,12 @@ def test_nordland_winter_frame_0_candidates_carry_the_margin_answer(nordland):
 
 
 @pytest.mark.parametrize("k", [0.0, 1.5])
-def test_every_gardens_point_query_shows_every_answer_and_right_place(gardens_point, gp_pixels, gp_fit, k):
-    ds, f = gardens_point, gp_fit
-    for frame in range(ds.n_frames):
-        dec = explain_query(f.model, gp_pixels, ds, f.places, ds.image_index(f.query, frame), k=k, tolerance=2)
+def test_every_gardens_point_query_shows_every_answer_and_right_place(gardens_point, gp_pixels, k):
+    f = frames_fit(gardens_point, gp_pixels, GP_SPEC, tolerance=2)
+    for query in range(f.dataset.n_queries):
+        dec = explain_query(f, gp_pixels, query, k=k)
         cands = set(top_candidates(dec, 3).tolist())
-        assert shown_answers(dec) | set(dec.true_places.tolist()) <= cands, frame
+        assert shown_answers(dec) | set(dec.true_places.tolist()) <= cands, query
 
 
 # --------------------------------------------------------------------------- 2. one between-place rule
@@ -108,46 +137,54 @@ def test_right_places_hand_case():
 
 
 def test_frame_85_is_not_scored_on_any_page(gardens_point, gp_pixels, gp_fit):
-    ds, f = gardens_point, gp_fit
-    assert f.places.frame_place[85] == -1
-    dec = explain_query(f.model, gp_pixels, ds, f.places, ds.image_index(f.query, 85))
-    for key in dec.outcomes:  # the inspector: neither right nor wrong, and said so
-        assert query_verdict(dec, key) is Verdict.BETWEEN
-        text = describe_query(dec, key, f.model, ds)
+    f = gp_fit
+    assert (f.database_place[f.dataset.database_frame == 85] == -1).all()
+    dec = explain_query(f, gp_pixels, 85)
+    assert f.query_status(85) == BETWEEN and len(dec.true_places) == 0  # the inspector: unmarked
+    for key in dec.outcomes:  # ... neither right nor wrong, and said so; not an unknown place either
+        text = describe_answer(f, dec, key, 85)
         assert "not scored" in text and "(wrong" not in text and "(right" not in text, text
-    assert "not scored" in between_note(85) and "reject it" not in between_note(85)
-    r = regroup(gp_pixels, ds, GP_SPEC)  # Places page
-    assert not r.scored[list(r.frames).index(85)]
-    rec = decide_traversal(f.model, gp_pixels, ds, f.places, f.query)  # playback
-    assert {frame_verdicts(rec, k)[85] for k in ("margin-weighted", "place-baseline")} == {Verdict.BETWEEN.value}
+        assert "unknown-place" not in text, text
+    ov = overview(f, gp_pixels)  # Places page
+    assert not ov.sampled and not ov.scored[85]
+    rec = decide_every_query(f, gp_pixels)  # playback
+    assert {verdicts(rec, k)[85] for k in RECORDED} == {Verdict.BETWEEN.value}
     # ... and within a tolerance it belongs to its nearest place, on every page alike
-    dec2 = explain_query(f.model, gp_pixels, ds, f.places, ds.image_index(f.query, 88), tolerance=2)
-    assert dec2.true_places.tolist() == [9] and query_verdict(dec2, "place-baseline") is not Verdict.BETWEEN
+    f2 = frames_fit(gardens_point, gp_pixels, GP_SPEC, tolerance=2)
+    dec2 = explain_query(f2, gp_pixels, 88)
+    assert dec2.true_places.tolist() == [9] and f2.query_status(88) == KNOWN
+    assert verdicts(decide_every_query(f2, gp_pixels), "place-baseline")[88] != Verdict.BETWEEN.value
+
+
+def inspector_verdict(fitted, descriptors, query: int, key: str) -> str:
+    """What the Query inspector marks a query under one method: not scored between places, else right or wrong."""
+    if fitted.query_status(query) == BETWEEN:
+        return Verdict.BETWEEN.value
+    return Verdict.RIGHT.value if explain_query(fitted, descriptors, query).is_right(key) else "wrong"
 
 
 @pytest.mark.parametrize("tolerance", [0, 3])
-def test_every_page_scores_the_same_frames_the_same_way(gardens_point, gp_pixels, gp_fit, tolerance):
-    ds, f = gardens_point, gp_fit
-    q = ds.traversal_index(f.query)
-    expected = between_places(right_places(np.arange(ds.n_frames), f.places.frame_place, tolerance))
+def test_every_page_scores_the_same_frames_the_same_way(gardens_point, gp_pixels, tolerance):
+    ds = gardens_point
+    f = frames_fit(ds, gp_pixels, GP_SPEC, tolerance=tolerance)
+    expected = between_places(right_places(np.arange(ds.n_frames), frame_places(ds.n_frames, GP_SPEC), tolerance))
     assert 0 < expected.sum() < ds.n_frames
-    rec = decide_traversal(f.model, gp_pixels, ds, f.places, f.query, tolerance=tolerance)
-    ev = run_protocol("traversal", ds, f.places, gp_pixels,
-                      ProtocolOptions(database=f.database, queries=f.query, tolerance=tolerance))
+    rec = decide_every_query(f, gp_pixels)
+    ev = run_protocol("traversal", ds, make_places(ds, GP_SPEC), gp_pixels,
+                      ProtocolOptions(database=("day_left", "day_right"), queries="night_right", tolerance=tolerance))
     assert ev.settings["queries_between_places"] == int(expected.sum())
     assert ev.settings["queries_scored"] == int((~expected).sum())
-    for key in ("margin-weighted", "place-baseline"):
-        recorded = frame_verdicts(rec, key)
+    for key in RECORDED:
+        recorded = verdicts(rec, key)
         assert [v == Verdict.BETWEEN.value for v in recorded] == expected.tolist()
-        inspected = [query_verdict(explain_query(f.model, gp_pixels, ds, f.places, ds.image_index(q, fr),
-                                                 tolerance=tolerance), key).value for fr in range(ds.n_frames)]
-        assert inspected == list(recorded)
+        inspected = [inspector_verdict(f, gp_pixels, q, key) for q in range(ds.n_frames)]
+        assert inspected == [v if v in (Verdict.BETWEEN.value, Verdict.RIGHT.value) else "wrong" for v in recorded]
         # the protocol's Recall@1 counts exactly the frames the recording and the inspector call right
         row = next(r for r in ev.rows if r.key == key)
         assert row.recall[1][0] == pytest.approx(np.mean([v == Verdict.RIGHT.value for v, b in
                                                           zip(recorded, expected) if not b]))
     if tolerance == 0:
-        assert np.array_equal(~regroup(gp_pixels, ds, GP_SPEC).scored, expected)
+        assert np.array_equal(~overview(f, gp_pixels).scored, expected)
 
 
 def test_the_rule_is_stated_once_in_the_readme():
@@ -173,9 +210,9 @@ def truncated_bars(fig) -> list[str]:
     return bad
 
 
-def test_no_bar_is_cut_off_above_zero(demo, demo_pixels, gp_fit, gardens_point, gp_pixels):
+def test_no_bar_is_cut_off_above_zero(demo_pixels, demo_fit, gp_fit, gp_pixels):
     f = gp_fit
-    dec = explain_query(f.model, gp_pixels, gardens_point, f.places, gardens_point.image_index(f.query, 31))
+    dec = explain_query(f, gp_pixels, 31)
     cands = top_candidates(dec)
     for key in LIVE_METHODS:
         fig = plots.candidate_bars(dec, key, cands)
@@ -186,24 +223,23 @@ def test_no_bar_is_cut_off_above_zero(demo, demo_pixels, gp_fit, gardens_point, 
     pick = next(t for t in fig.data if t.meta == "pick")  # click targets: see-through but the selected place
     tints = dict(zip(pick.customdata, pick.marker.color))
     assert tints.pop(3) != "rgba(0,0,0,0)" and set(tints.values()) == {"rgba(0,0,0,0)"}
-    r = regroup(demo_pixels, demo, DEMO_SPEC)
-    assert not truncated_bars(plots.recall_bars(r.recall1, rejected=r.rejected))
+    ov = overview(demo_fit, demo_pixels)
+    assert not truncated_bars(plots.recall_bars(ov.recall1, rejected=ov.rejected))
 
 
-def test_legend_swatches_are_the_colour_of_their_bars(demo, demo_pixels):
-    r = regroup(demo_pixels, demo, DEMO_SPEC)
-    fig = plots.recall_bars({k: r.recall1[k] for k in LIVE_METHODS}, rejected={k: r.rejected[k] for k in LIVE_METHODS})
+def test_legend_swatches_are_the_colour_of_their_bars(demo, demo_pixels, demo_fit):
+    ov = overview(demo_fit, demo_pixels)
+    fig = plots.recall_bars({k: ov.recall1[k] for k in LIVE_METHODS}, rejected={k: ov.rejected[k] for k in LIVE_METHODS})
     for t in fig.data:
         assert isinstance(t.marker.color, str), f"{t.name}: one colour per bar, the legend shows only the first"
-    fig = plots.route_figure(r.places.frame_place, demo.traversals, demo.positions)
+    fig = plots.route_figure(frame_places(demo.n_frames, DEMO_SPEC), demo.traversals, demo.positions)
     for t in fig.data:
         if t.showlegend is not False and t.mode == "markers":
             assert isinstance(t.marker.color, str), f"{t.name}: its swatch would show only one of its colours"
 
 
-def test_coincident_thresholds_are_told_apart(gp_fit, gardens_point, gp_pixels):
-    f = gp_fit
-    d = place_detail(f.model, gp_pixels, gardens_point, f.places, 4, f.query)
+def test_coincident_thresholds_are_told_apart(gp_fit, gp_pixels):
+    d = place_detail(gp_fit, gp_pixels, 4)
     fig = plots.mixture_figure(d, k=0.0, method="weighted", user_theta=round(d.theta["simple"], 9))
     k_line = next(t for t in fig.data if t.meta == "θ_p(k)")
     assert "= θ_p weighted" in k_line.name  # θ_p(k=0) is θ_p weighted: drawn on it, and named so
@@ -218,16 +254,16 @@ def test_coincident_thresholds_are_told_apart(gp_fit, gardens_point, gp_pixels):
     assert "≈ θ_p weighted" in next(t for t in fig.data if t.meta == "global θ, user value").name
 
 
-def test_the_modebar_leaves_the_route_map_title_alone(gardens_point, gp_fit):
-    fig = plots.route_figure(gp_fit.places.frame_place, [gp_fit.query], gardens_point.positions)
+def test_the_modebar_leaves_the_route_map_title_alone(gardens_point):
+    fig = plots.route_figure(frame_places(gardens_point.n_frames, GP_SPEC), ["night_right"], gardens_point.positions)
     assert "route map" in [a.text for a in fig.layout.annotations]
     assert fig.layout.modebar.orientation == "v" and fig.layout.margin.r >= 40
 
 
 def test_the_nordland_overview_is_readable(nordland):
     ds, d = nordland
-    f = fit(d, ds, GP_SPEC, "winter")
-    assert f.model.n_places == 358
+    f = frames_fit(ds, d, GP_SPEC)
+    assert f.n_places == 358
     fig = plots.places_overview(f.model.theta["weighted"], f.model.positive_mean, f.model.negative_mean, selected=7)
     assert fig.layout.xaxis.type != "category"  # 358 labels cannot be read: ranks, the place in the hover
     theta = next(t for t in fig.data if t.meta == "theta")
@@ -237,8 +273,8 @@ def test_the_nordland_overview_is_readable(nordland):
     assert all(h.startswith(f"place {p}:") for p, h in zip(theta.customdata, theta.text))
 
 
-def test_the_similarity_colour_bar_is_named(demo, demo_pixels):
-    grid = similarity_grid(demo_pixels, demo, ("day", "night"), "snow", max_side=30)
+def test_the_similarity_colour_bar_is_named(demo_fit, demo_pixels):
+    grid = similarity_grid(demo_fit.dataset, demo_pixels, max_side=30)
     title = plots.similarity_heatmap(grid, query="snow", database=("day", "night")).data[0].colorbar.title.text
     assert "similarity" in title and title != "s"
 
@@ -246,23 +282,23 @@ def test_the_similarity_colour_bar_is_named(demo, demo_pixels):
 # --------------------------------------------------------------------------- 4. labels
 
 
-def test_decisions_name_images_by_traversal_and_frame(gardens_point, gp_pixels, gp_fit):
-    ds, f = gardens_point, gp_fit
+def test_decisions_name_images_by_traversal_and_frame(gp_pixels, gp_fit):
+    f = gp_fit
+    ds = f.dataset
     named = 0
-    for frame in (0, 31, 81, 85, 120):
-        dec = explain_query(f.model, gp_pixels, ds, f.places, ds.image_index(f.query, frame))
-        text = describe_query(dec, "image-baseline", f.model, ds)
-        img = int(f.model.images[dec.outcomes["image-baseline"].answer_image[0]])
-        want = f"{ds.traversals[ds.image_traversal[img]]} · frame {ds.image_frame[img]} → place "
+    for query in (0, 31, 81, 85, 120):
+        dec = explain_query(f, gp_pixels, query)
+        text = describe_answer(f, dec, "image-baseline", query)
+        img = int(f.model.images[dec.outcomes["image-baseline"].answer_image[0]])  # a database position
+        want = f"{ds.traversals[ds.database_traversal[img]]} · frame {ds.database_frame[img]} → place "
         assert want in text and not re.search(r"image \d+", text), text
         named += 1
     assert named == 5
 
 
-def test_missing_values_read_as_a_dash(gp_fit, gardens_point, gp_pixels):
+def test_missing_values_read_as_a_dash(gp_fit, gp_pixels):
     f = gp_fit
-    dec = explain_query(f.model, gp_pixels, gardens_point, f.places, gardens_point.image_index(f.query, 31),
-                        user_theta=float("nan"))
+    dec = explain_query(f, gp_pixels, 31, user_theta=float("nan"))
     fig = plots.candidate_bars(dec, "global-user", top_candidates(dec))
     labels = list(next(t for t in fig.data if t.meta == "raw_p").text)
     assert labels and set(labels) == {"—"}
@@ -276,7 +312,7 @@ def test_missing_values_read_as_a_dash(gp_fit, gardens_point, gp_pixels):
 # --------------------------------------------------------------------------- 5. playback
 
 
-def test_playback_views_fit_and_plots_name_their_series(demo, demo_pixels):
+def test_playback_views_fit_and_plots_name_their_series(demo_pixels, demo_fit):
     bp = playback_blueprint("a-rather-long-query-traversal-name-from-a-user", ["day", "night"])
     names, legends, views = [], [], {}
 
@@ -293,16 +329,10 @@ def test_playback_views_fit_and_plots_name_their_series(demo, demo_pixels):
     walk(bp.root_container)
     assert len(names) == 11 and all(len(n) <= TITLE_CHARS for n in names), names
     assert len(legends) == 3 and all(leg.visible.as_arrow_array().to_pylist() == [True] for leg in legends)
-    from vpr_explorer.method.database import fit_database
-    from vpr_explorer.method.places import make_places
-
-    places = make_places(demo, DEMO_SPEC)
-    model = fit_database(demo_pixels, demo, places, ["day", "night"])
-    dec = decide_traversal(model, demo_pixels, demo, places, "snow")
-    summary = _summary(demo, places, model, dec, "snow", "pixels", 0.0)
-    assert not any(line.startswith("|") for line in summary.splitlines())  # no wide table to cut
+    text = summary(decide_every_query(demo_fit, demo_pixels), "pixels")
+    assert not any(line.startswith("|") for line in text.splitlines())  # no wide table to cut
     assert "TextDocumentFormat" in str(views["summary"].properties)  # word-wrapped: nothing cut at the edge
-    assert "raw_p" in summary and BETWEEN_PLACES_RULE in summary
+    assert "raw_p" in text and BETWEEN_PLACES_RULE in text
 
 
 # --------------------------------------------------------------------------- help and the playback link (AppTest)
@@ -341,10 +371,10 @@ def test_thresholds_help_defines_each_number(app):
     assert "nan" not in " ".join(m.value for m in at.metric)
 
 
-def test_playback_help_and_a_frame_opens_in_the_inspector(app):
+def test_playback_help_and_a_query_opens_in_the_inspector(app):
     at = page(app.run(), "playback")
     assert not at.exception
-    assert sentence(at.multiselect[0].help) and sentence(at.slider(key="w_playback_k").help)
+    assert sentence(at.slider(key="w_playback_k").help)
     assert sentence(at.button[0].help)
     at.button[0].click().run()
     assert not at.exception

@@ -1,4 +1,4 @@
-"""A million-image database on one machine (issue 14 §2): float16 memory maps, chunked fits, the app on them.
+"""A million-image database on one machine: float16 memory maps, chunked fits, the app on them.
 
 Everything here runs the same code path as the 1,000,000-image benchmark
 (``benchmarks/bench_million.py``), on databases small enough for a test: descriptors as a
@@ -20,7 +20,7 @@ from streamlit.testing.v1 import AppTest
 
 # the autouse fixtures of test_app (fresh caches, navigation mode) apply here too
 from test_app import assert_clean, fresh_caches, metric, navigation_mode, page  # noqa: F401
-from vpr_explorer.views import database_queries as rv
+from vpr_explorer.views import numbers as rv
 from vpr_explorer.app import ENTRY
 from vpr_explorer.descriptors import DescriptorCache, DescriptorCacheWarning
 from vpr_explorer.descriptors import cache as cache_module
@@ -37,7 +37,7 @@ from vpr_explorer.method import stats as stats_module
 from vpr_explorer.method.retrieval import pessimistic_rank, place_scores, score_queries, similarity, top_answer
 from vpr_explorer.method.stats import negative_stats, negative_stats_rows, positive_means, stats_rows, validate_descriptors, \
     validate_rows, RowsOf
-from vpr_explorer.views.traversal import evaluation_rows
+from vpr_explorer.views.numbers import evaluation_rows
 
 ROUTE = rv.RetrievalPlaces(PlaceGeometry.ROUTE, metric=MetricPlaceSpec(25.0, 100.0))
 
@@ -56,7 +56,7 @@ def test_a_float16_file_is_mapped_as_stored_not_copied(small):
     ds, npy, mm = small
     assert isinstance(mm, np.memmap) and mm.dtype == np.float16 and Path(mm.filename) == npy.resolve()
     assert not mm.flags.writeable
-    # "auto" maps from MMAP_MIN_BYTES: this file is far smaller, so it is read into memory as before
+    # "auto" maps from MMAP_MIN_BYTES: this file is far smaller, so it is read into memory
     small_read = imported_descriptors(ds, npy).descriptors
     assert not isinstance(small_read, np.memmap) and small_read.dtype == np.float32
     assert validate_descriptors(mm) is mm  # checked chunk-wise, returned as is

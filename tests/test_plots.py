@@ -1,7 +1,8 @@
 """Figures draw the library's numbers: each figure's data is checked against the value it stands for.
 
-Mirrors ``vpr_explorer/views/plots.py`` and ``vpr_explorer/views/traversal.py``. Most tests use the
-built-in demo route with pixel descriptors (seconds); the ``realdata`` ones use
+Mirrors ``vpr_explorer/views/plots.py`` and ``vpr_explorer/views/numbers.py``. Most tests use the
+built-in demo route as its dataset value (``data.aligned.database_queries``: database day +
+night, queries the snow frames) with pixel descriptors (seconds); the ``realdata`` ones use
 GardensPoint through ``VPR_EXPLORER_DATA``.
 """
 
@@ -12,28 +13,42 @@ import math
 import numpy as np
 import pytest
 
-from vpr_explorer.views import plots
-from vpr_explorer.method.database import explain_query, fit_database
-from vpr_explorer.protocols.evaluation import Protocol
-from vpr_explorer.pipeline import run_protocol
-from vpr_explorer.method.places import PlaceSpec, make_places
+from vpr_explorer.data.aligned import database_queries, split_traversals, value_rows
+from vpr_explorer.method.places import PlaceGeometry, PlaceSpec, frame_places, make_places
 from vpr_explorer.method.retrieval import similarity
-from vpr_explorer.method.stats import mixture_pdf
-from vpr_explorer.views.traversal import (
+from vpr_explorer.method.stats import mixture_pdf, negative_stats
+from vpr_explorer.method.thresholds import ThresholdMethod, place_thresholds
+from vpr_explorer.pipeline import run_protocol
+from vpr_explorer.protocols.evaluation import Protocol
+from vpr_explorer.views import plots
+from vpr_explorer.views.numbers import (
     LIVE_METHODS,
+    RetrievalPlaces,
+    explain_query,
+    fit_retrieval,
+    overview,
     place_detail,
-    regroup,
     similarity_grid,
-    split_traversals,
     top_candidates,
 )
 
 SPEC = PlaceSpec(3, 5)
+PLACES = RetrievalPlaces(PlaceGeometry.FRAMES, spec=SPEC)
 
 
 @pytest.fixture(scope="module")
-def regrouped(demo, demo_pixels):
-    return regroup(demo_pixels, demo, SPEC)
+def value(demo):
+    return database_queries(demo)  # the descriptors' own order: database rows 0-119, query q at row 120 + q
+
+
+@pytest.fixture(scope="module")
+def fitted(value, demo_pixels):
+    return fit_retrieval(demo_pixels, value, PLACES)
+
+
+@pytest.fixture(scope="module")
+def ov(fitted, demo_pixels):
+    return overview(fitted, demo_pixels)
 
 
 def by_meta(fig, meta):
@@ -57,19 +72,28 @@ def test_split_is_every_other_traversal_against_the_last(demo):
     assert split_traversals(demo, "day") == (("night", "snow"), "day")
 
 
-def test_regroup_recall_equals_the_traversal_protocol(demo, demo_pixels, regrouped):
+def test_overview_recall_equals_the_traversal_protocol(demo, demo_pixels, ov):
     """The live page's Recall@1 is the library's traversal protocol on the same split."""
     ev = run_protocol(Protocol.TRAVERSAL, demo, make_places(demo, SPEC), demo_pixels,
-                      database=list(regrouped.database), queries=regrouped.query)
+                      database=["day", "night"], queries="snow")
     for key in LIVE_METHODS:
-        assert regrouped.recall1[key] == pytest.approx(ev.row(key).recall[1][0]), key
-    assert regrouped.n_scored == ev.settings["queries_scored"]
+        assert ov.recall1[key] == pytest.approx(ev.row(key).recall[1][0]), key
+    assert ov.n_scored == ev.settings["queries_scored"]
 
 
-def test_regroup_thresholds_come_from_the_database_only(demo, demo_pixels, regrouped):
-    model = fit_database(demo_pixels, demo, make_places(demo, SPEC), ["day", "night"])
-    np.testing.assert_allclose(regrouped.model.theta["weighted"], model.theta["weighted"])
-    assert set(demo.image_traversal[regrouped.model.images]) == {0, 1}
+def test_thresholds_come_from_the_database_only(demo, demo_pixels, value, fitted):
+    model = fitted.model
+    assert set(value.database_traversal[model.images]) == {0, 1} and model.images.max() < value.n_database
+    # the closed form on the database images in places, and nothing else, gives the fitted θ_p
+    stats = negative_stats(demo_pixels[model.images], model.places, fitted.n_places)
+    for method in ThresholdMethod:
+        np.testing.assert_allclose(model.theta[method.value], place_thresholds(stats, method), rtol=1e-6)
+    # other query descriptors leave every threshold as it was
+    other = demo_pixels.copy()
+    other[value.n_database:] = demo_pixels[::-1][:value.n_queries]
+    refit = fit_retrieval(other, value, PLACES).model
+    for name, theta in model.theta.items():
+        np.testing.assert_array_equal(refit.theta[name], theta)
 
 
 @pytest.mark.parametrize("n", [1, 1000, 3 * (1 << 10) + 17])
@@ -85,10 +109,10 @@ def test_density_histogram_in_parts_is_one_numpy_histogram(monkeypatch, n):
     assert edges.dtype == np.float64
 
 
-def test_place_detail_scores_equal_a_pairwise_reference(demo, demo_pixels, regrouped):
+def test_place_detail_scores_equal_a_pairwise_reference(demo, demo_pixels, value, fitted):
     p = 4
-    d = place_detail(regrouped.model, demo_pixels, demo, regrouped.places, p, "snow")
-    model = regrouped.model
+    d = place_detail(fitted, demo_pixels, p)
+    model = fitted.model
     own = model.images[model.places == p]
     other = model.images[model.places != p]
     sims = np.asarray(demo_pixels, dtype=np.float64) @ np.asarray(demo_pixels, dtype=np.float64).T
@@ -97,8 +121,8 @@ def test_place_detail_scores_equal_a_pairwise_reference(demo, demo_pixels, regro
     np.testing.assert_allclose(np.sort(d.positives), np.sort(pos), atol=1e-5)
     # μᵢ of each component is the mean of that image's negative scores (the closed form equals the pairs).
     np.testing.assert_allclose(d.mu, sims[np.ix_(own, other)].mean(axis=1), atol=1e-5)
-    frames = regrouped.places.frames_of(p)
-    query = [demo.image_index("snow", f) for f in frames]
+    frames = np.flatnonzero(frame_places(demo.n_frames, SPEC) == p)  # the snow frames of place p
+    query = [demo.image_index("snow", f) for f in frames]  # = n_database + query q: the value's own rows
     np.testing.assert_array_equal(d.query_images, query)
     np.testing.assert_allclose(d.query_raw, sims[np.ix_(query, own)].max(axis=1), atol=1e-5)
     assert d.theta["weighted"] == pytest.approx(model.theta["weighted"][p])
@@ -111,74 +135,87 @@ def test_place_detail_scores_equal_a_pairwise_reference(demo, demo_pixels, regro
     assert d.share_negatives_above(top + 1e-9) == 0.0  # rounded to float32, top + 1e-9 would be top
 
 
-def test_top_candidates_keeps_the_right_place(demo, demo_pixels, regrouped):
-    dec = explain_query(regrouped.model, demo_pixels, demo, regrouped.places, demo.image_index("snow", 16))
+def test_top_candidates_keeps_the_right_place(demo_pixels, fitted):
+    dec = explain_query(fitted, demo_pixels, 16)
     cands = top_candidates(dec, 3)
     np.testing.assert_array_equal(cands[:3], np.argsort(-dec.raw, kind="stable")[:3])
     assert set(dec.true_places) <= set(cands)
 
 
-def _frame_max_reference(d, dataset, database, query, rows):
-    """Plain loops: max over database traversals of s(query frame r, database frame c)."""
-    n = dataset.n_frames
-    out = np.full((len(rows), n), -np.inf)
-    for a, r in enumerate(rows):
-        q = d[dataset.image_index(query, r)]
-        for c in range(n):
-            for t in database:
-                out[a, c] = max(out[a, c], float(q @ d[dataset.image_index(t, c)]))
+def _pair_reference(d, value, queries):
+    """Plain loops: s(query q, database image i) of the value's rows, in float64."""
+    out = np.full((len(queries), value.n_database), -np.inf)
+    for a, q in enumerate(queries):
+        for i in range(value.n_database):
+            out[a, i] = float(d[value.n_database + q] @ d[i])
     return out
 
 
-def test_similarity_grid_pools_block_maxima_and_keeps_their_pair(demo, demo_pixels):
-    full = similarity_grid(demo_pixels, demo, ("day", "night"), "snow")
-    assert full.block == 1 and full.z.shape == (60, 60) and not full.sampled
-    reference = _frame_max_reference(np.asarray(demo_pixels, dtype=np.float64), demo, ("day", "night"), "snow",
-                                     range(60))
+def _pooled(z, rows, cols):
+    """Maxima of ``z`` over blocks of ``rows`` × ``cols``, the last ones padded with -inf."""
+    r, c = -(-z.shape[0] // rows), -(-z.shape[1] // cols)
+    padded = np.full((r * rows, c * cols), -np.inf)
+    padded[:z.shape[0], :z.shape[1]] = z
+    return padded.reshape(r, rows, c, cols).max(axis=(1, 3))
+
+
+def assert_cells_hold_their_pair(grid, d, value):
+    """The pair behind every cell scores exactly the cell's value, and is a query x database image pair."""
+    s = np.einsum("ijk,ijk->ij", d[value.n_database + grid.query_image], d[grid.db_image])
+    np.testing.assert_allclose(s, grid.z, atol=1e-5)
+    assert 0 <= grid.query_image.min() and grid.query_image.max() < value.n_queries
+    assert 0 <= grid.db_image.min() and grid.db_image.max() < value.n_database
+
+
+def test_similarity_grid_pools_block_maxima_and_keeps_their_pair(demo_pixels, value):
+    full = similarity_grid(value, demo_pixels)
+    assert full.block == full.row_block == 1 and full.z.shape == (60, 120) and not full.sampled
+    d = np.asarray(demo_pixels, dtype=np.float64)
+    reference = _pair_reference(d, value, range(60))
     np.testing.assert_allclose(full.z, reference, atol=1e-5)
-    pooled = similarity_grid(demo_pixels, demo, ("day", "night"), "snow", max_side=25)
-    assert pooled.block == 3 and pooled.z.shape == (20, 20)
-    for r in range(20):
-        for c in range(20):
-            block = full.z[3 * r:3 * r + 3, 3 * c:3 * c + 3]
-            assert pooled.z[r, c] == pytest.approx(block.max())
-    # The pair behind every cell scores exactly the cell's value, and is a query x database pair.
-    d = np.asarray(demo_pixels)
+    pooled = similarity_grid(value, demo_pixels, max_side=25)  # 60 queries in blocks of 3, 120 images in 5
+    assert (pooled.row_block, pooled.block) == (3, 5) and pooled.z.shape == (20, 24)
+    np.testing.assert_array_equal(pooled.z, _pooled(full.z, 3, 5))
+    np.testing.assert_array_equal(pooled.row_frames, np.arange(20) * 3)
+    np.testing.assert_array_equal(pooled.col_frames, np.arange(24) * 5)
     for grid in (full, pooled):
-        s = np.einsum("ijk,ijk->ij", d[grid.query_image], d[grid.db_image])
-        np.testing.assert_allclose(s, grid.z, atol=1e-5)
-        assert set(demo.image_traversal[grid.query_image.ravel()]) == {2}
-        assert set(demo.image_traversal[grid.db_image.ravel()]) <= {0, 1}
+        assert_cells_hold_their_pair(grid, np.asarray(demo_pixels), value)
+    # the database holds both database traversals: each column block one traversal's frames
+    assert set(value.database_traversal[pooled.db_image.ravel()]) == {0, 1}
 
 
-def test_similarity_grid_over_the_pair_budget_samples_rows_and_keeps_exact_column_maxima(demo, demo_pixels):
-    """Above the budget each row is one query frame (its block's centre) against every database frame."""
-    grid = similarity_grid(demo_pixels, demo, ("day", "night"), "snow", max_side=25, pair_budget=1000)
-    assert grid.sampled and grid.block == 3 and grid.z.shape == (20, 20)
-    np.testing.assert_array_equal(grid.row_frames, np.arange(20) * 3 + 1)
-    np.testing.assert_array_equal(demo.image_frame[grid.query_image], np.repeat(grid.row_frames[:, None], 20, 1))
-    reference = _frame_max_reference(np.asarray(demo_pixels, dtype=np.float64), demo, ("day", "night"), "snow",
-                                     grid.row_frames)
-    np.testing.assert_allclose(grid.z, reference.reshape(20, 20, 3).max(axis=2), atol=1e-5)
-    d = np.asarray(demo_pixels)
-    np.testing.assert_allclose(np.einsum("ijk,ijk->ij", d[grid.query_image], d[grid.db_image]), grid.z, atol=1e-5)
+def test_similarity_grid_over_the_pair_budget_samples_rows_and_keeps_exact_column_maxima(demo_pixels, value):
+    """Above the budget each row is one query (its block's centre) against every database image."""
+    grid = similarity_grid(value, demo_pixels, max_side=25, pair_budget=1000)
+    # 1,000 // 120 = 8 rows of one query each: 960 similarities, within the budget
+    assert grid.sampled and grid.row_block == 8 and grid.block == 5 and grid.z.shape == (8, 24)
+    # each row block's centre; the last block (56-59) is short: its last query
+    np.testing.assert_array_equal(grid.row_frames, [4, 12, 20, 28, 36, 44, 52, 59])
+    np.testing.assert_array_equal(grid.query_image, np.repeat(grid.row_frames[:, None], 24, 1))
+    reference = _pair_reference(np.asarray(demo_pixels, dtype=np.float64), value, grid.row_frames)
+    np.testing.assert_allclose(grid.z, _pooled(reference, 1, 5), atol=1e-5)
+    assert_cells_hold_their_pair(grid, np.asarray(demo_pixels), value)
 
 
 def test_similarity_grid_handles_a_last_block_that_is_not_full(demo, demo_pixels):
-    grid = similarity_grid(demo_pixels, demo, ("day",), "snow", max_side=7)  # 60 frames in blocks of 9: 6 + 6 left
-    assert grid.block == 9 and grid.z.shape == (7, 7)
-    reference = _frame_max_reference(np.asarray(demo_pixels, dtype=np.float64), demo, ("day",), "snow", range(60))
-    padded = np.full((63, 63), -np.inf)
-    padded[:60, :60] = reference
-    np.testing.assert_allclose(grid.z, padded.reshape(7, 9, 7, 9).max(axis=(1, 3)), atol=1e-5)
-    assert grid.query_image.max() < demo.n_images and grid.db_image.max() < demo.n_images
+    one = database_queries(demo, "snow", ["day"])  # 60 database images: the snow rows move up
+    rows = value_rows(one)
+    d = demo_pixels[rows]
+    grid = similarity_grid(one, d, max_side=7)  # 60 queries and 60 images in blocks of 9: 6 + 6 left
+    assert grid.block == grid.row_block == 9 and grid.z.shape == (7, 7)
+    reference = _pair_reference(np.asarray(d, dtype=np.float64), one, range(60))
+    np.testing.assert_allclose(grid.z, _pooled(reference, 9, 9), atol=1e-5)
+    assert_cells_hold_their_pair(grid, d, one)
+    np.testing.assert_allclose(reference, np.asarray(demo_pixels[120:], np.float64) @
+                               np.asarray(demo_pixels[:60], np.float64).T, atol=1e-12)  # snow × day
 
 
 # --------------------------------------------------------------------------- figures
 
 
-def test_route_figure_marks_place_and_skipped_frames(demo, regrouped):
-    fp = regrouped.places.frame_place
+def test_route_figure_marks_place_and_skipped_frames(demo, value, fitted):
+    fp = frame_places(demo.n_frames, SPEC)  # what the Places page draws
+    np.testing.assert_array_equal(fitted.database_place, fp[value.database_frame])  # the fit's places
     fig = plots.route_figure(fp, demo.traversals, demo.positions)
     for t in demo.traversals:
         places = by_meta(fig, f"places {t}")
@@ -189,8 +226,8 @@ def test_route_figure_marks_place_and_skipped_frames(demo, regrouped):
     assert all(t.meta != "route" for t in plots.route_figure(fp, demo.traversals).data)
 
 
-def test_theta_histogram_holds_every_theta_and_the_global_line(regrouped):
-    model = regrouped.model
+def test_theta_histogram_holds_every_theta_and_the_global_line(fitted):
+    model = fitted.model
     fig = plots.theta_histogram(model.theta, model.auto, user_theta=0.3)
     for name in ("simple", "weighted"):
         np.testing.assert_allclose(by_meta(fig, f"θ_p {name}").x, model.theta[name])
@@ -198,16 +235,16 @@ def test_theta_histogram_holds_every_theta_and_the_global_line(regrouped):
     assert vline_x(fig, "global θ, user value") == pytest.approx(0.3)
 
 
-def test_recall_bars_heights_are_the_recalls(regrouped):
-    recall = {k: regrouped.recall1[k] for k in LIVE_METHODS}
-    fig = plots.recall_bars(recall, rejected={k: regrouped.rejected[k] for k in LIVE_METHODS})
+def test_recall_bars_heights_are_the_recalls(ov):
+    recall = {k: ov.recall1[k] for k in LIVE_METHODS}
+    fig = plots.recall_bars(recall, rejected={k: ov.rejected[k] for k in LIVE_METHODS})
     np.testing.assert_allclose(by_meta(fig, "recall1").y, list(recall.values()))
     assert list(by_meta(fig, "recall1").customdata) == list(LIVE_METHODS)
-    np.testing.assert_allclose(by_meta(fig, "rejected").y, [regrouped.rejected[k] for k in LIVE_METHODS])
+    np.testing.assert_allclose(by_meta(fig, "rejected").y, [ov.rejected[k] for k in LIVE_METHODS])
 
 
-def test_places_overview_sorted_by_theta_with_place_ids(regrouped):
-    model = regrouped.model
+def test_places_overview_sorted_by_theta_with_place_ids(fitted):
+    model = fitted.model
     fig = plots.places_overview(model.theta["weighted"], model.positive_mean, model.negative_mean, selected=2)
     bars = by_meta(fig, "theta")
     order = np.argsort(model.theta["weighted"], kind="stable")
@@ -218,9 +255,9 @@ def test_places_overview_sorted_by_theta_with_place_ids(regrouped):
     assert bars.marker.color[list(order).index(2)] == plots.POSITIVE
 
 
-def test_mixture_figure_curves_and_lines_are_the_library_values(demo, demo_pixels, regrouped):
+def test_mixture_figure_curves_and_lines_are_the_library_values(demo_pixels, fitted):
     p = 6
-    d = place_detail(regrouped.model, demo_pixels, demo, regrouped.places, p, "snow")
+    d = place_detail(fitted, demo_pixels, p)
     fig = plots.mixture_figure(d, k=1.0, method="simple", user_theta=0.45)
     mixture = by_meta(fig, "mixture")
     x = np.asarray(mixture.x)
@@ -230,7 +267,7 @@ def test_mixture_figure_curves_and_lines_are_the_library_values(demo, demo_pixel
         np.testing.assert_allclose(c.y, d.weight[i] * np.exp(-0.5 * ((x - d.mu[i]) / d.sigma[i]) ** 2)
                                    / (d.sigma[i] * np.sqrt(2 * np.pi)))
     np.testing.assert_allclose(np.sum([c.y for c in components], axis=0), mixture.y)
-    model = regrouped.model
+    model = fitted.model
     assert vline_x(fig, "θ_p simple") == pytest.approx(model.theta["simple"][p])
     assert vline_x(fig, "θ_p weighted") == pytest.approx(model.theta["weighted"][p])
     assert vline_x(fig, "θ_p(k)") == pytest.approx(model.thresholds(1.0)["simple"][p])
@@ -248,8 +285,8 @@ def test_mixture_figure_curves_and_lines_are_the_library_values(demo, demo_pixel
 
 
 @pytest.mark.parametrize("key", LIVE_METHODS)
-def test_candidate_bars_are_raw_p_with_theta_and_kept_colours(demo, demo_pixels, regrouped, key):
-    dec = explain_query(regrouped.model, demo_pixels, demo, regrouped.places, demo.image_index("snow", 31), k=0.5)
+def test_candidate_bars_are_raw_p_with_theta_and_kept_colours(demo_pixels, fitted, key):
+    dec = explain_query(fitted, demo_pixels, 31, k=0.5)
     cands = top_candidates(dec, 6)
     fig = plots.candidate_bars(dec, key, cands)
     bars = by_meta(fig, "raw_p")
@@ -275,7 +312,7 @@ def open_set(demo, demo_pixels):
 def test_evaluation_rows_and_strict_json(open_set):
     import json
 
-    from vpr_explorer.views.traversal import evaluation_json, evaluation_rows
+    from vpr_explorer.views.numbers import evaluation_json, evaluation_rows
 
     rows = evaluation_rows(open_set)
     assert [r["method"] for r in rows] == [r.label for r in open_set.rows]
@@ -335,8 +372,8 @@ def test_tradeoff_figure_points_are_the_tradeoff_rows(open_set, rule):
     np.testing.assert_allclose(by_meta(fig, "global θ").customdata, [t.param for t in sweep])
 
 
-def test_similarity_heatmap_cells_carry_their_pair(demo, demo_pixels):
-    grid = similarity_grid(demo_pixels, demo, ("day", "night"), "snow", max_side=30)
+def test_similarity_heatmap_cells_carry_their_pair(demo_pixels, value):
+    grid = similarity_grid(value, demo_pixels, max_side=30)
     fig = plots.similarity_heatmap(grid, query="snow", database=("day", "night"), marked=(4, 7))
     np.testing.assert_allclose(by_meta(fig, "similarity").z, grid.z)
     cells = by_meta(fig, "cells")
@@ -344,7 +381,8 @@ def test_similarity_heatmap_cells_carry_their_pair(demo, demo_pixels):
     pairs = np.asarray(cells.customdata)
     np.testing.assert_array_equal(pairs[:, 0], grid.query_image.ravel())
     np.testing.assert_array_equal(pairs[:, 1], grid.db_image.ravel())
-    # A cell's marker sits at its row/column frame, so a click opens the pair drawn there.
+    # A cell's marker sits at its row/column block's first query and database image, so a click
+    # opens the pair drawn there.
     np.testing.assert_array_equal(cells.y, np.repeat(grid.row_frames, len(grid.col_frames)))
     np.testing.assert_array_equal(cells.x, np.tile(grid.col_frames, len(grid.row_frames)))
     assert (by_meta(fig, "marked").x[0], by_meta(fig, "marked").y[0]) == (7, 4)
@@ -361,7 +399,7 @@ def test_plots_module_never_imports_streamlit():
     import ast
     from pathlib import Path
 
-    for module in ("plots.py", "traversal.py"):
+    for module in ("plots.py", "numbers.py"):
         tree = ast.parse((Path(plots.__file__).parent / module).read_text())
         names = {a.name for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom)) for a in n.names}
         names |= {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
@@ -374,13 +412,16 @@ def test_plots_module_never_imports_streamlit():
 @pytest.mark.realdata
 def test_gardens_point_theta_line_is_the_computed_theta(gardens_point, gp_pixels):
     """GardensPoint, paper places (group 3, step 10): 20 places; the drawn θ_p is the fitted one."""
-    r = regroup(gp_pixels, gardens_point, PlaceSpec(3, 10))
-    assert r.places.n_places == 20 and r.database == ("day_left", "day_right") and r.query == "night_right"
+    assert split_traversals(gardens_point) == (("day_left", "day_right"), "night_right")
+    value = database_queries(gardens_point)
+    assert value_rows(value) is None  # the descriptors' own order
+    f = fit_retrieval(gp_pixels, value, RetrievalPlaces(PlaceGeometry.FRAMES, spec=PlaceSpec(3, 10)))
+    assert f.n_places == 20
     for p in (0, 7, 19):
-        d = place_detail(r.model, gp_pixels, gardens_point, r.places, p, r.query)
+        d = place_detail(f, gp_pixels, p)
         fig = plots.mixture_figure(d, k=0.5)
-        assert vline_x(fig, "θ_p weighted") == pytest.approx(r.model.theta["weighted"][p])
-        assert vline_x(fig, "θ_p(k)") == pytest.approx(r.model.thresholds(0.5)["weighted"][p])
+        assert vline_x(fig, "θ_p weighted") == pytest.approx(f.model.theta["weighted"][p])
+        assert vline_x(fig, "θ_p(k)") == pytest.approx(f.model.thresholds(0.5)["weighted"][p])
         assert len(d.images) == 6 and len(d.query_images) == 3
     sims = similarity(gp_pixels[d.query_images], gp_pixels[d.images])
     np.testing.assert_allclose(d.query_raw, sims.max(axis=1), atol=1e-6)

@@ -1,4 +1,4 @@
-"""``database_queries.describe_answer`` and ``database_queries.similarity_grid`` against plain references.
+"""``numbers.describe_answer`` and ``numbers.similarity_grid`` against plain references.
 
 The demo route as the app reads it (``aligned.database_queries``: snow queries against the
 day and night database) with group 3, step 5 (frames 3 and 4 of every 5 lie between
@@ -16,8 +16,8 @@ import pytest
 from vpr_explorer.data.aligned import database_queries, value_rows
 from vpr_explorer.data.groundtruth import GroundTruth
 from vpr_explorer.method.places import PlaceGeometry, PlaceSpec
-from vpr_explorer.views import database_queries as views
-from vpr_explorer.views.database_queries import (
+from vpr_explorer.views import numbers as views
+from vpr_explorer.views.numbers import (
     BETWEEN,
     KNOWN,
     UNKNOWN,
@@ -28,7 +28,7 @@ from vpr_explorer.views.database_queries import (
     fit_retrieval,
     similarity_grid,
 )
-from vpr_explorer.views.traversal import LIVE_METHODS
+from vpr_explorer.views.numbers import LIVE_METHODS
 
 PLACES = RetrievalPlaces(PlaceGeometry.FRAMES, spec=PlaceSpec(3, 5))
 

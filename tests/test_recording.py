@@ -1,6 +1,6 @@
 """Playback of a dataset value's queries: read the written .rrd back and check it against the library's decisions.
 
-Every expectation below is computed from ``database_queries.explain_query`` (the Query
+Every expectation below is computed from ``numbers.explain_query`` (the Query
 inspector's decision of one query) and the dataset directly, not from the recording
 module's own helpers, so a wrong entity, query, order, answer, score, level or image fails
 here. Aligned traversals are one value (``data.aligned.database_queries``: query q is frame
@@ -38,7 +38,7 @@ from vpr_explorer.recording import (
     record_playback,
     viewer_servers,
 )
-from vpr_explorer.views.database_queries import BETWEEN, UNKNOWN, RetrievalPlaces, explain_query, fit_retrieval
+from vpr_explorer.views.numbers import BETWEEN, UNKNOWN, RetrievalPlaces, explain_query, fit_retrieval
 
 ROUTE = {"/route/query", "/route/paper", "/route/baseline"}
 TEMPORAL = {

@@ -21,7 +21,7 @@ from vpr_explorer.data.layouts import Layout, RetrievalDataset
 from vpr_explorer.pipeline import evaluate_retrieval
 from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec
 from vpr_explorer.method.retrieval import METHODS_BY_KEY
-from vpr_explorer.views.database_queries import (
+from vpr_explorer.views.numbers import (
     BETWEEN,
     KNOWN,
     UNKNOWN,
@@ -214,20 +214,35 @@ def test_a_places_queries_and_their_raw_p_by_a_loop():
 
 
 @pytest.mark.parametrize("query", ["snow", "day"])
-def test_a_places_queries_on_aligned_traversals_are_the_traversal_models(demo, demo_pixels, query):
+def test_a_place_on_aligned_traversals_is_its_frames_in_every_traversal(demo, demo_pixels, query):
+    """A place of group/step over frames: its frames in each database traversal, the query traversal's
+    frames in it as its queries; scores and thresholds by plain loops over the traversals' rows."""
     from vpr_explorer.data.aligned import database_queries, value_rows
-    from vpr_explorer.views import traversal
+    from vpr_explorer.method.places import frame_places
+    from vpr_explorer.method.stats import negative_stats
+    from vpr_explorer.method.thresholds import ThresholdMethod, place_thresholds
 
+    spec = PlaceSpec(3, 5)
     value = database_queries(demo, query)
     rows = value_rows(value)
     rows = np.arange(demo.n_images) if rows is None else rows
-    f = fit_retrieval(demo_pixels[rows], value, RetrievalPlaces(PlaceGeometry.FRAMES, spec=PlaceSpec(3, 5)))
-    t = traversal.fit(demo_pixels, demo, PlaceSpec(3, 5), query)
+    f = fit_retrieval(demo_pixels[rows], value, RetrievalPlaces(PlaceGeometry.FRAMES, spec=spec))
+    frame_place = frame_places(demo.n_frames, spec)
+    database = [t for t in demo.traversals if t != query]
+    placed = np.array([demo.image_index(t, fr) for t in database for fr in np.flatnonzero(frame_place >= 0)])
+    labels = frame_place[demo.image_frame[placed]]
+    stats = negative_stats(demo_pixels[placed], labels, f.n_places)
+    theta = {m.value: place_thresholds(stats, m) for m in ThresholdMethod}
+    d = np.asarray(demo_pixels, dtype=np.float64)
     for p in range(f.n_places):
-        mine, theirs = place_detail(f, demo_pixels[rows], p), traversal.place_detail(
-            t.model, demo_pixels, demo, t.places, p, query)
-        np.testing.assert_array_equal(rows[mine.images], theirs.images)
-        np.testing.assert_array_equal(rows[mine.query_images], theirs.query_images)  # the query frames in the place
-        np.testing.assert_allclose(mine.query_raw, theirs.query_raw, rtol=1e-6)
-        np.testing.assert_allclose(np.sort(mine.negatives), np.sort(theirs.negatives), rtol=1e-6)
-        assert mine.theta == pytest.approx(theirs.theta)
+        mine = place_detail(f, demo_pixels[rows], p)
+        frames = np.flatnonzero(frame_place == p)
+        own = np.array([demo.image_index(t, fr) for t in database for fr in frames])
+        np.testing.assert_array_equal(rows[mine.images], own)
+        queries = [demo.image_index(query, fr) for fr in frames]
+        np.testing.assert_array_equal(rows[mine.query_images], queries)  # the query frames in the place
+        np.testing.assert_allclose(mine.query_raw, [max(d[q] @ d[i] for i in own) for q in queries], atol=1e-6)
+        other = placed[labels != p]
+        np.testing.assert_allclose(np.sort(mine.negatives), np.sort([d[i] @ d[j] for i in own for j in other]),
+                                   atol=1e-6)
+        assert mine.theta == pytest.approx({name: t[p] for name, t in theta.items()}, rel=1e-6)

@@ -540,3 +540,11 @@ def test_one_blas_thread_holds_in_any_thread():
     assert seen["main"] and all(n == 1 for n in seen["main"])
     assert all(n == 1 for n in seen["other"]), seen
     assert seen["main after"] == before and seen["other after"] == before and blas_threads() == before
+
+
+def test_the_all_zero_row_bound_is_the_extractors():
+    """The statistics refuse as all zero exactly the rows the extractors cannot normalise."""
+    from vpr_explorer.descriptors.extract import MIN_SQUARED_NORM
+    from vpr_explorer.method.stats import ZERO_SQUARED_NORM
+
+    assert ZERO_SQUARED_NORM == MIN_SQUARED_NORM

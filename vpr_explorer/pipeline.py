@@ -23,8 +23,7 @@ from vpr_explorer.protocols.evaluation import (
     retrieval_protocol,
 )
 from vpr_explorer.method.places import Places, PlaceSpec, make_places, retrieval_places
-# check_finite is read from here by recording
-from vpr_explorer.protocols.options import ProtocolOptions, check_finite, check_whole  # noqa: F401
+from vpr_explorer.protocols.options import ProtocolOptions, check_whole
 from vpr_explorer.protocols.scale import fast_paper_protocol
 from vpr_explorer.protocols.shared_scores import SharedScores
 from vpr_explorer.settings import check_cache_root, default_workers
@@ -423,7 +422,7 @@ def evaluate_retrieval(
 
     In-memory float32 descriptors go to ``evaluation.retrieval_protocol``. A memory-mapped
     (or float16) matrix, such as a million-image database (``descriptors.store``), goes to
-    ``database_queries.evaluate_fitted``: the same table, the database read a block at a time
+    ``numbers.evaluate_fitted``: the same table, the database read a block at a time
     and never converted whole, with the thresholds of the explorer's (kept) fit of these places.
     """
     options = options_of(options, fields)
@@ -436,7 +435,7 @@ def evaluate_retrieval(
            else metric.describe() if metric is not None else spec.describe())
     settings = {"dataset": dataset.name, "layout": dataset.layout.value, "places": f"{n_places} places ({how})",
                 **({"theta": user_theta} if user_theta is not None else {}), **(settings or {})}
-    from vpr_explorer.views import database_queries as rv
+    from vpr_explorer.views import numbers as rv
 
     if not rv.dense(descriptors):
         geometry = None if dataset.database_place is not None else (

@@ -77,7 +77,7 @@ from vpr_explorer.method.places import (
 from vpr_explorer.method.retrieval import METHODS_BY_KEY, Outcome, place_scores, score_queries
 from vpr_explorer.protocols.options import check_finite, check_whole
 from vpr_explorer.settings import check_cache_root
-from vpr_explorer.views.database_queries import (
+from vpr_explorer.views.numbers import (
     BETWEEN,
     KNOWN,
     SCORE_ELEMS,
@@ -132,7 +132,7 @@ class QueryDecisions:
 
     Attributes:
         fitted: the places and thresholds the queries were decided with.
-        status: ``(n_queries,)`` ``database_queries.KNOWN`` (a right place), ``BETWEEN`` (positives,
+        status: ``(n_queries,)`` ``numbers.KNOWN`` (a right place), ``BETWEEN`` (positives,
             none in a place: not scored) or ``UNKNOWN`` (no positive at all).
         true_place: ``(n_queries,)`` the right place scoring highest, ``-1`` where there is none.
         true_raw: ``(n_queries,)`` its raw_p (NaN where there is none).
@@ -167,8 +167,8 @@ def decide_every_query(fitted: RetrievalFitted, descriptors: np.ndarray, *, k: f
     """Decide every query of ``fitted``'s dataset under the recorded methods (``RECORDED``), in blocks.
 
     Each block's scores are the query rows against the database images in places
-    (``database_queries.score_rows``), their place maxima (``retrieval.place_scores``) and the
-    methods' outcomes (``retrieval.score_queries``): what ``database_queries.explain_query``
+    (``numbers.score_rows``), their place maxima (``retrieval.place_scores``) and the
+    methods' outcomes (``retrieval.score_queries``): what ``numbers.explain_query``
     decides one query at a time. Only one block's scores are held at once (``SCORE_ELEMS``).
 
     Args:
@@ -681,7 +681,7 @@ def record_playback(
     or failed run leaves an existing recording as it was (and no partial file).
 
     Args:
-        fitted: the value's places and database thresholds (``database_queries.fit_retrieval``).
+        fitted: the value's places and database thresholds (``numbers.fit_retrieval``).
         descriptors: ``(n_images, D)`` of ``fitted.dataset``, database rows first.
         out: the ``.rrd`` to write; default a new file in ``playback_dir()``.
         serve: also stream it to this process's viewer servers (``viewer_servers``); the
@@ -755,7 +755,7 @@ def load_traversals(source: str | Path, database: Sequence[str] | None = None, q
 
 def _places(value: RetrievalDataset, group: float, step: float, reading: str, geometry: str | None) -> RetrievalPlaces:
     """The value's places: its own ids, or group/step in the geometry asked (default the value's,
-    ``database_queries.check_geometry``)."""
+    ``numbers.check_geometry``)."""
     g = check_geometry(value, geometry)
     if g is None:
         return RetrievalPlaces(None)

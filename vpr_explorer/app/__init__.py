@@ -5,12 +5,12 @@ sub-package does (and only its modules that run inside the server).
 
 * ``explorer.py``: the entry script (what ``streamlit run`` is pointed at): page
   config, the view read from the URL, ``st.navigation`` over ``pages/``, the sidebar.
-* ``pages/``: one script per page; a page is widgets → one library call → render.
-* ``ui/``: what the pages share: ``state`` (the view, mirrored into the URL), ``cache``
-  (every Streamlit cache), ``current``, ``controls``, ``feedback``, ``routing``,
-  ``sidebar``, ``group_step``; and the bodies the Places, Query inspector and Evaluation
-  pages use for a database/queries dataset (``retrieval_places``, ``retrieval_inspector``,
-  ``retrieval_eval``).
+* ``pages/``: one script per page, one body for every layout; a page is widgets → one
+  library call → render.
+* ``ui/``: what the pages share: ``state`` (the view, mirrored into the URL), ``current``
+  (the view resolved into one dataset value and its places), ``cache`` (every Streamlit
+  cache), ``controls``, ``candidates``, ``group_step``, ``place_map``, ``runs``,
+  ``feedback``, ``routing``, ``sidebar``.
 * ``launch``: the command line's ``app`` sub-command; imports no streamlit.
 
 A checkout's top-level ``app.py`` and ``pages/`` (for ``streamlit run app.py``) only hand

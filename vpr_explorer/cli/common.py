@@ -298,6 +298,40 @@ def refuse_retrieval_options(args: argparse.Namespace, reason: str) -> None:
             raise VPRInputError(f"--{option} applies to database/queries layouts; {reason}")
 
 
+def retrieval_dataset(args: argparse.Namespace) -> RetrievalDataset | None:
+    """The database/queries dataset ``--dataset``/``--layout`` name, or ``None`` for aligned traversal folders.
+
+    Args:
+        args: the parsed command line (``--dataset``, ``--layout``, ``--radius``, ``--geometry``,
+            ``--database``, ``--queries``).
+
+    Returns:
+        The dataset read in its layout, or ``None`` when it is aligned traversal folders (or
+        prepared places), whose places are group/step over frames.
+
+    Raises:
+        VPRInputError: ``--radius`` or ``--geometry`` for aligned traversal folders, a radius the
+            layout does not read, or a dataset that cannot be read.
+    """
+    from vpr_explorer.data.layouts import RETRIEVAL_LAYOUTS, detect_layout
+    from vpr_explorer.pipeline import DEMO, open_dataset
+
+    check_radius_option(args)
+    layout = Layout(args.layout)
+    path = Path(args.dataset).expanduser()
+    if layout is Layout.AUTO and args.dataset != DEMO and path.exists():
+        layout = detect_layout(path)
+    if layout not in RETRIEVAL_LAYOUTS:
+        read_as = "traversal folders" if layout in (Layout.AUTO, Layout.TRAVERSALS) else f"{layout.value} folders"
+        refuse_retrieval_options(args, f"{args.dataset} is read as {read_as}, whose places are group/step over "
+                                       "frames")
+        return None
+    dataset = open_dataset(args.dataset, layout.value, radius=args.radius, database=args.database,
+                           queries=args.queries)
+    check_radius_applies(args, dataset)
+    return dataset
+
+
 def write_text(path: Path | None, text: str, option: str) -> None:
     """Write ``text`` to ``path`` (nothing when None) and say so.
 

@@ -16,15 +16,12 @@ from vpr_explorer.cli.common import (
     add_dataset_args,
     add_split_args,
     bar,
-    check_radius_applies,
-    check_radius_option,
     default_note,
     descriptor_name,
     protocol_options,
-    refuse_retrieval_options,
+    retrieval_dataset,
     write_text,
 )
-from vpr_explorer.data.layouts import RETRIEVAL_LAYOUTS, Layout, detect_layout
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec
 from vpr_explorer.protocols.evaluation import Protocol
@@ -74,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
     from vpr_explorer.pipeline import evaluate_dataset
     from vpr_explorer.views.report import render
 
-    dataset = _retrieval_dataset(args)
+    dataset = retrieval_dataset(args)
     if dataset is not None:
         return _evaluate_retrieval(args, dataset)
     if args.protocol is None:
@@ -95,26 +92,6 @@ def run(args: argparse.Namespace) -> int:
     print(render(ev))
     _write_json(args, ev)
     return 0
-
-
-def _retrieval_dataset(args: argparse.Namespace):
-    """The dataset when ``--dataset``/``--layout`` name a database/queries layout, else None."""
-    from vpr_explorer.pipeline import open_dataset
-
-    check_radius_option(args)
-    if args.dataset == "demo":
-        layout = Layout(args.layout)
-    else:
-        path = Path(args.dataset).expanduser()
-        layout = detect_layout(path) if args.layout == Layout.AUTO.value and path.exists() else Layout(args.layout)
-    if layout not in RETRIEVAL_LAYOUTS:
-        refuse_retrieval_options(
-            args, f"{args.dataset} is read as {'traversal folders' if layout is Layout.AUTO else layout.value}")
-        return None
-    dataset = open_dataset(args.dataset, layout.value, radius=args.radius, database=args.database,
-                           queries=args.queries)
-    check_radius_applies(args, dataset)
-    return dataset
 
 
 def _place_specs(args: argparse.Namespace, dataset) -> tuple[PlaceSpec | None, MetricPlaceSpec | None]:

@@ -13,7 +13,7 @@ import argparse
 from pathlib import Path
 
 from vpr_explorer.cli.common import add_dataset_args, bar, descriptor_name
-from vpr_explorer.cli.sweep import retrieval_dataset
+from vpr_explorer.cli.common import retrieval_dataset
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -45,8 +45,7 @@ def run(args: argparse.Namespace) -> int:
     descriptor = descriptor_name(args)
     if args.descriptors is None:
         check_cache_root(args.cache_dir)  # an unusable cache folder fails before the dataset is read or the demo drawn
-    dataset = retrieval_dataset(args, "record of aligned traversal folders makes places of their frames, and their "
-                                      "frames say which database images are right")
+    dataset = retrieval_dataset(args)
     aligned = dataset is None
     if aligned:
         dataset = load_traversals(args.dataset, args.database, args.queries, layout=args.layout)

@@ -23,13 +23,11 @@ from vpr_explorer.cli.common import (
     add_dataset_args,
     add_split_args,
     bar,
-    check_radius_applies,
-    check_radius_option,
     default_note,
     descriptor_name,
     number,
     protocol_options,
-    refuse_retrieval_options,
+    retrieval_dataset,
     write_text,
 )
 from vpr_explorer.method.places import PlaceGeometry, Reading
@@ -107,35 +105,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", type=Path, default=None, help="write the settings and every cell as JSON")
 
 
-def retrieval_dataset(args: argparse.Namespace, reason: str):
-    """The database/queries dataset ``--dataset``/``--layout`` name, or ``None`` for aligned traversal folders.
-
-    Args:
-        args: the parsed command line (``--dataset``, ``--layout``, ``--radius``, ``--geometry``,
-            ``--database``, ``--queries``).
-        reason: why ``--radius`` and ``--geometry`` do not apply to aligned traversal folders.
-
-    Raises:
-        VPRInputError: ``--radius`` or ``--geometry`` for aligned traversal folders, a radius the
-            layout does not read, or a dataset that cannot be read.
-    """
-    from vpr_explorer.data.layouts import RETRIEVAL_LAYOUTS, Layout, detect_layout
-    from vpr_explorer.pipeline import DEMO, open_dataset
-
-    check_radius_option(args)
-    layout = Layout(args.layout)
-    path = Path(args.dataset).expanduser()
-    if layout is Layout.AUTO and args.dataset != DEMO and path.exists():
-        layout = detect_layout(path)
-    if layout not in RETRIEVAL_LAYOUTS:
-        refuse_retrieval_options(args, reason)
-        return None
-    dataset = open_dataset(args.dataset, layout.value, radius=args.radius, database=args.database,
-                           queries=args.queries)
-    check_radius_applies(args, dataset)
-    return dataset
-
-
 def run(args: argparse.Namespace) -> int:
     """Run the sweep ``args`` describe; print the cost, the grids and why cells are empty; write CSV/JSON.
 
@@ -144,12 +113,12 @@ def run(args: argparse.Namespace) -> int:
     """
     from vpr_explorer import pipeline
     from vpr_explorer.settings import check_cache_root
-    from vpr_explorer.views.database_queries import check_geometry
+    from vpr_explorer.views.numbers import check_geometry
 
     descriptor = descriptor_name(args)
     if args.descriptors is None:
         check_cache_root(args.cache_dir)
-    retrieval = retrieval_dataset(args, "a sweep of aligned traversal folders makes places of their frames")
+    retrieval = retrieval_dataset(args)
     dataset = pipeline.open_dataset(args.dataset, args.layout) if retrieval is None else retrieval
     geometry = PlaceGeometry.FRAMES
     if retrieval is not None:  # none when the layout names its places: sweep_cost says so

@@ -4,7 +4,7 @@
 every product over them another copy. Here they stay in one file, dataset-ordered, opened
 with ``np.load(mmap_mode="r")``: the operating system pages in what a pass reads, and every
 consumer (``stats.negative_stats_rows``, ``thresholds.training_pair_scores(rows=…)``,
-``database_queries.score_rows`` and the protocol ``database_queries.evaluate_fitted``) reads a
+``numbers.score_rows`` and the protocol ``numbers.evaluate_fitted``) reads a
 block of rows, converts it to float32, uses it and drops it.
 
 Two sources give such a file:

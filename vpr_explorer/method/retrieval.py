@@ -26,7 +26,7 @@ A query for which every place is dropped is **rejected**.
 
 Similarity matrices are ``(n_queries, n_database)`` throughout, except the database-major
 ``(n_database, n_queries)`` ones of ``similarity_t`` and the place layout (``PlaceLayout``),
-which the fused decisions of ``database.decide_traversal`` use.
+which the fused decisions of ``views.numbers.decide_queries`` use.
 """
 
 from __future__ import annotations
@@ -321,7 +321,8 @@ def layout_place_scores(
         piece: ``(row, group, n_groups, k)`` from ``layout.pieces``.
         raw_t, best_t: ``(n_groups, n_queries)`` outputs: the place maxima (float32, exact), and
             the database index of the first image of the place within ``TIE_TOLERANCE`` of
-            them, the tolerance subtracted in the scores' precision as ``place_scores`` does.
+            them, the tolerance subtracted in the scores' precision as ``place_scores`` does
+            (for a NaN maximum, an image of the place).
     """
     row, group, n, k = piece
     x = scores_t[row : row + n * k].reshape(n, k, -1)
@@ -332,6 +333,9 @@ def layout_place_scores(
     # a maximum over the middle axis (5× quicker than ``argmax`` over it at 906 queries)
     weight = np.arange(k, 0, -1, dtype=np.uint8 if k < 256 else np.int64)[:, None]
     first = k - np.max((x >= floor[:, None, :]) * weight, axis=1).astype(np.int64)
+    # a NaN maximum hits no row (first = k): any row of the place keeps the index in it; such a
+    # query's raw_p is NaN, and the caller decides it with ``score_queries``, which defines NaN
+    np.minimum(first, k - 1, out=first)
     best_t[group : group + n] = layout.order[row + k * np.arange(n)[:, None] + first]
 
 

@@ -91,6 +91,10 @@ _TRI_BLOCKS = 8  # column blocks of W: the quadratic forms take (1 + 1/8)·N·D�
 _GRAM_LANES = 4  # float64 sums of E that blocks of rows are dealt to in turn (``_centred_gram``)
 _QUAD_ROWS = 1024  # rows per pool task of ``_quadratic_forms``
 
+#: A row whose squared norm is below this is all zero: the bound ``descriptors.extract`` normalises
+#: with (``MIN_SQUARED_NORM``), written here so that the statistics do not import the extractors.
+ZERO_SQUARED_NORM = 1e-24
+
 
 @dataclass(frozen=True, eq=False)
 class NegativeStats:
@@ -159,7 +163,7 @@ def validate_descriptors(descriptors: np.ndarray, what: str = "descriptors") -> 
             f"{what}: rows {_first(bad)} contain NaN or inf; recompute the descriptors (clear the cache) "
             "or remove those images"
         )
-    zero = sq < 1e-24
+    zero = sq < ZERO_SQUARED_NORM
     if zero.any():
         raise VPRInputError(
             f"{what}: rows {_first(zero)} are all zero, so cosine similarity is undefined; "
@@ -683,7 +687,7 @@ def one_blas_thread():
     """BLAS in one thread while inside, for callers whose own threads parallelise: the closed
     form's halves (``_side_by_side``), ``thresholds``' tiles (a multithreaded GEMM of 80 ×
     2,048 × 80 waits more on its threads than it computes: 15× slower on a loaded machine) and
-    ``database.decide_traversal``'s pieces of places.
+    ``views.numbers.decide_queries``' pieces of places.
 
     Process-wide (OpenBLAS has one setting): nested and concurrent callers share one limiter,
     the last to leave restores the count. On OpenBLAS's SkylakeX kernel the GEMMs used here

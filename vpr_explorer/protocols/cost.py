@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 from vpr_explorer.method.places import Places
+from vpr_explorer.protocols.options import RUNS, UNKNOWN_SHARE
 
 
-def protocol_pairs(protocol: str, places: Places | None, dataset, *, runs: int = 50, database=None,
-                   unknown_share: float = 0.3, **_) -> int:
+def protocol_pairs(protocol: str, places: Places | None, dataset, *, runs: int = RUNS, database=None,
+                   unknown_share: float = UNKNOWN_SHARE, **_) -> int:
     """Image pairs a protocol run scores: its cost, to say before running it.
 
     Paper: one pass over all pairs of place images (``scale.fast_paper_protocol``).

@@ -36,8 +36,7 @@ import numpy as np
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.data.groundtruth import GroundTruth
 from vpr_explorer.method.places import right_places
-# KS and K_GRID are read from here by views.database_queries and the sweep
-from vpr_explorer.protocols.options import K_GRID, KS, ProtocolOptions  # noqa: F401
+from vpr_explorer.protocols.options import ProtocolOptions
 from vpr_explorer.protocols.precision_recall import PRCurve, PRRow, PRSplit, pr_rows
 from vpr_explorer.method.retrieval import (
     METHODS_BY_KEY,
@@ -702,7 +701,7 @@ def query_truth(query_frames: np.ndarray, frame_place: np.ndarray, tolerance: in
 class RetrievalTally:
     """The database/queries protocol's outcomes, block of queries by block, and the table they make.
 
-    Shared by ``retrieval_protocol`` and ``database_queries.evaluate_fitted`` (a memory-mapped
+    Shared by ``retrieval_protocol`` and ``numbers.evaluate_fitted`` (a memory-mapped
     database): they differ in how a block's scores and its image-level answers are computed,
     not in what is counted.
 

@@ -1,9 +1,8 @@
 """The numbers behind the explorer's views, and the figures, maps and text tables drawn from them.
 
-* ``traversal``: the numbers behind each view of aligned traversals (a query traversal
-  against the database traversals; sampling and budgets for big datasets).
-* ``database_queries``: the same for a database/queries dataset (places from the layout,
-  frames or metres; decisions over a memory-mapped database).
+* ``numbers``: the numbers behind each view of a dataset value (places from the layout,
+  frames or metres; one place, one query, the overview; sampling and budgets for big
+  datasets; decisions over a memory-mapped database).
 * ``plots``: every Plotly figure, from those numbers.
 * ``maps``: the map of a position-tagged dataset (places, queries, one query's radius).
 * ``compare_plots``: figures of runs compared (precision–recall and trade-off curves per run).

@@ -27,7 +27,7 @@ from vpr_explorer.protocols.precision_recall import PRCurve, PRPoint
 from vpr_explorer.method.retrieval import METHODS_BY_KEY, QueryDecision
 from vpr_explorer.method.stats import mixture_pdf
 from vpr_explorer.settings import default_workers
-from vpr_explorer.views.traversal import PlaceDetail, SimilarityGrid
+from vpr_explorer.views.numbers import PlaceDetail, SimilarityGrid
 
 KEPT = "#2e8b57"
 DROPPED = "#c4c4c4"
@@ -584,7 +584,7 @@ def evaluation_pr_figure(ev: Evaluation) -> go.Figure:
 
 def similarity_heatmap(grid: SimilarityGrid, *, query: str, database: Sequence[str],
                        marked: tuple[int, int] | None = None) -> go.Figure:
-    """Query frames × database frames similarity; a click anywhere selects the pair behind that cell.
+    """Queries × database images similarity (``numbers.similarity_grid``); a click selects the pair behind a cell.
 
     Plotly heatmaps emit no selection events in Streamlit (streamlit#8760), so an
     invisible marker sits on every cell (``meta="cells"``) with ``customdata`` =
@@ -600,17 +600,20 @@ def similarity_heatmap(grid: SimilarityGrid, *, query: str, database: Sequence[s
         # Plain lists, not a typed array: the browser then hands each point's pair back as a list.
         customdata=np.stack([grid.query_image.ravel(), grid.db_image.ravel()], axis=1).tolist(),
         text=[f"{v:.3f}" for v in grid.z.ravel()],
-        hovertemplate="query frame %{y}, database frame %{x}: s = %{text}<br>click to inspect<extra></extra>",
+        hovertemplate="query %{y}, database image %{x}: s = %{text}<br>click to inspect<extra></extra>",
         showlegend=False,
     ))
     if marked is not None:
         fig.add_trace(go.Scatter(x=[marked[1]], y=[marked[0]], mode="markers", meta="marked", showlegend=False,
                                  marker=dict(symbol="x-thin-open", size=14, color="#e4572e", line=dict(width=3)),
                                  hoverinfo="skip"))
-    block = f" (max over {grid.block}×{grid.block} frame blocks)" if grid.block > 1 else ""
-    fig.update_layout(title=f"Similarity: {query} queries × {' + '.join(database)} database{block}",
-                      xaxis=dict(title=f"database frame ({' + '.join(database)}, best traversal)"),
-                      yaxis=dict(title=f"query frame ({query})", autorange="reversed"),
+    n_q, n_db = grid.n_queries, grid.n_database
+    pooled = ("" if grid.block == grid.row_block == 1 else
+              f" (each cell: one query × the best of {grid.block} database images)" if grid.sampled else
+              f" (each cell: the best of {grid.row_block} queries × {grid.block} database images)")
+    fig.update_layout(title=f"Similarity: {n_q:,} queries ({query}) × {n_db:,} database images{pooled}",
+                      xaxis=dict(title=f"database image ({' + '.join(database)}, in database order)"),
+                      yaxis=dict(title=f"query ({query})", autorange="reversed"),
                       height=560, margin=_MARGIN, dragmode="zoom")
     return fig
 

@@ -6,8 +6,7 @@ import csv
 import io
 import math
 
-# strict is read from here by views.traversal
-from vpr_explorer.protocols.evaluation import Evaluation, Protocol, strict  # noqa: F401
+from vpr_explorer.protocols.evaluation import Evaluation, Protocol
 
 
 def _pct(stat, with_std: bool = True) -> str:

@@ -22,7 +22,7 @@ from vpr_explorer.errors import VPRInputError
 from vpr_explorer.data.groundtruth import DEFAULT_RADIUS
 from vpr_explorer.data.layouts import Layout, RetrievalDataset
 from vpr_explorer.pipeline import DEMO
-from vpr_explorer.views.database_queries import radius_of
+from vpr_explorer.views.numbers import radius_of
 
 from vpr_explorer.app.ui import cache, state
 from vpr_explorer.app.ui.current import current

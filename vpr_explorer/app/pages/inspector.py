@@ -16,7 +16,7 @@ import streamlit as st
 
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.method.retrieval import METHODS_BY_KEY
-from vpr_explorer.views.database_queries import (
+from vpr_explorer.views.numbers import (
     BETWEEN,
     UNKNOWN,
     database_label,
@@ -24,7 +24,7 @@ from vpr_explorer.views.database_queries import (
     find_query_by_name,
     query_label,
 )
-from vpr_explorer.views.traversal import FIND_KINDS, LIVE_METHODS, top_candidates
+from vpr_explorer.views.numbers import FIND_KINDS, LIVE_METHODS, top_candidates
 
 from vpr_explorer.app.ui import cache, state
 from vpr_explorer.app.ui.candidates import show_candidates

@@ -12,7 +12,7 @@ import streamlit as st
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.method.places import READING_LABELS, PlaceSpec, Reading, frame_places, retrieval_places
 from vpr_explorer.views import plots
-from vpr_explorer.views.traversal import LIVE_METHODS
+from vpr_explorer.views.numbers import LIVE_METHODS
 
 from vpr_explorer.app.ui import cache, group_step, place_map, state
 from vpr_explorer.app.ui.current import current

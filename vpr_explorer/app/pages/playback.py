@@ -13,7 +13,7 @@ from vpr_explorer.method.database import Verdict
 from vpr_explorer.method.places import BETWEEN_PLACES_RULE
 from vpr_explorer.method.retrieval import METHODS_BY_KEY
 from vpr_explorer.recording import RECORDED, TIMELINE, record_playback, verdicts
-from vpr_explorer.views.database_queries import UNKNOWN, query_label
+from vpr_explorer.views.numbers import UNKNOWN, query_label
 
 from vpr_explorer.app.ui import cache, state
 from vpr_explorer.app.ui.current import current
@@ -40,7 +40,7 @@ noun = "frame" if ds.query_frame is not None else "query"  # aligned traversals:
 
 cols = st.columns([3, 2])
 cols[0].markdown(f"**Queries:** the {ds.n_queries:,} images of {cur.query}, in order; **database:** "
-                 f"{', '.join(cur.database)} ({ds.n_database:,} images); **places:** {cur.places.describe()}. "
+                 f"{', '.join(cur.database)} ({ds.n_database:,} images); **places:** {cur.places.describe(cur.dataset)}. "
                  "The query traversal and the places are set on the **Places** page.")
 k = cols[1].slider("k: θ_p(k) = θ_p + k·s_p (k = 0 is the paper)", K_RANGE[0], K_RANGE[1], step=0.25,
                    help="θ_p(k) = θ_p + k·s_p, where s_p is the standard deviation of the place's negative mixture "

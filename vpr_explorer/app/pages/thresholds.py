@@ -6,7 +6,7 @@ import streamlit as st
 
 from vpr_explorer.method.thresholds import THRESHOLD_LABELS, ThresholdMethod
 from vpr_explorer.views import plots
-from vpr_explorer.views.database_queries import database_label, query_label
+from vpr_explorer.views.numbers import database_label, query_label
 
 from vpr_explorer.app.ui import cache, state
 from vpr_explorer.app.ui.controls import threshold_controls

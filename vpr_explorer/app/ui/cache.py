@@ -6,7 +6,7 @@ file: one the app was started with, or one typed on the Dataset page) -> the dat
 traversal) -> fitted (places, database thresholds) -> query decision / next rejected query,
 and -> overview (the queries decided, sampled on big datasets) / evaluation. Pages that show
 one place or one query only need ``fitted``: they never compute query × database pairs
-beyond their own row. Places come from ``database_queries.RetrievalPlaces`` (the layout's
+beyond their own row. Places come from ``numbers.RetrievalPlaces`` (the layout's
 own ids, frames, or metres along a route or over a lattice).
 
 Keys: Streamlit samples large arrays when it hashes them, so functions never hash the
@@ -66,9 +66,9 @@ from vpr_explorer.pipeline import (
 )
 from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec
 from vpr_explorer.protocols.shared_scores import SHARED_LIMIT, SharedScores
-from vpr_explorer.views import database_queries as views
+from vpr_explorer.views import numbers as views
 from vpr_explorer.method import stats
-from vpr_explorer.views.database_queries import RetrievalFitted, RetrievalOverview, RetrievalPlaces
+from vpr_explorer.views.numbers import RetrievalFitted, RetrievalOverview, RetrievalPlaces
 
 from vpr_explorer.app.ui.feedback import progress_reporter
 
@@ -495,7 +495,7 @@ def _found(key: str, places: tuple, after: int, kind: str, method: str, k: float
 
 def find(data: Loaded, places: RetrievalPlaces, *, after: int, kind: str, method: str, k: float = 0.0,
          user_theta: float | None = None) -> tuple[int | None, int]:
-    """``database_queries.find_query``: the next query after ``after`` that ``method`` rejected or got wrong."""
+    """``numbers.find_query``: the next query after ``after`` that ``method`` rejected or got wrong."""
     return _found(data.key, places_key(places), int(after), kind, method, float(k), user_theta, data)
 
 
@@ -561,7 +561,7 @@ def _similarity_grid(key: str, _data: Loaded) -> views.SimilarityGrid:
 
 
 def similarity_grid(data: Loaded) -> views.SimilarityGrid:
-    """The value's queries × database images similarity, pooled (``database_queries.similarity_grid``)."""
+    """The value's queries × database images similarity, pooled (``numbers.similarity_grid``)."""
     return _similarity_grid(data.key, data)
 
 

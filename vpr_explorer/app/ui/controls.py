@@ -36,7 +36,7 @@ def jump_to_next(search: Callable[[], tuple[int | None, int]], current: int, n: 
                  label: str) -> None:
     """The Query inspector's "next ▶": move the view's ``frame`` to the query ``search()`` found after ``current``.
 
-    ``search`` returns ``(found, last)`` as ``database_queries.find_query`` does (``last``: where
+    ``search`` returns ``(found, last)`` as ``numbers.find_query`` does (``last``: where
     a search that ran out of budget stopped); ``n`` queries in all. What could not be found is
     kept for the page to show (``st.session_state["find_none"]``).
     """

@@ -18,8 +18,8 @@ from vpr_explorer.data.layouts import RetrievalDataset
 from vpr_explorer.data.traversals import Dataset
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec
-from vpr_explorer.views.database_queries import DEFAULT_GROUP_M, DEFAULT_STEP_M, RetrievalPlaces, check_geometry
-from vpr_explorer.views.traversal import default_step
+from vpr_explorer.views.numbers import DEFAULT_GROUP_M, DEFAULT_STEP_M, RetrievalPlaces, check_geometry
+from vpr_explorer.views.numbers import default_step
 
 from vpr_explorer.app.ui import cache, state
 from vpr_explorer.app.ui.feedback import DATASET_HINT, PLACES_HINT, fixed_on

@@ -21,7 +21,7 @@ import streamlit as st
 from vpr_explorer.data.layouts import RetrievalDataset
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.method.places import READING_LABELS, PlaceGeometry, Reading, retrieval_places
-from vpr_explorer.views.database_queries import RetrievalPlaces, geometries, geometry_label
+from vpr_explorer.views.numbers import RetrievalPlaces, geometries, geometry_label
 
 from vpr_explorer.app.ui import state
 from vpr_explorer.app.ui.current import effective_places

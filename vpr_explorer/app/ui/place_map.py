@@ -13,8 +13,8 @@ import numpy as np
 import streamlit as st
 
 from vpr_explorer.views import maps
-from vpr_explorer.views.database_queries import RetrievalFitted, query_label, radius_of
-from vpr_explorer.views.traversal import top_candidates
+from vpr_explorer.views.numbers import RetrievalFitted, query_label, radius_of
+from vpr_explorer.views.numbers import top_candidates
 
 from vpr_explorer.app.ui import cache, state
 from vpr_explorer.app.ui.current import Current

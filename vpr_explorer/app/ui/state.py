@@ -33,7 +33,7 @@ from vpr_explorer.data.groundtruth import DEFAULT_RADIUS, check_radius
 from vpr_explorer.data.layouts import Layout
 from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec, Reading
 from vpr_explorer.pipeline import DEMO
-from vpr_explorer.views.database_queries import DEFAULT_GROUP_M
+from vpr_explorer.views.numbers import DEFAULT_GROUP_M
 
 DEFAULT_DESCRIPTOR = "pixels"
 """Always available and instant; efficientnet-lite0 is the learned choice, one click away."""

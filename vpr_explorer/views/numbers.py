@@ -1,27 +1,31 @@
-"""The numbers behind the explorer's views of a database/queries dataset (``layouts.RetrievalDataset``).
+"""The numbers behind every view of the explorer: pure functions over one dataset value.
 
-Where ``views.traversal`` serves aligned traversals (a query traversal against the others, the right
-place by frame index), this module serves the field's layouts: database images and query
-images with the ground truth as a relation (``groundtruth.GroundTruth``). Places cover
-database images only, made by one of (``RetrievalPlaces``):
+Every dataset reaches the views as a database/queries dataset (``layouts.RetrievalDataset``;
+aligned traversals through ``data.aligned``): database images and query images with the
+ground truth as a relation (``groundtruth.GroundTruth``). Places cover database images
+only, made by one of (``RetrievalPlaces``):
 
-* the layout's own place ids (a manifest's ``place`` column);
-* ``frames``: group/step counting database images in listed order (``places.PlaceSpec``);
-* ``route`` / ``lattice``: group/step in metres along the database route, or cells of a
-  square lattice over the plane (``places.MetricPlaceSpec``), where the layout has positions.
+* the layout's own place ids (prepared places' file names, a manifest's ``place`` column);
+* ``frames``: group/step counting frames along the route (aligned traversals) or database
+  images in listed order (``places.PlaceSpec``);
+* ``route`` / ``lattice``: group/step in metres along the route, or cells of a square
+  lattice over the plane (``places.MetricPlaceSpec``), where the dataset has positions.
 
 Thresholds come from the database images that fall in a place (as in
 ``evaluation.retrieval_protocol``); a query's right places are those holding one of its
 positives. A query with no positive at all is an *unknown-place* query (the open-set case:
 the right answer is to reject it); one whose positives all lie between places has no
-right place either, and is left out of Recall@1 (as frames between places are).
+right place either, and is left out of Recall@1. Changing group/step relabels database
+images and refits the closed-form statistics: descriptors are never recomputed.
 
-Pure functions over arrays; never imports streamlit.
+Pure functions over arrays; never imports streamlit, so every number a page shows is
+testable without a server.
 """
 
 from __future__ import annotations
 
 import functools
+import json
 import math
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -32,7 +36,8 @@ import numpy as np
 
 from vpr_explorer.method.database import DatabaseModel, database_rows
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.protocols.evaluation import KS, Evaluation, RetrievalTally
+from vpr_explorer.protocols.evaluation import Evaluation, RetrievalTally, strict
+from vpr_explorer.protocols.options import KS
 from vpr_explorer.data.layouts import Layout, RetrievalDataset
 from vpr_explorer.method.places import GEOMETRY_LABELS, MetricPlaceSpec, PlaceGeometry, PlaceSpec, retrieval_places
 from vpr_explorer.method.retrieval import (
@@ -57,7 +62,41 @@ from vpr_explorer.method.thresholds import (
     training_pair_scores,
 )
 from vpr_explorer.settings import default_workers
-from vpr_explorer.views.traversal import FIND_KINDS, PAIR_BUDGET, PlaceDetail, overview_frames
+
+#: Methods the live pages summarise, in display order (place level; the image-level
+#: baseline is left out because it ranks images, not places).
+LIVE_METHODS = ("place-baseline", "margin-simple", "margin-weighted", "raw-simple", "raw-weighted", "global-auto")
+
+
+def default_step(n_frames: int) -> int:
+    """The step the app starts with: the paper's 10 on long routes, 5 on short ones."""
+    return 10 if n_frames >= 100 else 5
+
+
+
+#: Query × database similarities an overview computes at most; above it the queries
+#: it decides are a seeded random sample (the pages say so). 3·10⁷ keeps GardensPoint
+#: (8·10⁴) and Nordland 64x32 (1.3·10⁷) exact, and 110k images at a few hundred sampled
+#: query frames (``benchmarks/bench_app_scale.py`` times a slider move there).
+PAIR_BUDGET = 30_000_000
+OVERVIEW_SEED = 0
+
+
+def overview_frames(n_frames: int, n_database: int, budget: int = PAIR_BUDGET) -> np.ndarray:
+    """Query frames an overview decides: all of them, or a seeded sample with frames × database ≤ ``budget``.
+
+    A random sample rather than every s-th frame: a stride can beat with group/step and
+    land every sampled frame between places (or on the same offset inside each place).
+    """
+    if n_frames * max(1, n_database) <= budget:
+        return np.arange(n_frames)
+    size = max(1, min(n_frames, budget // max(1, n_database)))
+    return np.sort(np.random.default_rng(OVERVIEW_SEED).choice(n_frames, size=size, replace=False))
+
+
+
+#: Kinds of queries ``find_query`` looks for.
+FIND_KINDS = ("rejected", "answered wrong")
 
 #: Group and step in metres the app starts with: a place about as long as the field's 25 m
 #: radius, one every 100 m (GardensPoint at 10 m a frame: the paper's group 3, step 10).
@@ -168,11 +207,12 @@ def score_rows_t(descriptors: np.ndarray, rows: np.ndarray, queries: np.ndarray,
 
 @dataclass(frozen=True)
 class RetrievalPlaces:
-    """How a retrieval dataset's database images become places.
+    """How a dataset value's database images become places.
 
     Attributes:
         geometry: ``None`` for the layout's own place ids, else frames / route / lattice.
-        spec: group/step in database images (``frames``), else ``None``.
+        spec: group/step in frames (``frames``: frames along the route of aligned traversals,
+            database images in listed order otherwise), else ``None``.
         metric: group/step in metres (``route``, ``lattice``), else ``None``.
     """
 
@@ -180,11 +220,22 @@ class RetrievalPlaces:
     spec: PlaceSpec | None = None
     metric: MetricPlaceSpec | None = None
 
-    def describe(self) -> str:
+    def describe(self, dataset: RetrievalDataset | None = None) -> str:
+        """E.g. "group 3, step 10 (stride reading) over frames along the route".
+
+        Args:
+            dataset: the value the places are made on: says what group/step count (frames along
+                the route of aligned traversals, database images in listed order otherwise).
+
+        Returns:
+            One phrase for captions and notes.
+        """
         if self.geometry is None:
             return "places given by the layout"
         if self.metric is not None:
             return self.metric.describe()
+        if dataset is not None and dataset.database_frame is not None:
+            return f"{self.spec.describe()} over frames along the route"
         return f"{self.spec.describe()} over database images in listed order"
 
 
@@ -231,6 +282,76 @@ def geometry_label(geometry: PlaceGeometry) -> str:
     return GEOMETRY_LABELS[geometry]
 
 
+# --------------------------------------------------------------------------- one place, one query
+
+
+@dataclass(frozen=True, eq=False)
+class PlaceDetail:
+    """One place's negative mixture, its scores and its thresholds (database model).
+
+    Attributes:
+        place: the place id.
+        images: ``(n_p,)`` dataset image indices of the place's database images.
+        mu, sigma, weight: ``(n_p,)`` the mixture components N(μᵢ, σᵢ²) and weights wᵢ.
+        negatives: every negative score s(i, j), i in the place, j a database image of another place
+            (float32, as scored: a place of a million-image database has 10⁷ of them).
+        positives: same-place scores s(i, j), i < j both database images of the place.
+        query_images: dataset image indices of the query traversal's frames of this place.
+        query_raw: ``(len(query_images),)`` raw_p of those query frames: what decides them.
+        theta: ``{"simple", "weighted"}`` the paper's θ_p (k = 0).
+        spread: s_p, the mixture's standard deviation.
+        auto: the automatic global threshold.
+        k_adaptive: this place's k = clip((μ⁺ − μ⁻)/(2σ⁻), 1, 2).
+    """
+
+    place: int
+    images: np.ndarray
+    mu: np.ndarray
+    sigma: np.ndarray
+    weight: np.ndarray
+    negatives: np.ndarray
+    positives: np.ndarray
+    query_images: np.ndarray
+    query_raw: np.ndarray
+    theta: dict[str, float]
+    spread: float
+    auto: float
+    k_adaptive: float
+
+    def theta_k(self, k: float, method: str = "weighted") -> float:
+        """θ_p(k) = θ_p + k·s_p."""
+        return self.theta[method] + k * self.spread
+
+    def share_negatives_above(self, theta: float) -> float:
+        """Share of negative scores at or above ``theta`` (other places this θ would keep)."""
+        # compared in float64 (a Python float against float32 scores would be rounded to float32)
+        return float((self.negatives >= np.float64(theta)).mean()) if self.negatives.size else math.nan
+
+    def share_positives_below(self, theta: float) -> float:
+        """Share of same-place database scores below ``theta``."""
+        return float((self.positives < theta).mean()) if self.positives.size else math.nan
+
+    def share_queries_below(self, theta: float) -> float:
+        """Share of the place's own query frames whose raw_p is below ``theta`` (they would be dropped)."""
+        return float((self.query_raw < theta).mean()) if self.query_raw.size else math.nan
+
+
+def top_candidates(decision: QueryDecision, n: int = 8) -> np.ndarray:
+    """Place ids to show for a query: the ``n`` best by raw_p, every method's answer and every right place.
+
+    An answer or a right place outside the ``n`` best by raw_p (the margin rule can answer
+    a place far down the raw_p order) joins them, so the bars always carry each method's
+    answer and the right place(s); all are shown in descending raw_p (ties by place id).
+    """
+    raw = np.asarray(decision.raw, dtype=np.float64)
+    order = np.argsort(-raw, kind="stable")
+    order = order[np.isfinite(raw[order])]
+    shown = set(int(p) for p in order[:n])
+    shown |= {int(o.answer_place[0]) for o in decision.outcomes.values() if o.answer_place[0] >= 0}
+    shown |= {int(p) for p in decision.true_places}
+    return np.array(sorted(shown, key=lambda p: (-raw[p] if np.isfinite(raw[p]) else np.inf, p)), dtype=np.int64)
+
+
 # --------------------------------------------------------------------------- the fitted database
 
 
@@ -260,7 +381,7 @@ class RetrievalFitted:
         per = np.bincount(self.model.places, minlength=self.n_places)
         counts = f"{per.min()}" if per.min() == per.max() else f"{per.min()}-{per.max()}"
         skipped = self.dataset.n_database - len(self.model.images)
-        return (f"{self.n_places} places × {counts} database images ({self.places.describe()}); "
+        return (f"{self.n_places} places × {counts} database images ({self.places.describe(self.dataset)}); "
                 f"{skipped} of {self.dataset.n_database} database images between places")
 
     def right_places(self, queries: np.ndarray) -> np.ndarray:
@@ -362,7 +483,7 @@ def place_queries(fitted: RetrievalFitted, place: int) -> np.ndarray:
 
 
 def place_detail(fitted: RetrievalFitted, descriptors: np.ndarray, place: int) -> PlaceDetail:
-    """One place's negative mixture, its scores and thresholds (``traversal.PlaceDetail``, for ``plots.mixture_figure``).
+    """One place's negative mixture, its scores and thresholds (``PlaceDetail``, for ``plots.mixture_figure``).
 
     Scores only the place's own rows: its database images against every database image in a
     place (n_p × n_placed, a block of the database at a time on a memory map), never all
@@ -434,7 +555,7 @@ def decide_queries(fitted: RetrievalFitted, descriptors: np.ndarray, queries: np
 
     A block holds at most ``SCORE_ELEMS`` scores (fewer queries than ``block`` on a big
     database). The scores are database × queries with the database images in places grouped
-    by place (``retrieval.PlaceLayout``, as ``database.decide_traversal``'s fused path): each
+    by place (``retrieval.PlaceLayout``): each
     piece of places is read (a block of the memory map, converted), scored and its place
     maxima taken while in cache, and the image-level baseline reads back only the places
     that can matter (``retrieval.score_layout_block``): the same ranks, answers and images as
@@ -445,6 +566,11 @@ def decide_queries(fitted: RetrievalFitted, descriptors: np.ndarray, queries: np
     queries = np.asarray(queries, dtype=np.int64)
     if not len(queries):
         raise VPRInputError("queries: no query image to decide; choose at least one")
+    n = fitted.dataset.n_queries
+    outside = queries[(queries < 0) | (queries >= n)]
+    if len(outside):
+        raise VPRInputError(f"query {int(outside[0])}: not a query of {fitted.dataset.name!r}; choose queries from 0 "
+                            f"to {n - 1}")
     model = fitted.model
     images = model.images
     block = max(1, min(block, SCORE_ELEMS // max(1, len(images))))
@@ -550,7 +676,7 @@ class RetrievalOverview:
 
     Attributes:
         queries: ``(n,)`` ascending query indices decided: all, or a seeded sample when queries ×
-            database images exceed the pair budget (``traversal.overview_frames``).
+            database images exceed the pair budget (``overview_frames``).
         n_queries: query images in the dataset.
         scored: ``(n,)`` the query has a right place (Recall@1 counts it).
         unknown: ``(n,)`` the query has no positive at all (an unknown-place query).
@@ -607,7 +733,7 @@ def find_query(fitted: RetrievalFitted, descriptors: np.ndarray, *, after: int, 
 
     "answered wrong": a query with a right place not answered right at rank 1, or an
     unknown-place query accepted (a false positive). Queries are decided in growing chunks
-    and the search stops at ``pair_budget`` similarities, as ``traversal.find_frame`` does; on a
+    and the search stops at ``pair_budget`` similarities; on a
     memory-mapped database the first chunk is a whole block of ``decide_queries`` (each chunk
     reads the database once, whatever its size).
 
@@ -757,6 +883,7 @@ class SimilarityGrid:
         block: database images per column block.
         row_block: queries per row block.
         sampled: rows are single sampled queries, not block maxima.
+        n_queries, n_database: the value's queries and database images the grid covers.
     """
 
     z: np.ndarray
@@ -766,7 +893,9 @@ class SimilarityGrid:
     col_frames: np.ndarray
     block: int
     row_block: int
-    sampled: bool = False
+    sampled: bool
+    n_queries: int
+    n_database: int
 
 
 def similarity_grid(dataset: RetrievalDataset, descriptors: np.ndarray, *, max_side: int = 200,
@@ -814,4 +943,35 @@ def similarity_grid(dataset: RetrievalDataset, descriptors: np.ndarray, *, max_s
         z[r0:r0 + rows] = np.take_along_axis(tiles, arg[..., None], axis=2)[..., 0]
         q_img[r0:r0 + rows] = qs[np.arange(rows)[:, None] * step + arg // block]
         db_img[r0:r0 + rows] = np.arange(n_cols)[None, :] * block + arg % block
-    return SimilarityGrid(z, q_img, db_img, row_frames, np.arange(n_cols) * block, block, row_block, sampled)
+    return SimilarityGrid(z, q_img, db_img, row_frames, np.arange(n_cols) * block, block, row_block, sampled, n_q, n_db)
+
+
+# --------------------------------------------------------------------------- protocol tables
+
+
+#: The Evaluation page runs its default protocol on arrival only below this many image
+#: pairs (GardensPoint: 3.6·10⁵, Nordland 64x32 g3s3: 5·10⁷); above, it waits for "Run".
+AUTO_RUN_PAIRS = 100_000_000
+
+
+def evaluation_rows(ev: Evaluation) -> list[dict[str, object]]:
+    """One row per method: Recall@K mean and std, accepted, precision and the protocol's extra columns, in %."""
+    rows = []
+    for r in ev.rows:
+        row: dict[str, object] = {"method": r.label, "source": r.source}
+        for k in ev.ks:
+            row[f"R@{k}"] = 100 * r.recall[k][0]
+            row[f"R@{k} ±"] = 100 * r.recall[k][1]
+        row["accepted"] = 100 * r.accepted[0]
+        row["precision"] = 100 * r.precision[0]
+        if r.unknown_rejection is not None:
+            row["unknown rejected"] = 100 * r.unknown_rejection[0]
+        if r.own_traversal is not None:
+            row["top-1 from own traversal"] = 100 * r.own_traversal[0]
+        rows.append(row)
+    return rows
+
+
+def evaluation_json(ev: Evaluation) -> str:
+    """``Evaluation.to_dict()`` as strict JSON: NaN (a rate with nothing to count) becomes ``null``."""
+    return json.dumps(strict(ev.to_dict()), indent=1)
