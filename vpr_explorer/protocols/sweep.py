@@ -90,7 +90,7 @@ from vpr_explorer.method.places import (
 from vpr_explorer.method.retrieval import METHODS_BY_KEY
 from vpr_explorer.protocols.cost import protocol_pairs
 from vpr_explorer.protocols.evaluation import Evaluation, Progress, Protocol
-from vpr_explorer.protocols.options import K_GRID, check_finite
+from vpr_explorer.protocols.options import K_GRID, RUNS, SEED, UNKNOWN_SHARE, check_finite
 from vpr_explorer.protocols.precision_recall import GLOBAL_CURVE
 from vpr_explorer.protocols.shared_scores import SharedScores
 
@@ -195,10 +195,10 @@ class SweepSpec:
     geometry: PlaceGeometry = PlaceGeometry.FRAMES
     method: str = "margin-weighted"
     k: float = 0.0
-    runs: int = 50
-    seed: int = 0
+    runs: int = RUNS
+    seed: int = SEED
     cross_condition: bool = False
-    unknown_share: float = 0.3
+    unknown_share: float = UNKNOWN_SHARE
     database: tuple[str, ...] | None = None
     queries: str | None = None
     tolerance: int = 0
