@@ -1,4 +1,4 @@
-"""The paper's method: places, negative statistics, thresholds, retrieval and decisions.
+"""The paper's method and the field's other acceptance rules: places, statistics, thresholds, decisions.
 
 * ``places``: group/step (stride and skip readings) make places of frames, of database
   images, or of metres along a route or on a lattice (``Places``, ``retrieval_places``).
@@ -10,6 +10,12 @@
   it rejects every query.
 * ``retrieval``: every method (image- and place-level baselines, filter-then-rank),
   pessimistic ranks, ``QueryDecision`` records that explain themselves.
-* ``database``: a database with its per-place thresholds, and the decisions for queries
-  and whole traversals against it.
+* ``database``: a database with its per-place thresholds, and what one method's answer to
+  one query was (``Verdict``).
+* ``place_discovery``: places discovered online from the reference stream (the authors'
+  follow-up), beside group/step.
+* ``match_scores``: training-free match scores: the top-1 distance, the PA-ratio, SUE.
+* ``query_threshold``: the per-query adaptive threshold of Vysotska et al. (a patch's
+  two-component mixture, smoothed along the sequence).
+* ``sequences``: SeqSLAM as OpenSeqSLAM defines it, and sequence-aggregated place scores.
 """
