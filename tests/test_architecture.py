@@ -331,3 +331,29 @@ def test_the_rules_find_each_kind_of_offender(tmp_path):
         ("b.py", "pkg.a", "_hidden"), ("b.py", "pkg.c", "_x"), ("c.py", "pkg.a", "_hidden")]
     assert sorted(g.streamlit) == sorted([(pkg / "d.py", 1), (pkg / "app" / "page.py", 1)])
     assert [s.split(":")[0] for s in streamlit_problems(g, pkg)] == [str(pkg / "d.py")]
+
+
+def floors(edges: dict[str, dict[str, int]]) -> int:
+    """The longest chain of imports between the package's modules (1: a module that imports none of them)."""
+    inside = {m: [t for t in targets if t in edges and t != m] for m, targets in edges.items()}
+    depth: dict[str, int] = {}
+
+    def of(m: str) -> int:
+        if m not in depth:
+            depth[m] = 0  # a cycle stops here instead of recursing for ever
+            depth[m] = 1 + max((of(t) for t in inside[m]), default=0)
+        return depth[m]
+
+    return max((of(m) for m in inside), default=0)
+
+
+def test_floors_count_the_longest_chain():
+    assert floors({"a": {"b": 1}, "b": {"c": 1}, "c": {}, "d": {"c": 1}}) == 3
+    assert floors({"a": {}}) == 1
+
+
+if __name__ == "__main__":  # python tests/test_architecture.py [PACKAGE]: the graph in one line
+    import sys
+
+    g = read_graph(Path(sys.argv[1]) if len(sys.argv) > 1 else PACKAGE)
+    print(f"{len(g.edges)} modules, {floors(g.edges)} floors, {len(cycles(g.edges))} cycles")
