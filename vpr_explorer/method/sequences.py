@@ -396,6 +396,16 @@ def _trajectories(enhanced: np.ndarray, low: float, ds: int, offsets: np.ndarray
     return scores, best_v, sums
 
 
+def _sequence_inputs(matrix, what: str, contrast_window: int, ds: int, velocities) -> tuple[np.ndarray, int, np.ndarray]:
+    """The checked matrix, contrast window and trajectory offsets of ``sequence_scores`` and ``sequence_similarity``."""
+    offsets = trajectory_offsets(ds, velocities)
+    r = _even_window(contrast_window, "contrast_window")
+    m = _matrix(matrix, what)
+    if m.shape[0] < ds + 1:
+        raise VPRInputError(f"SeqSLAM needs at least ds + 1 = {ds + 1} queries in sequence, got {m.shape[0]}: lower ds")
+    return m, r, offsets
+
+
 def sequence_scores(difference: np.ndarray, *, contrast_window: int = CONTRAST_WINDOW, ds: int = DS,
                     velocities: Sequence[float] = VELOCITIES) -> tuple[np.ndarray, np.ndarray]:
     """SeqSLAM's sequence score of every (query, database image) pair (module doc, steps 2–4).
@@ -416,11 +426,7 @@ def sequence_scores(difference: np.ndarray, *, contrast_window: int = CONTRAST_W
     Raises:
         VPRInputError: a bad parameter or matrix (see ``seqslam``).
     """
-    offsets = trajectory_offsets(ds, velocities)
-    r = _even_window(contrast_window, "contrast_window")
-    d = _matrix(difference, "the difference matrix")
-    if d.shape[0] < ds + 1:
-        raise VPRInputError(f"SeqSLAM needs at least ds + 1 = {ds + 1} queries in sequence, got {d.shape[0]}: lower ds")
+    d, r, offsets = _sequence_inputs(difference, "the difference matrix", contrast_window, ds, velocities)
     scores, vel, _ = _trajectories(*_enhance(d, MatrixKind.DIFFERENCE, r), ds, offsets)
     return scores, vel
 
@@ -522,11 +528,7 @@ def sequence_similarity(similarity: np.ndarray, *, contrast_window: int = CONTRA
     Raises:
         VPRInputError: a bad parameter or matrix (see ``seqslam``).
     """
-    offsets = trajectory_offsets(ds, velocities)
-    r = _even_window(contrast_window, "contrast_window")
-    s = _matrix(similarity, "the similarity matrix")
-    if s.shape[0] < ds + 1:
-        raise VPRInputError(f"SeqSLAM needs at least ds + 1 = {ds + 1} queries in sequence, got {s.shape[0]}: lower ds")
+    s, r, offsets = _sequence_inputs(similarity, "the similarity matrix", contrast_window, ds, velocities)
     _, _, sums = _trajectories(*_enhance(s, MatrixKind.SIMILARITY, r), ds, offsets, values=s)
     out = sums / (ds + 1)
     out[np.isnan(out)] = -np.inf
