@@ -315,3 +315,13 @@ def test_gardens_point_night_against_day(gardens_point, gp_pixels):
               f"SeqSLAM {seq_right[m].mean():.3f} vs single-image {single_right[m].mean():.3f} over the "
               f"{m.sum()} matched queries; over all {n}: {seq_right.mean():.3f} vs {single_right.mean():.3f}")
     assert recall[0][0] > recall[0][1]
+
+
+def test_sequence_place_scores_refuse_an_image_between_places():
+    """A ``-1`` label (an image between places) is refused by name, never written into a place's column."""
+    rng = np.random.default_rng(3)
+    s = rng.uniform(-1, 1, size=(30, 40))
+    with pytest.raises(VPRInputError, match="db_places"):
+        sequence_place_scores(s, np.r_[np.full(20, -1), np.arange(20) // 4], 5)
+    with pytest.raises(VPRInputError, match="db_places"):
+        sequence_place_scores(s, np.arange(40) // 4, 5)  # labels up to 9 for 5 places

@@ -67,9 +67,8 @@ check; callers run ``check_sequence`` on the value first.
 (no loop over queries), in float64: the enhancement is 2(R + 1) of them (two passes, so that
 a flat window's std is 0 to rounding), the trajectories ds + 1 per velocity less the prefixes
 velocities share (32 for OpenSeqSLAM's five instead of 55), each sum added in k order, so
-that a plain loop over queries, starts and velocities gets the same numbers bit for bit. On
-Nordland summer → winter (3,576 × 3,576) this is about 1.6–1.8× the time of the similarity
-matrix itself (pixels, 2,048-D, two cores).
+that a plain loop over queries, starts and velocities gets the same numbers bit for bit.
+``benchmarks/bench_acceptance.py`` times it beside the similarity matrix.
 """
 
 from __future__ import annotations
@@ -557,5 +556,9 @@ def sequence_place_scores(similarity: np.ndarray, db_places: np.ndarray, n_place
     Raises:
         VPRInputError: a bad parameter or matrix; labels that do not match the database columns.
     """
+    labels = np.asarray(db_places)
+    if labels.ndim != 1 or (len(labels) and (labels.min() < 0 or labels.max() >= n_places)):
+        raise VPRInputError(f"db_places: give the place (0 to {n_places - 1}) of every database image; an image "
+                            "between places has none: leave its column out of the similarity matrix")
     seq = sequence_similarity(similarity, contrast_window=contrast_window, ds=ds, velocities=velocities)
-    return place_scores(seq, db_places, n_places)
+    return place_scores(seq, labels, n_places)
