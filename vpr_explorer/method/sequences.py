@@ -64,7 +64,8 @@ queries are not one traversal in frame order. The sequence functions take matric
 check; callers run ``check_sequence`` on the value first.
 
 **Cost.** Everything is shifted adds over blocks of query rows that stay in the CPU cache
-(no loop over queries), in float64: the enhancement is 2(R + 1) of them (two passes, so that
+(no loop over queries; the blocks of trajectory sums run on ``settings.default_workers()``
+threads, each writing its own rows), in float64: the enhancement is 2(R + 1) of them (two passes, so that
 a flat window's std is 0 to rounding), the trajectories ds + 1 per velocity less the prefixes
 velocities share (32 for OpenSeqSLAM's five instead of 55), each sum added in k order, so
 that a plain loop over queries, starts and velocities gets the same numbers bit for bit.
@@ -74,6 +75,7 @@ that a plain loop over queries, starts and velocities gets the same numbers bit 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from enum import StrEnum
 
@@ -82,6 +84,7 @@ import numpy as np
 from vpr_explorer.data.layouts import RetrievalDataset
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.method.retrieval import TIE_TOLERANCE, place_scores
+from vpr_explorer.settings import default_workers
 
 #: OpenSeqSLAM's defaults (``defaultParameters.m``).
 CONTRAST_WINDOW = 10
@@ -274,34 +277,42 @@ def _enhance(m: np.ndarray, kind: MatrixKind, r: int) -> tuple[np.ndarray, float
     edges = np.flatnonzero(count < r + 1)  # windows cut by an end of the route
     out = np.empty((nq, nd), dtype=np.float64)
     rows = _rows_per_block(4 * (nd + r), 0)
-    for r0 in range(0, nq, rows):
-        block = m[r0:r0 + rows]
-        b = len(block)
-        padded = np.zeros((b, nd + r), dtype=np.float64)
-        d = padded[:, h:h + nd]
-        d[...] = block
-        if kind is MatrixKind.SIMILARITY:
-            np.subtract(1.0, d, out=d)
-        total = padded[:, 0:nd].copy()  # zeros beyond either end add nothing
-        for o in range(1, r + 1):
-            total += padded[:, o:o + nd]
-        mean = np.divide(total, count, out=total)
-        squares = np.zeros((b, nd), dtype=np.float64)
-        dev = np.empty((b, nd), dtype=np.float64)
-        for o in range(r + 1):
-            np.subtract(padded[:, o:o + nd], mean, out=dev)
-            np.multiply(dev, dev, out=dev)
-            squares += dev
-        for c in edges:  # the zeros beyond the end are not in the window: recount those columns
-            w = d[:, lo[c]:hi[c] + 1] - mean[:, c:c + 1]
-            squares[:, c] = np.einsum("ij,ij->i", w, w)
-        std = np.sqrt(np.divide(squares, count - 1.0, out=squares), out=squares)
-        e = np.subtract(d, mean, out=dev)
-        flat = std <= FLAT_STD * (1.0 + np.abs(mean))
-        np.divide(e, std, out=e, where=~flat)
-        e[flat] = 0.0
-        out[r0:r0 + rows] = e
+    starts = range(0, nq, rows)
+    windows = (lo, hi, count, edges)
+    with ThreadPoolExecutor(max_workers=max(1, min(default_workers(), len(starts)))) as pool:
+        list(pool.map(lambda r0: _enhance_block(m[r0:r0 + rows], kind, r, windows, out[r0:r0 + rows]), starts))
     return out, float(out.min())
+
+
+def _enhance_block(block: np.ndarray, kind: MatrixKind, r: int, windows: tuple, out: np.ndarray) -> None:
+    """``_enhance`` of a block of query rows, written into ``out`` (that block's rows of the result)."""
+    lo, hi, count, edges = windows
+    b, nd = block.shape
+    h = r // 2
+    padded = np.zeros((b, nd + r), dtype=np.float64)
+    d = padded[:, h:h + nd]
+    d[...] = block
+    if kind is MatrixKind.SIMILARITY:
+        np.subtract(1.0, d, out=d)
+    total = padded[:, 0:nd].copy()  # zeros beyond either end add nothing
+    for o in range(1, r + 1):
+        total += padded[:, o:o + nd]
+    mean = np.divide(total, count, out=total)
+    squares = np.zeros((b, nd), dtype=np.float64)
+    dev = np.empty((b, nd), dtype=np.float64)
+    for o in range(r + 1):
+        np.subtract(padded[:, o:o + nd], mean, out=dev)
+        np.multiply(dev, dev, out=dev)
+        squares += dev
+    for c in edges:  # the zeros beyond the end are not in the window: recount those columns
+        w = d[:, lo[c]:hi[c] + 1] - mean[:, c:c + 1]
+        squares[:, c] = np.einsum("ij,ij->i", w, w)
+    std = np.sqrt(np.divide(squares, count - 1.0, out=squares), out=squares)
+    e = np.subtract(d, mean, out=dev)
+    flat = std <= FLAT_STD * (1.0 + np.abs(mean))
+    np.divide(e, std, out=e, where=~flat)
+    e[flat] = 0.0
+    out[...] = e
 
 
 def contrast_enhance(difference: np.ndarray, contrast_window: int = CONTRAST_WINDOW) -> np.ndarray:
@@ -360,39 +371,51 @@ def _trajectories(enhanced: np.ndarray, low: float, ds: int, offsets: np.ndarray
     ``-1`` and NaN where image j has no trajectory or the query is unmatched.
     """
     nq, nd = enhanced.shape
-    h = ds // 2
     pad = int(offsets.max()) + 1
-    width = nd + pad
     scores = np.full((nq, nd), np.inf, dtype=np.float64)
     best_v = np.full((nq, nd), -1, dtype=np.int8 if len(offsets) < 128 else np.int64)
     sums = None if values is None else np.full((nq, nd), np.nan, dtype=np.float64)
     n_centres = nq - ds
-    rows = _rows_per_block(width * (1 if values is None else 2), ds)
-    for c0 in range(0, n_centres, rows):
-        c1 = min(n_centres, c0 + rows)
-        b = c1 - c0
-        e = np.full((b + ds, width), np.inf, dtype=np.float64)
-        # centre queries c0 + h … c1 − 1 + h; the trajectory of centre c + h runs over rows c … c + ds
-        np.subtract(enhanced[c0:c1 + ds], low, out=e[:, :nd])
-        if values is not None:
-            x = np.zeros((b + ds, width), dtype=np.float64)
-            x[:, :nd] = values[c0:c1 + ds]
-        acc = _path_sums(e, b, nd, ds, offsets)
-        acc_x = _path_sums(x, b, nd, ds, offsets) if values is not None else None
-        best, vel = acc[0], np.zeros((b, nd), dtype=best_v.dtype)
-        best_x = acc_x[0] if acc_x is not None else None
-        for i in range(1, len(offsets)):
-            better = acc[i] < best
-            np.copyto(best, acc[i], where=better)
-            np.copyto(vel, i, where=better)
-            if acc_x is not None:
-                np.copyto(best_x, acc_x[i], where=better)
-        # start s is reported as image s + ds/2; starts past n_db - ds/2 run out (velocities ≥ 0.5)
-        scores[c0 + h:c1 + h, h:] = best[:, :nd - h]
-        best_v[c0 + h:c1 + h, h:] = np.where(np.isfinite(best[:, :nd - h]), vel[:, :nd - h], -1)
-        if values is not None:
-            sums[c0 + h:c1 + h, h:] = np.where(np.isfinite(best[:, :nd - h]), best_x[:, :nd - h], np.nan)
+    rows = _rows_per_block((nd + pad) * (1 if values is None else 2), ds)
+    out = (scores, best_v, sums)
+    starts = range(0, n_centres, rows)
+    # blocks of centres write disjoint rows; numpy's adds and comparisons release the GIL
+    with ThreadPoolExecutor(max_workers=max(1, min(default_workers(), len(starts)))) as pool:
+        list(pool.map(lambda c0: _trajectory_block(enhanced, low, values, ds, offsets, c0, min(n_centres, c0 + rows),
+                                                   out), starts))
     return scores, best_v, sums
+
+
+def _trajectory_block(enhanced: np.ndarray, low: float, values: np.ndarray | None, ds: int, offsets: np.ndarray,
+                      c0: int, c1: int, out: tuple[np.ndarray, np.ndarray, np.ndarray | None]) -> None:
+    """``_trajectories`` for the centre queries ``c0 + ds/2 … c1 − 1 + ds/2``, written into ``out``'s rows of them."""
+    scores, best_v, sums = out
+    nd = enhanced.shape[1]
+    h = ds // 2
+    width = nd + int(offsets.max()) + 1
+    b = c1 - c0
+    e = np.full((b + ds, width), np.inf, dtype=np.float64)
+    # the trajectory of centre c + h runs over rows c … c + ds
+    np.subtract(enhanced[c0:c1 + ds], low, out=e[:, :nd])
+    acc = _path_sums(e, b, nd, ds, offsets)
+    acc_x = None
+    if values is not None:
+        x = np.zeros((b + ds, width), dtype=np.float64)
+        x[:, :nd] = values[c0:c1 + ds]
+        acc_x = _path_sums(x, b, nd, ds, offsets)
+    best, vel = acc[0], np.zeros((b, nd), dtype=best_v.dtype)
+    best_x = acc_x[0] if acc_x is not None else None
+    for i in range(1, len(offsets)):
+        better = acc[i] < best
+        np.copyto(best, acc[i], where=better)
+        np.copyto(vel, i, where=better)
+        if acc_x is not None:
+            np.copyto(best_x, acc_x[i], where=better)
+    # start s is reported as image s + ds/2; starts past n_db - ds/2 run out (velocities ≥ 0.5)
+    scores[c0 + h:c1 + h, h:] = best[:, :nd - h]
+    best_v[c0 + h:c1 + h, h:] = np.where(np.isfinite(best[:, :nd - h]), vel[:, :nd - h], -1)
+    if sums is not None:
+        sums[c0 + h:c1 + h, h:] = np.where(np.isfinite(best[:, :nd - h]), best_x[:, :nd - h], np.nan)
 
 
 def _sequence_inputs(matrix, what: str, contrast_window: int, ds: int, velocities) -> tuple[np.ndarray, int, np.ndarray]:
