@@ -212,8 +212,7 @@ def decide_every_query(fitted: RetrievalFitted, descriptors: np.ndarray, *, k: f
     def joined(i: int, key: str | None = None) -> np.ndarray:
         return np.concatenate([p[i] if key is None else p[i][key] for p in parts])
 
-    outcomes = {m.key: Outcome(m, *(np.concatenate([getattr(p[3][m.key], f) for p in parts])
-                                    for f in ("rank", "answer_place", "answer_image", "n_kept"))) for m in methods}
+    outcomes = {m.key: Outcome.joined([p[3][m.key] for p in parts]) for m in methods}
     return QueryDecisions(fitted, joined(0).astype(object), joined(1), joined(2), outcomes,
                           {key: joined(4, key) for key in RECORDED}, {key: joined(5, key) for key in RECORDED},
                           th, float(k))

@@ -105,7 +105,6 @@ def value_rows(value: RetrievalDataset) -> np.ndarray | None:
     ds = value.aligned
     if ds is None:
         return None
-    order = np.r_[np.unique(value.database_traversal, return_index=True)[1]]
-    traversals = value.database_traversal[np.sort(order)]
-    r = rows(ds, [int(t) for t in traversals], int(value.query_traversal[0]))
+    first = np.sort(np.unique(value.database_traversal, return_index=True)[1])  # each traversal's first image
+    r = rows(ds, [int(t) for t in value.database_traversal[first]], int(value.query_traversal[0]))
     return None if len(r) == ds.n_images and np.array_equal(r, np.arange(ds.n_images)) else r

@@ -38,10 +38,11 @@ class AutoParts:
         return self.theta > MAX_SIMILARITY
 
 
-def auto_parts(descriptors: np.ndarray, *, seed: int = 0) -> AutoParts:
+def auto_parts(descriptors: np.ndarray, *, seed: int = 0, rows: np.ndarray | None = None) -> AutoParts:
     """The automatic θ of these training descriptors ``(n, D)`` with its median and MAD (the same scores as the
-    protocols: ``training_pair_scores(descriptors, seed=seed)``)."""
-    s = np.asarray(training_pair_scores(descriptors, seed=seed), dtype=np.float64).ravel()
+    protocols: ``training_pair_scores(descriptors, seed=seed, rows=rows)``; ``rows``: the training rows of a larger
+    array, read without gathering them)."""
+    s = np.asarray(training_pair_scores(descriptors, seed=seed, rows=rows), dtype=np.float64).ravel()
     med = float(np.median(s))
     mad = float(np.median(np.abs(s - med)))
     return AutoParts(auto_global_threshold(s), med, mad, int(s.size))

@@ -31,6 +31,7 @@ which the fused decisions of ``views.numbers.decide_queries`` use.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -208,6 +209,19 @@ class Outcome:
     def right(self) -> np.ndarray:
         """Accepted with the true place at rank 1 (a tie at the top counts as wrong)."""
         return self.accepted & (self.rank == 1)
+
+    @classmethod
+    def joined(cls, blocks: Sequence[Outcome]) -> Outcome:
+        """One method's outcomes of consecutive blocks of queries, as one ``Outcome`` (queries in block order).
+
+        Args:
+            blocks: outcomes of the same method, at least one.
+
+        Returns:
+            The outcome of every query of the blocks.
+        """
+        return cls(blocks[0].method, *(np.concatenate([getattr(b, f) for b in blocks])
+                                       for f in ("rank", "answer_place", "answer_image", "n_kept")))
 
 
 def score_queries(

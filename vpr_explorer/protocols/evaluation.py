@@ -771,9 +771,7 @@ class RetrievalTally:
         """``(rows, pr_rows, pr_curves, notes, scored)`` once every query is added; ``known_any``: each query
         has a positive at all (``GroundTruth.known``); ``scored``: the queries the place level counts."""
         th, n_places = self.th, self.n_places
-        outcomes = {key: Outcome(ps[0].method, *(np.concatenate([getattr(p, f) for p in ps])
-                                                 for f in ("rank", "answer_place", "answer_image", "n_kept")))
-                    for key, ps in self.parts.items()}
+        outcomes = {key: Outcome.joined(ps) for key, ps in self.parts.items()}
         known = np.concatenate(self.place_known)
         top = np.concatenate(self.tops)
         # place level: queries whose positives all lie outside places are left out (places.BETWEEN_PLACES_RULE);

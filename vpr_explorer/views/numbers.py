@@ -597,9 +597,7 @@ def decide_queries(fitted: RetrievalFitted, descriptors: np.ndarray, queries: np
             parts.append(score_queries(sims, model.places, fitted.n_places, th, truth[lo:lo + block],
                                        raw_best=(raw, best)))
         del scores_t
-    outcomes = {key: Outcome(parts[0][key].method, *(np.concatenate([getattr(p[key], f) for p in parts])
-                                                     for f in ("rank", "answer_place", "answer_image", "n_kept")))
-                for key in parts[0]}
+    outcomes = {key: Outcome.joined([p[key] for p in parts]) for key in parts[0]}
     return truth, outcomes
 
 

@@ -384,6 +384,12 @@ def _column_config(table: pd.DataFrame, one_run: bool) -> dict:
     return config
 
 
+# sampling up to 2·10⁶ training pairs: once per descriptors, places and seed, not on every rerun
+@st.cache_data(show_spinner=False, max_entries=8)
+def _auto_parts(key: str, places: tuple, seed: int, _descriptors: np.ndarray, _rows: np.ndarray):
+    return auto_parts(_descriptors, seed=seed, rows=_rows)
+
+
 def show_auto_note(ev, data: cache.Loaded | None) -> None:
     """Say why the automatic global θ accepts nothing, beside the table that shows its 0% recall.
 
@@ -394,12 +400,12 @@ def show_auto_note(ev, data: cache.Loaded | None) -> None:
         return
     if data is not None:
         place, _ = retrieval_places(data.dataset, cur.places.spec, cur.places.metric)
-        descriptors, rows, seed = data.descriptors, np.flatnonzero(place >= 0), 0
+        descriptors, rows, seed = data, np.flatnonzero(place >= 0), 0
         over = f"the database images in places ({' + '.join(sides(data)[0])})"
     else:
-        descriptors, rows, seed = cur.source.descriptors, np.flatnonzero(places.image_place >= 0), settings.seed
+        descriptors, rows, seed = cur.source, np.flatnonzero(places.image_place >= 0), settings.seed
         over = "all place images (each run's training images: all but its queries)"
-    parts = auto_parts(np.asarray(descriptors[rows]), seed=seed)
+    parts = _auto_parts(descriptors.key, cache.places_key(cur.places), seed, descriptors.descriptors, rows)
     note = rejects_all_note(parts, over=over)
     if note is None:  # θ ≤ 1 but above every query's top score
         note = (f"**global θ, automatic = {parts.theta:.3f}** (median {parts.median:.3f}, MAD {parts.mad:.3f} of "
