@@ -8,8 +8,8 @@
   automatic global θ and its training-pair sample.
 * ``auto_theta``: why the automatic global θ is what it is (its median and MAD), and when
   it rejects every query.
-* ``retrieval``: every method (image- and place-level baselines, filter-then-rank),
-  pessimistic ranks, ``QueryDecision`` records that explain themselves.
+* ``retrieval``: every method (image- and place-level baselines, filter-then-rank), place
+  scores (the best or the mean similarity of a place's images), pessimistic ranks, ``QueryDecision`` records that explain themselves.
 * ``database``: a database with its per-place thresholds, and what one method's answer to
   one query was (``Verdict``).
 * ``place_discovery``: places discovered online from the reference stream (the authors'
@@ -18,4 +18,6 @@
 * ``query_threshold``: the per-query adaptive threshold of Vysotska et al. (a patch's
   two-component mixture, smoothed along the sequence).
 * ``sequences``: SeqSLAM as OpenSeqSLAM defines it, and sequence-aggregated place scores.
+* ``graph_matcher``: the graph-based sequence matcher of Vysotska et al. (the cheapest path
+  through the cost matrix with a bounded fan-out; nodes above the non-matching cost hidden).
 """

@@ -141,6 +141,33 @@ def place_scores(
     return raw, best
 
 
+def place_mean_scores(sims: np.ndarray, db_places: np.ndarray, n_places: int) -> np.ndarray:
+    """The mean of each place's similarities, for every query and place (the authors' follow-up's place score).
+
+    Args:
+        sims: ``(n_queries, n_database)`` similarities.
+        db_places: ``(n_database,)`` place of each database image (``>= 0``).
+        n_places: number of place ids.
+    Returns:
+        ``(n_queries, n_places)`` float64: Σ s(q, i) / n_p over p's images i, summed in database
+        order in float64; ``-inf`` where a place has no database image.
+    """
+    sims = np.atleast_2d(np.asarray(sims, dtype=np.float64))
+    db_places = np.asarray(db_places)
+    if sims.shape[1] != len(db_places):
+        raise VPRInputError(f"similarity has {sims.shape[1]} database columns but {len(db_places)} place labels")
+    if len(db_places) and (db_places.min() < 0 or db_places.max() >= n_places):
+        raise VPRInputError(f"db_places: give the place (0 to {n_places - 1}) of every database image")
+    order = np.argsort(db_places, kind="stable")
+    sorted_places = db_places[order]
+    out = np.full((sims.shape[0], n_places), -np.inf, dtype=np.float64)
+    if not len(order):
+        return out
+    starts = np.flatnonzero(np.r_[True, sorted_places[1:] != sorted_places[:-1]])
+    sizes = np.diff(np.r_[starts, len(order)])
+    out[:, sorted_places[starts]] = np.add.reduceat(sims[:, order], starts, axis=1) / sizes
+    return out
+
 def ranking_scores(raw: np.ndarray, theta: np.ndarray | float | None, rule: Rule) -> np.ndarray:
     """Scores that rank places under ``rule``; ``-inf`` where a place is dropped.
 

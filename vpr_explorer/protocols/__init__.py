@@ -10,6 +10,11 @@
 * ``shared_scores``: the image pairs' scores every protocol run on one set of descriptors
   shares, and a split's negative statistics taken from them pairwise.
 * ``precision_recall``: precision–recall curves (global θ, θ_p(k)), AUC, R@100P, R@99P, max F1.
+* ``tutorial_pr``: VPR_Tutorial's precision–recall: single- and multi-match, soft ground
+  truth as "ignore".
+* ``acceptance``: the acceptance bench: every acceptance rule (the paper's, the authors'
+  follow-up's, the per-query threshold and graph matcher, SeqSLAM, the training-free match
+  scores) on the same queries, closed set and natural open set, the authors' counts.
 * ``sweep``: one protocol over a grid of group × step, in both readings.
 * ``cost``: the image pairs a protocol run scores, said before it runs.
 * ``compare``: runs side by side: records, metric tables, differences, exports with settings.

@@ -64,7 +64,8 @@ from vpr_explorer.pipeline import (
     resolve_dataset,
     run_protocol,
 )
-from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec
+from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec, retrieval_places
+from vpr_explorer.protocols.acceptance import AcceptanceReport, BenchOptions, acceptance_report
 from vpr_explorer.protocols.shared_scores import SHARED_LIMIT, SharedScores
 from vpr_explorer.views import numbers as views
 from vpr_explorer.method import stats
@@ -594,3 +595,29 @@ def clear_all() -> None:
     """Forget every cached result of this server (the on-disk descriptor cache stays)."""
     st.cache_data.clear()
     st.cache_resource.clear()
+
+
+# --------------------------------------------------------------------------- the acceptance bench
+
+
+@st.cache_resource(show_spinner="Running every acceptance rule on the whole similarity matrix…", max_entries=8)
+def _bench(key: str, places: tuple, options: tuple, _data: Loaded, _options: BenchOptions) -> AcceptanceReport:
+    ds = _data.dataset
+    place = _places(places)
+    labels, _ = retrieval_places(ds, place.spec, place.metric) if ds.database_place is None else (
+        ds.database_place, 0)
+    return acceptance_report(ds, _data.descriptors, labels=labels, options=_options,
+                             settings={"descriptor": _data.descriptor, "group/step": place.describe(ds)})
+
+
+def bench(data: Loaded, places: RetrievalPlaces, options: BenchOptions) -> AcceptanceReport:
+    """Every acceptance rule on the value's queries, closed set and natural open set (``protocols.acceptance``).
+
+    Args:
+        data: a dataset value (``value``: for aligned traversals, pick one database traversal and
+            the tolerance the ground truth counts, so that the sequence rules apply).
+        places: the group/step places of the per-place rules (unless ``options.places`` is discovered).
+        options: the bench's choices.
+    """
+    key = tuple((f.name, repr(getattr(options, f.name))) for f in dataclasses.fields(options))
+    return _bench(data.key, places_key(places), key, data, options)
