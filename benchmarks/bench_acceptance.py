@@ -16,7 +16,13 @@ on each side), its descriptors in the value's order (``value_rows``), and:
     similarity matrix;
   - ``sequences.sequence_place_scores``: per-place raw_p of the sequence similarity, places
     group/step over frames (Nordland 3/3, GardensPoint 3/10);
+  - ``graph_matcher.sequence_match`` (fan-out 5, the non-matching cost 1 − the median
+    per-query threshold): the cheapest path alone;
+  - ``tutorial_pr.tutorial_pr``: VPR_Tutorial's multi-match curve, soft ground truth ±2 frames
+    as "ignore";
   - ``place_discovery.discover`` on the database descriptors in route order;
+  - the whole bench, ``acceptance.acceptance_report`` (every rule, closed set and natural
+    open set, group/step places), from the descriptors;
 
 * what each decides, against the value's ground truth (the same frame):
 
@@ -55,6 +61,7 @@ from gemm_peak import blas_kernel, decision_flops
 from vpr_explorer import settings
 from vpr_explorer.data.aligned import database_queries, value_rows
 from vpr_explorer.data.groundtruth import GroundTruth
+from vpr_explorer.method.graph_matcher import sequence_match
 from vpr_explorer.method.match_scores import pa_ratio, sue, top1_distance
 from vpr_explorer.method.place_discovery import discover
 from vpr_explorer.method.places import PlaceSpec, frame_places
@@ -62,7 +69,9 @@ from vpr_explorer.method.query_threshold import query_thresholds
 from vpr_explorer.method.retrieval import place_scores, similarity, top_answer
 from vpr_explorer.method.sequences import check_sequence, seqslam, sequence_place_scores
 from vpr_explorer.pipeline import dataset_descriptors, resolve_dataset
+from vpr_explorer.protocols.acceptance import acceptance_report
 from vpr_explorer.protocols.precision_recall import pr_curve
+from vpr_explorer.protocols.tutorial_pr import tutorial_pr
 
 #: Frames of Nordland that ``--quick`` keeps, on both sides.
 QUICK_FRAMES = 600
@@ -142,6 +151,14 @@ def bench(data: Path, case: Case, descriptor: str, repeats: int, spacing: float,
         raw, best = sequence_place_scores(sims, labels, n_places + 1)
         return raw[:, :n_places], best[:, :n_places]
 
+    nmc = 1.0 - float(np.median(query_thresholds(sims, ordered=value.ordered).threshold))
+    hard, soft = truth.dense(), GroundTruth.from_frames(value.query_frame[:n_q], value.database_frame[:n_db], 2).dense()
+    whole = None
+    if frames is None:
+        d_value = np.concatenate([db, q])
+        whole = ("the whole bench (acceptance_report)",
+                 lambda: acceptance_report(value, d_value, labels=db_place, settings={"descriptor": descriptor}))
+
     steps = (
         ("top-1 distance (L2)", lambda: top1_distance(sims)),
         ("PA-ratio", lambda: pa_ratio(sims)),
@@ -149,7 +166,10 @@ def bench(data: Path, case: Case, descriptor: str, repeats: int, spacing: float,
         ("per-query threshold", lambda: query_thresholds(sims, ordered=value.ordered)),
         ("SeqSLAM", lambda: seqslam(sims, kind="similarity")),
         (f"sequence place scores {case.spec.group}/{case.spec.step}", seq_places),
+        ("graph matcher (fan-out 5)", lambda: sequence_match(sims, non_matching_cost=nmc, fanout=5)),
+        ("VPR_Tutorial PR, multi-match, soft ignored", lambda: tutorial_pr(sims, hard, soft, matching="multi")),
         ("place discovery (database)", lambda: discover(db)),
+        *([whole] if whole is not None else []),
     )
     gflops = decision_flops(n_q, n_db, dim) / t_sim / 1e9
     print(f"  {'step':<42}{'best ms':>10}{'× similarity':>14}")

@@ -345,3 +345,20 @@ def test_report_renders_and_is_strict_json(gp_left_right):
     data = json.loads(json.dumps(report.to_dict(), allow_nan=False))
     assert data["closed_set"]["rules"]["baseline"]["F1"] == pytest.approx(report.closed.counts["baseline"].f1)
     assert data["natural_open_set"]["n_distractor"] == 60
+
+
+def test_a_query_just_past_the_cut_is_a_distractor_even_with_a_kept_image_within_tolerance(gardens_point, gp_pixels):
+    """Day_left queries against day_right: query 140's images 138–139 (±2) are kept, its own frame is cut."""
+    value = database_queries(gardens_point, "day_left", database=["day_right"], tolerance=2)
+    rows = value_rows(value)
+    d = np.asarray(gp_pixels if rows is None else gp_pixels[rows], dtype=np.float32)
+    report = acceptance_report(value, d, labels=retrieval_places(value, PlaceSpec(3, 10))[0])
+    assert report.natural is not None, report.natural_note
+    assert not report.natural.genuine[140] and report.natural.genuine[139]
+    hard = value.ground_truth.dense()
+    assert hard[140, 138] and hard[140, 139]
+    for key, dec in report.natural.decisions.items():
+        c = report.natural.counts[key]
+        assert c.n_genuine == 140 and c.n_distractor == 60
+        # an accepted distractor is a false positive whatever image it names
+        assert c.tn == int((~dec.accepted[140:]).sum()), key

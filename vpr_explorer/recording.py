@@ -20,6 +20,24 @@ and, static: ``route/path`` and ``route/places`` (the database's route and each 
 centre), ``thresholds/{weighted,simple}`` (θ_p of every place) and ``summary`` (settings
 and counts). ``playback_blueprint`` lays them out.
 
+With the acceptance bench (``protocols.acceptance``, run on the same value with the same
+places: ``bench_report``), ``log_bench`` adds, on the same ``query`` timeline, for every rule
+that ran, under ``bench/<rule key>`` for the closed set and ``bench_open/<rule key>`` for the
+natural open set (where it ran):
+
+| entity             | what                                                                         |
+|--------------------|------------------------------------------------------------------------------|
+| ``.../confidence`` | the rule's confidence (``RuleDecisions.confidence``) where it has a candidate |
+| ``.../accepted``   | 1 accepted, 0 rejected, every query                                          |
+| ``.../decision``   | the answer (image, file) or rejection and right or wrong, a text log; DEBUG not counted |
+
+and, static, ``bench/summary`` and ``bench_open/summary``: each rule's counts and τ, and each
+rule left out with the reason (a rule left out logs nothing else); the natural open set's
+says why it did not run where it did not. What is right is the authors' counts
+(``acceptance.authors_counts``, ``bench_verdicts``): a genuine query (a right database
+image) accepted with a right image; a distractor (none) rejected. The closed set counts
+only genuine queries; its distractors are logged as not counted.
+
 What is right (``verdicts``): a query with a right place is right when accepted with it at
 rank 1; a query with no positive at all (an unknown place, the open-set case) is right when
 rejected, a wrong accept otherwise; a query whose positives all lie outside every place is
@@ -75,6 +93,8 @@ from vpr_explorer.method.places import (
     retrieval_places,
 )
 from vpr_explorer.method.retrieval import METHODS_BY_KEY, Outcome, place_scores, score_queries
+from vpr_explorer.protocols import acceptance
+from vpr_explorer.protocols.acceptance import RULES, AcceptanceReport, Bench, BenchOptions, RuleDecisions
 from vpr_explorer.protocols.options import check_finite, check_whole
 from vpr_explorer.settings import check_cache_root
 from vpr_explorer.views.numbers import (
@@ -121,6 +141,16 @@ _ROUTE = (120, 120, 120)
 _QUERY = (31, 119, 255)
 _MARKERS = {"true": "Circle", "paper": "Cross", "baseline": "Diamond"}
 _PLACE_COLORS = {"true": (200, 200, 200), "paper": (31, 119, 180), "baseline": (255, 127, 14)}
+
+BENCH_SETS: dict[str, tuple[str, str]] = {"closed": ("bench", "bench, closed set"),
+                                          "natural": ("bench_open", "bench, open set")}
+"""``AcceptanceReport`` attribute -> the root of its entities and its name in view titles."""
+NOT_COUNTED = "not counted"
+"""A closed-set query without a right database image: the closed set leaves it out of its counts."""
+_BENCH_LEVELS = {**{v.value: level for v, level in LEVELS.items()}, NOT_COUNTED: rr.TextLogLevel.DEBUG}
+# matplotlib's tab10, one colour per rule of ``acceptance.RULES``
+_RULE_COLORS = ((31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189), (140, 86, 75),
+                (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207))
 
 
 # --------------------------------------------------------------------------- the decisions
@@ -318,15 +348,26 @@ def route_of(dataset: RetrievalDataset) -> Route | None:
 TITLE_CHARS = 40
 
 
-def playback_blueprint(query: str, database: Sequence[str]) -> rrb.Blueprint:
+def playback_blueprint(query: str, database: Sequence[str], *, bench: bool = False) -> rrb.Blueprint:
     """Query and both answers on top, the score series below, route, decisions and thresholds last.
 
     View titles stay within ``TITLE_CHARS`` so that none is cut in a third of the page;
     colours and units are in each plot's legend instead (the series' names,
     ``_SERIES_NAMES``: rerun's plots have no axis titles) and in the summary. The summary
-    shares the widest panel with the decision log, word-wrapped.
+    shares the widest panel with the decision log, word-wrapped. With ``bench``, the bench's
+    summaries, decision logs and series (``log_bench``) join the last panel's tabs.
     """
     legend = rrb.PlotLegend(corner=rrb.Corner2D.LeftTop, visible=True)
+    wrap = rrb.archetypes.TextDocumentFormat(word_wrap=True)
+    bench_views = [] if not bench else [
+        view
+        for root, name in BENCH_SETS.values()
+        for view in (
+            rrb.TextDocumentView(origin=f"{root}/summary", name=f"{name}: summary", format_options=wrap),
+            rrb.TextLogView(origin=root, name=f"{name}: decisions"),
+            rrb.TimeSeriesView(origin=root, name=f"{name}: confidence, accepted", plot_legend=legend),
+        )
+    ]
     return rrb.Blueprint(
         rrb.Vertical(
             rrb.Horizontal(
@@ -344,11 +385,11 @@ def playback_blueprint(query: str, database: Sequence[str]) -> rrb.Blueprint:
             rrb.Horizontal(
                 rrb.Spatial2DView(origin="route", name="route: query blue, answers"),
                 rrb.Tabs(
-                    rrb.TextDocumentView(origin="summary", name="summary",
-                                         format_options=rrb.archetypes.TextDocumentFormat(word_wrap=True)),
+                    rrb.TextDocumentView(origin="summary", name="summary", format_options=wrap),
                     rrb.TextLogView(origin="decision", name="decisions"),
                     rrb.BarChartView(origin="thresholds/weighted", name="θ_p weighted (paper) per place"),
                     rrb.BarChartView(origin="thresholds/simple", name="θ_p simple per place"),
+                    *bench_views,
                 ),
                 column_shares=[2, 5],
             ),
@@ -518,6 +559,237 @@ def log_queries(
     recording.reset_time()
 
 
+# --------------------------------------------------------------------------- the acceptance bench
+
+
+def check_bench(dataset: RetrievalDataset) -> None:
+    """Refuse, naming the bench, a value the acceptance bench cannot run on (before any descriptor is computed).
+
+    Raises:
+        VPRInputError: a value without queries, or more query × database pairs than the bench
+            holds (``acceptance.BENCH_PAIRS``: it keeps the whole similarity matrix).
+    """
+    if not dataset.n_queries:
+        raise VPRInputError(f"bench: {dataset.name!r} has no query image, so the acceptance bench has nothing to "
+                            "decide; record without the bench")
+    pairs = dataset.n_queries * dataset.n_database
+    if pairs > acceptance.BENCH_PAIRS:
+        raise VPRInputError(f"bench: {dataset.name!r} has {dataset.n_queries:,} queries × {dataset.n_database:,} "
+                            f"database images = {pairs:,} pairs, and the acceptance bench holds the whole similarity "
+                            f"matrix (at most {acceptance.BENCH_PAIRS:,} pairs): record without the bench, or choose "
+                            "fewer queries or a smaller database")
+
+
+def bench_report(fitted: RetrievalFitted, descriptors: np.ndarray, *, options: BenchOptions | None = None,
+                 descriptor: str | None = None) -> AcceptanceReport:
+    """The acceptance bench on the value ``fitted`` plays back, with its places (``acceptance.acceptance_report``).
+
+    The per-place rules read ``fitted.database_place`` (the places the recorded methods use),
+    unless ``options.places`` asks for discovered places.
+
+    Args:
+        descriptors: ``(n_images, D)`` of ``fitted.dataset``, database rows first.
+        options: the bench's choices (default ``BenchOptions()``).
+        descriptor: its name, for the report's settings.
+
+    Raises:
+        VPRInputError: naming the bench: a value it cannot run on (``check_bench``), descriptors
+            of another dataset.
+    """
+    ds = fitted.dataset
+    check_bench(ds)
+    try:
+        return acceptance.acceptance_report(ds, descriptors, labels=fitted.database_place, options=options,
+                                            settings={"descriptor": descriptor or "not given",
+                                                      "group/step": fitted.places.describe(ds)})
+    except VPRInputError as exc:
+        raise VPRInputError(f"bench: {exc}") from exc
+
+
+def check_report(report: AcceptanceReport, dataset: RetrievalDataset) -> None:
+    """Refuse a bench report of another value than the one recorded (its queries, database or right images differ).
+
+    Right images are checked through what they decide: the queries with one, and every
+    closed-set rule's counts counted again on ``dataset``'s ground truth.
+
+    Raises:
+        VPRInputError: naming both values.
+    """
+    got = (report.settings.get("dataset"), report.settings.get("n_queries"), report.settings.get("n_database"))
+    same = got == (dataset.name, dataset.n_queries, dataset.n_database) and np.array_equal(
+        report.closed.genuine, dataset.ground_truth.counts > 0)
+    if same:
+        hard = dataset.ground_truth.dense()
+        bench = report.closed
+        same = all(acceptance.authors_counts(d.answer, d.accepted, hard, bench.genuine, bench.counted)
+                   == bench.counts[key] for key, d in bench.decisions.items())
+    if not same:
+        raise VPRInputError(f"bench: the report is of {got[0]!r} ({got[1]} queries, {got[2]} database images), the "
+                            f"recording of {dataset.name!r} ({dataset.n_queries} queries, {dataset.n_database} "
+                            "database images, or other right images): run the bench on the value recorded "
+                            "(bench_report)")
+
+
+def bench_verdicts(bench: Bench, key: str, hard: np.ndarray) -> np.ndarray:
+    """``(n_queries,)`` what one rule's decision of each query was, by the authors' counts (module docstring).
+
+    Args:
+        bench: the closed set or the natural open set.
+        key: a rule that ran (``bench.decisions``).
+        hard: ``(n_queries, n_database)`` bool right images of the whole database (the natural
+            open set's answers lie in its first part).
+
+    Returns:
+        ``Verdict`` values (right, wrong accept, wrong reject) and ``NOT_COUNTED``, as objects.
+    """
+    d = bench.decisions[key]
+    rows = np.arange(len(d.answer))
+    hit = d.accepted & hard[rows, np.maximum(d.answer, 0)]
+    out = np.where(hit, Verdict.RIGHT.value, np.where(d.accepted, Verdict.WRONG_ACCEPT.value,
+                                                      Verdict.WRONG_REJECT.value))
+    out = np.where(bench.genuine, out, np.where(d.accepted, Verdict.WRONG_ACCEPT.value, Verdict.RIGHT.value))
+    return np.where(bench.counted, out, NOT_COUNTED).astype(object)
+
+
+def _image_name(dataset: RetrievalDataset, image: int) -> str:
+    path = dataset.database_paths[image]
+    return f"database image {image}, {path.parent.name}/{path.name}"
+
+
+def describe_bench(dataset: RetrievalDataset, bench: Bench, key: str, hard: np.ndarray) -> list[str]:
+    """One rule's decision of every query in words, e.g.
+    "accepted database image 37, day_right/Image037.jpg (right); confidence +0.0521".
+
+    Args:
+        hard: ``(n_queries, n_database)`` bool right images of the whole database.
+    """
+    d = bench.decisions[key]
+    said = bench_verdicts(bench, key, hard)
+    # the natural open set's database is the first part of the route: its distractors have right images beyond it
+    cut = len(bench.places) < dataset.n_database
+    missing = (f"no right image in the first {len(bench.places)} database images" if cut
+               else "no right image in the database")
+    texts = []
+    for q in range(len(d.answer)):
+        candidate, verdict = int(d.candidate[q]), said[q]
+        if d.accepted[q]:
+            head = f"accepted {_image_name(dataset, candidate)}"
+        elif candidate >= 0:
+            head = f"rejected its candidate, {_image_name(dataset, candidate)}"
+        else:
+            head = "rejected, no candidate"
+        if verdict == NOT_COUNTED:
+            why = "not counted: the query has no right database image, and the closed set counts only those that do"
+        elif not bench.genuine[q]:
+            why = f"{'right' if verdict == Verdict.RIGHT.value else 'wrong'}: the query has {missing}"
+        elif verdict == Verdict.RIGHT.value:
+            why = "right"
+        elif verdict == Verdict.WRONG_ACCEPT.value:
+            why = "wrong: not a right image of the query"
+        else:
+            why = "wrong: the query has a right database image"
+        conf = f"; confidence {d.confidence[q]:+.4g}" if np.isfinite(d.confidence[q]) else ""
+        texts.append(f"{head} ({why}){conf}")
+    return texts
+
+
+def _left_out_reason(report: AcceptanceReport, bench: Bench, key: str) -> str:
+    """Why ``key`` did not run: the report's note where it says more than the bench (SUE's positions)."""
+    why = bench.left_out[key]
+    if why == report.closed.left_out.get(key):
+        head = f"{key} left out: "
+        why = next((n[len(head):] for n in report.notes if n.startswith(head)), why)
+    return why
+
+
+def bench_summary(report: AcceptanceReport, which: str) -> str:
+    """The summary (markdown) of one bench (``BENCH_SETS``): each rule's counts in one line, and each left out."""
+    root, name = BENCH_SETS[which]
+    bench: Bench | None = getattr(report, which)
+    settings = report.settings
+    share = settings["reference_share"]
+    title = ("closed set: the whole database" if which == "closed"
+             else f"natural open set: the first {share:.0%} of the database route")
+    lines = [f"# Acceptance bench, {title}", "",
+             f"- {settings['dataset']}: {settings['n_queries']:,} queries, {settings['n_database']:,} database "
+             f"images; descriptor {settings.get('descriptor', 'not given')}",
+             f"- places: {settings['places']} ({settings.get('group/step', 'group/step not given')}), place score "
+             f"{settings['place_score']}"]
+    if bench is None:
+        return "\n".join([*lines, "", f"Not run: {report.natural_note}", ""])
+    n_genuine = int((bench.genuine & bench.counted).sum())
+    n_distractor = int((~bench.genuine & bench.counted).sum())
+    lines += [f"- {n_genuine} genuine queries (a right database image), {n_distractor} distractors (none)"
+              + (f", {int((~bench.counted).sum())} not counted (no right database image)"
+                 if not bench.counted.all() else ""),
+              f"- on the `{TIMELINE}` timeline, per rule: `{root}/<rule>/confidence` (where the rule has a "
+              f"candidate), `{root}/<rule>/accepted` (1 accepted, 0 rejected) and `{root}/<rule>/decision`",
+              "", "## Rules (the authors' counts, percent)", ""]
+    for key, d in bench.decisions.items():
+        c = bench.counts[key]
+        rejection = "" if c.rejection is None else f", rejection {c.rejection:.1f}"
+        tau = f"; τ {d.tau:.4g} ({d.tau_note})" if np.isfinite(d.tau) else ""
+        lines.append(f"- **{key}** ({d.rule.label}): F1 {c.f1:.1f}, P {c.precision:.1f}, R {c.recall:.1f}"
+                     f"{rejection}; TP {c.tp}, FP {c.fp}, FN {c.fn}, TN {c.tn}{tau}")
+    if bench.left_out:
+        lines += ["", "## Left out (nothing logged)", ""]
+        lines += [f"- **{key}** ({acceptance.RULES_BY_KEY[key].label}): {_left_out_reason(report, bench, key)}"
+                  for key in bench.left_out]
+    return "\n".join(lines) + "\n"
+
+
+def bench_lines(report: AcceptanceReport) -> list[str]:
+    """The bench in a few lines: each set's rules logged, and those left out with the reason."""
+    lines = []
+    for which, (root, name) in BENCH_SETS.items():
+        bench: Bench | None = getattr(report, which)
+        if bench is None:
+            lines.append(f"{name}: not run ({report.natural_note})")
+            continue
+        lines.append(f"{name}: {len(bench.decisions)} rules logged under {root}/ ({', '.join(bench.decisions)})")
+        lines += [f"  {key} left out: {_left_out_reason(report, bench, key)}" for key in bench.left_out]
+    return lines
+
+
+def log_bench(recording: rr.RecordingStream, report: AcceptanceReport, dataset: RetrievalDataset) -> None:
+    """Log the bench's decisions of ``dataset``'s queries to ``recording`` (entities in the module docstring).
+
+    Raises:
+        VPRInputError: a report of another value (``check_report``).
+    """
+    check_report(report, dataset)
+    hard = dataset.ground_truth.dense()
+    queries = np.arange(dataset.n_queries, dtype=np.int64)
+    times = [rr.TimeColumn(TIMELINE, sequence=queries)]
+    colors = {r.key: _RULE_COLORS[i % len(_RULE_COLORS)] for i, r in enumerate(RULES)}
+    for which, (root, _) in BENCH_SETS.items():
+        recording.log(f"{root}/summary", rr.TextDocument(bench_summary(report, which),
+                                                         media_type=rr.MediaType.MARKDOWN), static=True)
+        bench: Bench | None = getattr(report, which)
+        if bench is None:
+            continue
+        for key, d in bench.decisions.items():
+            _log_rule(recording, f"{root}/{key}", d, colors[key], queries, times,
+                      describe_bench(dataset, bench, key, hard), bench_verdicts(bench, key, hard))
+
+
+def _log_rule(recording: rr.RecordingStream, path: str, d: RuleDecisions, color: tuple[int, int, int],
+              queries: np.ndarray, times: list, texts: list[str], said: np.ndarray) -> None:
+    key = d.rule.key
+    live = np.isfinite(d.confidence)
+    recording.log(f"{path}/confidence", rr.SeriesLines(colors=[color], names=[f"{key}: confidence"]), static=True)
+    recording.send_columns(f"{path}/confidence", indexes=[rr.TimeColumn(TIMELINE, sequence=queries[live])],
+                           columns=rr.Scalars.columns(scalars=np.asarray(d.confidence, dtype=np.float64)[live]))
+    recording.log(f"{path}/accepted", rr.SeriesPoints(colors=[color], markers=["Circle"],
+                                                      names=[f"{key}: accepted (1) or not (0)"]), static=True)
+    recording.send_columns(f"{path}/accepted", indexes=times,
+                           columns=rr.Scalars.columns(scalars=np.asarray(d.accepted, dtype=np.float64)))
+    recording.send_columns(f"{path}/decision", indexes=times, columns=rr.TextLog.columns(
+        text=[f"query {q} · {key}: {t}" for q, t in zip(queries, texts)],
+        level=[_BENCH_LEVELS[v] for v in said],
+    ))
+
+
 # --------------------------------------------------------------------------- recording
 
 
@@ -629,6 +901,7 @@ class Playback:
         query: query traversal name.
         decisions: the library's decisions, exactly what was logged.
         viewer_url: the bundled web viewer showing it, when it was served.
+        bench: the acceptance bench logged with it (``log_bench``), or ``None``.
     """
 
     rrd: Path
@@ -638,6 +911,7 @@ class Playback:
     query: str
     decisions: QueryDecisions
     viewer_url: str | None = None
+    bench: AcceptanceReport | None = None
 
     @property
     def n_queries(self) -> int:
@@ -655,6 +929,8 @@ class Playback:
                 f"{METHODS_BY_KEY[key].label}: {c[Verdict.RIGHT]} right, {c[Verdict.WRONG_ACCEPT]} wrong accepts, "
                 f"{c[Verdict.WRONG_REJECT]} wrong rejects ({c[Verdict.BETWEEN]} queries between places, not scored)"
             )
+        if self.bench is not None:
+            lines += bench_lines(self.bench)
         return "\n".join(lines)
 
 
@@ -673,6 +949,7 @@ def record_playback(
     descriptor: str | None = None,
     recording_id: str | None = None,
     progress: Progress | None = None,
+    bench: AcceptanceReport | None = None,
 ) -> Playback:
     """Decide every query of a fitted value (``decide_every_query``) and record them, in order, to an ``.rrd``.
 
@@ -688,14 +965,18 @@ def record_playback(
         k: thresholds θ_p + k·s_p (0: the paper's).
         descriptor: its name, for the summary.
         progress: ``progress(done, total)`` after each logged query.
+        bench: the acceptance bench of the same value (``bench_report``), logged with the
+            queries (``log_bench``); ``None`` records without it.
 
     Raises:
         VPRInputError: an unwritable ``out``, a non-finite ``k``, descriptors of another dataset, an
-            unreadable image.
+            unreadable image, a bench report of another value.
     """
     rid = recording_id or uuid.uuid4().hex
     out = check_output(out if out is not None else playback_dir() / f"{rid}.rrd")
     k = check_k(k)
+    if bench is not None:
+        check_report(bench, fitted.dataset)
     decisions = decide_every_query(fitted, descriptors, k=k)
     database, query = sides(fitted.dataset)
     servers = viewer_servers() if serve else None
@@ -710,9 +991,11 @@ def record_playback(
         except RuntimeError as exc:
             raise VPRInputError(f"{out}: cannot write the recording ({exc}); pick a writable path") from exc
         rec.send_recording_name(f"{fitted.dataset.name}: {query} against {', '.join(database)}")
-        rec.send_blueprint(playback_blueprint(query, database))
+        rec.send_blueprint(playback_blueprint(query, database, bench=bench is not None))
         try:
             log_queries(rec, decisions, descriptor=descriptor, progress=progress)
+            if bench is not None:
+                log_bench(rec, bench, fitted.dataset)
         finally:
             # Sends what is buffered and closes the file (writing its footer); the served copy
             # lives on in the gRPC server, which ``_server_owner`` keeps running.
@@ -725,7 +1008,8 @@ def record_playback(
     finally:
         partial.unlink(missing_ok=True)
     return Playback(rrd=out, recording_id=rec.get_recording_id(), dataset=fitted.dataset.name, database=database,
-                    query=query, decisions=decisions, viewer_url=servers.viewer_url if servers else None)
+                    query=query, decisions=decisions, viewer_url=servers.viewer_url if servers else None,
+                    bench=bench)
 
 
 def load_traversals(source: str | Path, database: Sequence[str] | None = None, queries: str | None = None,
@@ -784,6 +1068,7 @@ def record_dataset(
     dtype: str = "float32",
     descriptors_file: Path | None = None,
     names_file: Path | None = None,
+    bench: BenchOptions | None = None,
 ) -> Playback:
     """Everything from an opened dataset (``pipeline.open_dataset``, ``load_traversals``) to a recorded ``.rrd``.
 
@@ -793,11 +1078,14 @@ def record_dataset(
     metres along the route or over a lattice; default the value's). Options and places are
     checked before any descriptor is computed. ``dtype`` is the descriptors' precision
     (``pipeline.dataset_descriptors``). With ``descriptors_file``, descriptors computed
-    elsewhere (for the whole dataset) are read from it instead.
+    elsewhere (for the whole dataset) are read from it instead. With ``bench`` (its choices),
+    the acceptance bench runs on the same value and places (``bench_report``) and is recorded
+    with the queries.
 
     Raises:
         VPRInputError: naming the option at fault: a non-finite ``k``, a bad tolerance, traversals
-            or traversal options for a layout without them, group/step that make no places.
+            or traversal options for a layout without them, group/step that make no places, a
+            value the bench cannot run on (``check_bench``).
     """
     from vpr_explorer.pipeline import dataset_descriptors, imported_descriptors
 
@@ -815,6 +1103,8 @@ def record_dataset(
         value = dataset
     places = _places(value, group, step, reading, geometry)
     retrieval_places(value, places.spec, places.metric)  # too few places fail before any descriptor is computed
+    if bench is not None:
+        check_bench(value)
     if descriptors_file is not None:  # the file covers the whole dataset
         whole = load_dataset(dataset.root) if isinstance(dataset, Dataset) else dataset
         imp = imported_descriptors(whole, descriptors_file, names_file=names_file, dtype=dtype)
@@ -830,5 +1120,6 @@ def record_dataset(
     if rows is not None:
         descriptors = descriptors[rows]
     fitted = fit_retrieval(descriptors, value, places)
+    report = None if bench is None else bench_report(fitted, descriptors, options=bench, descriptor=descriptor)
     return record_playback(fitted, descriptors, out=out, serve=serve, k=k, descriptor=descriptor,
-                           recording_id=recording_id, progress=progress)
+                           recording_id=recording_id, progress=progress, bench=report)

@@ -3,6 +3,7 @@
 Commands (``vpr-explorer COMMAND --help`` for each one's options):
 
     evaluate   run a protocol on a dataset and print the paper's kind of table  (evaluate.py)
+    acceptance every acceptance rule on one dataset's queries: the authors' table (acceptance.py)
     record     play a query traversal back against a database into a rerun .rrd  (record.py)
     list       the dataset's images in descriptor order                          (listing.py)
     sweep      one protocol over a grid of group × step: tables, CSV, JSON       (sweep.py)

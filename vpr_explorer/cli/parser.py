@@ -12,7 +12,7 @@ import sys
 
 import vpr_explorer
 from vpr_explorer.app import launch
-from vpr_explorer.cli import evaluate, extract, listing, record, sweep
+from vpr_explorer.cli import acceptance, evaluate, extract, listing, record, sweep
 from vpr_explorer.cli.common import BARS, HelpFormatter
 from vpr_explorer.descriptors import ExtractionInterrupted
 from vpr_explorer.errors import VPRInputError
@@ -20,6 +20,8 @@ from vpr_explorer.errors import VPRInputError
 #: the commands: name, module (``add_arguments(parser)``, ``run(args) -> int``), one line of help
 COMMANDS = (
     ("evaluate", evaluate, "run a protocol and print the paper's kind of table"),
+    ("acceptance", acceptance, "every acceptance rule on one query traversal against one database: the "
+                               "authors' table of F1, rejection and AUC-PR"),
     ("record", record, "play a query traversal back against a database: write a rerun .rrd"),
     ("list", listing, "print the dataset's images in descriptor order (the rows of a .npy to bring)"),
     ("sweep", sweep, "run a protocol over a grid of group × step (both readings): tables, CSV, JSON"),

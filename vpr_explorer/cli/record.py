@@ -4,7 +4,10 @@ Every layout is one dataset value (``data.aligned.database_queries`` for aligned
 folders: the query traversal's frames are the queries, the database traversals' frames the
 database). Each query, in order, is matched against the database and logged with its
 scores, the place decision and the per-place threshold, on one timeline
-(``vpr_explorer.recording``).
+(``vpr_explorer.recording``). With ``--bench``, every acceptance rule of the acceptance bench
+(``protocols.acceptance``, default choices) runs on the same value and places, and each rule's
+confidence, acceptance and decision of every query is logged on the same timeline
+(``recording.log_bench``); a rule that cannot run is left out and the recording says why.
 """
 
 from __future__ import annotations
@@ -28,6 +31,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--k", type=float, default=0.0, help="thresholds θ_p + k·s_p; 0 is the paper's")
     p.add_argument("--tolerance", type=int, default=0,
                    help="aligned traversals: frames of slack for a right place")
+    p.add_argument("--bench", action="store_true",
+                   help="also run the acceptance bench (every acceptance rule, closed set and natural open set) on "
+                        "the same queries, database and places, and log each rule's confidence, acceptance and "
+                        "decision per query under bench/<rule> and bench_open/<rule>; refused for a value with more "
+                        "query × database pairs than the bench holds")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -38,6 +46,7 @@ def run(args: argparse.Namespace) -> int:
     Returns:
         0 (bad input raises ``VPRInputError``).
     """
+    from vpr_explorer.protocols.acceptance import BenchOptions
     from vpr_explorer.recording import check_output, load_traversals, record_dataset
     from vpr_explorer.settings import check_cache_root
 
@@ -54,6 +63,7 @@ def run(args: argparse.Namespace) -> int:
         tolerance=args.tolerance, group=args.group, step=args.step, reading=args.reading, geometry=args.geometry,
         out=out, k=args.k, cache_root=args.cache_dir, extract_progress=bar("descriptors"), progress=bar("queries"),
         dtype=args.dtype, descriptors_file=args.descriptors, names_file=args.names,
+        bench=BenchOptions() if args.bench else None,
     )
     print(playback.describe())
     print(f"wrote {playback.rrd}: watch it with `rerun {playback.rrd}` (or `rerun --web-viewer {playback.rrd}`)")

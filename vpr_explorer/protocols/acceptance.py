@@ -69,7 +69,7 @@ import numpy as np
 
 from vpr_explorer.data.groundtruth import GroundTruth
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.method.graph_matcher import FANOUT, full_pipeline
+from vpr_explorer.method.graph_matcher import FANOUT, sequence_match
 from vpr_explorer.method.match_scores import SUE_K, pa_ratio, sue, top1_distance
 from vpr_explorer.method.place_discovery import discovered_places
 from vpr_explorer.method.query_threshold import PATCH, QueryThresholdSpec, query_thresholds
@@ -353,6 +353,15 @@ def _num(x) -> float | None:
 # --------------------------------------------------------------------------- the rules
 
 
+def _curve(confidence: np.ndarray, right: np.ndarray, counted: np.ndarray, genuine: np.ndarray) -> PRCurve:
+    """The precision–recall curve of accepting a query's candidate when its confidence clears a threshold.
+
+    Only counted queries take part; a distractor's acceptance is always wrong (its candidate may
+    still be a right image within the tolerance: the authors count it a distractor).
+    """
+    return pr_curve(np.where(counted, confidence, -np.inf), right & counted & genuine, genuine & counted)
+
+
 def _oracle_tau(confidence: np.ndarray, candidate_right: np.ndarray, genuine: np.ndarray,
                 counted: np.ndarray) -> float:
     """The −confidence threshold with the highest authors' F1 (the highest confidence cut on ties of F1)."""
@@ -387,7 +396,7 @@ def _gated(rule: BenchRule, candidate: np.ndarray, confidence: np.ndarray, rank:
         tau, note = _oracle_tau(confidence, right, genuine, counted), "oracle: best F1 on these queries"
     with np.errstate(invalid="ignore"):
         accepted = (candidate >= 0) & (confidence >= -tau)
-    curve = pr_curve(np.where(counted, confidence, -np.inf), right & counted & genuine, genuine & counted)
+    curve = _curve(confidence, right, counted, genuine)
     return RuleDecisions(rule, np.where(accepted, candidate, -1), candidate, accepted, rank, confidence, tau, note,
                          detail, curve, result)
 
@@ -420,7 +429,7 @@ def _fit(database: np.ndarray, labels: np.ndarray, n_places: int) -> _Fit:
 
 
 def _place_rule(rule: BenchRule, raw: np.ndarray, best: np.ndarray, theta: np.ndarray, spread: np.ndarray,
-                correct: np.ndarray, counted: np.ndarray) -> RuleDecisions:
+                correct: np.ndarray, counted: np.ndarray, genuine: np.ndarray) -> RuleDecisions:
     scores = ranking_scores(raw, theta, Rule.RAW)
     top = top_answer(scores)
     rows = np.arange(len(raw))
@@ -431,8 +440,8 @@ def _place_rule(rule: BenchRule, raw: np.ndarray, best: np.ndarray, theta: np.nd
     rank = pessimistic_rank(scores, correct)
     with np.errstate(invalid="ignore"):
         margin = np.where(np.isfinite(raw), raw - theta, -np.inf).max(axis=1)
-    keep = counted
-    curve = family_pr(raw[keep], theta, spread, correct[keep], Rule.RAW)
+    # a distractor has no right place, whatever images near it the tolerance would allow
+    curve = family_pr(raw[counted], theta, spread, correct[counted] & genuine[counted, None], Rule.RAW)
     return _own(rule, candidate, accepted, rank, margin, curve,
                 {"place": place, "raw": np.where(place >= 0, raw[rows, np.maximum(place, 0)], np.nan),
                  "theta": np.where(place >= 0, theta[np.maximum(place, 0)], np.nan)})
@@ -512,8 +521,7 @@ def run_bench(similarity: np.ndarray, database: np.ndarray, hard: np.ndarray, *,
         key = rule.key
         if key == "baseline":
             out[key] = _own(rule, top, np.ones(nq, dtype=bool), image_rank, top_sim,
-                            pr_curve(np.where(counted, top_sim, -np.inf), counted & hard[rows, top],
-                                     counted & genuine), {"score": top_sim})
+                            _curve(top_sim, hard[rows, top], counted, genuine), {"score": top_sim})
         elif key in ("per-place", "per-place-k"):
             in_place = np.flatnonzero(fit.labels >= 0)
             lab = fit.labels[in_place]
@@ -525,7 +533,7 @@ def run_bench(similarity: np.ndarray, database: np.ndarray, hard: np.ndarray, *,
             best = np.where(best >= 0, in_place[np.maximum(best, 0)], -1)
             correct = _correct_places(hard, fit.labels, fit.n_places)
             theta = fit.theta if key == "per-place" else fit.theta_k
-            out[key] = _place_rule(rule, raw, best, theta, fit.spread, correct, counted)
+            out[key] = _place_rule(rule, raw, best, theta, fit.spread, correct, counted, genuine)
         elif key == "sequence-per-place":
             # images between places get a spare id, whose column is dropped after the place maxima
             try:
@@ -535,26 +543,27 @@ def run_bench(similarity: np.ndarray, database: np.ndarray, hard: np.ndarray, *,
                 continue
             raw, best = raw[:, :fit.n_places], best[:, :fit.n_places]
             correct = _correct_places(hard, fit.labels, fit.n_places)
-            out[key] = _place_rule(rule, raw, best, fit.theta, fit.spread, correct, counted)
+            out[key] = _place_rule(rule, raw, best, fit.theta, fit.spread, correct, counted, genuine)
         elif key == "per-query":
-            qt = query_thresholds(s, QueryThresholdSpec(patch=options.patch))
+            qt = qt if qt is not None else query_thresholds(s, QueryThresholdSpec(patch=options.patch))
             kept = s >= qt.threshold[:, None]
             rank = pessimistic_rank(np.where(kept, s, -np.inf).astype(np.float64), hard)
             out[key] = _own(rule, qt.best_match, qt.accepted, rank, qt.top_score - qt.threshold,
-                            pr_curve(np.where(counted, qt.top_score - qt.threshold, -np.inf),
-                                     counted & hard[rows, qt.best_match], counted & genuine),
+                            _curve(qt.top_score - qt.threshold, hard[rows, qt.best_match], counted, genuine),
                             {"threshold": qt.threshold, "score": qt.top_score, "bimodal": qt.bimodal}, qt)
         elif key == "per-query-graph":
-            spec = QueryThresholdSpec(patch=options.patch)
-            match, cost = full_pipeline(s, fanout=options.fanout, spec=spec)
-            graph_qt = qt if qt is not None else query_thresholds(s, spec)
+            # the full pipeline (``graph_matcher.full_pipeline``) on the per-query thresholds computed once
+            qt = qt if qt is not None else query_thresholds(s, QueryThresholdSpec(patch=options.patch))
+            graph_qt = qt
+            cost = 1.0 - float(np.median(qt.threshold))
+            match = sequence_match(s, non_matching_cost=cost, fanout=options.fanout)
             m = match.matched
             acc = m >= 0
             conf = np.where(acc, s[rows, np.maximum(m, 0)], -np.inf).astype(np.float64)
             right = acc & hard[rows, np.maximum(m, 0)]
             rank = np.where(right, 1.0, np.inf)
             out[key] = _own(rule, m, acc, rank, conf,
-                            pr_curve(np.where(counted, conf, -np.inf), counted & right, counted & genuine),
+                            _curve(conf, right, counted, genuine),
                             {"node_cost": match.node_cost, "non_matching_cost": np.full(nq, cost)}, (match, graph_qt))
         elif key == "seqslam":
             try:
@@ -732,7 +741,10 @@ def acceptance_report(dataset, descriptors: np.ndarray, *, labels: np.ndarray | 
                                    database_xy=database_xy, options=options, exact=exact)
     except VPRInputError as exc:
         note = str(exc)
-    notes = [f"{key} left out: {xy_note if key == 'sue' and xy_note else why}" for key, why in closed.left_out.items()]
+    for bench in (closed, natural):
+        if bench is not None and xy_note and "sue" in bench.left_out:
+            bench.left_out["sue"] = xy_note
+    notes = [f"{key} left out: {why}" for key, why in closed.left_out.items()]
     notes += [f"{r.key}: τ = {closed.decisions[r.key].tau:.4g} ({closed.decisions[r.key].tau_note})"
               for r in RULES if r.key in closed.decisions and r.free]
     all_settings = {"dataset": dataset.name, "n_queries": dataset.n_queries, "n_database": dataset.n_database,
@@ -759,7 +771,7 @@ def render_report(report: AcceptanceReport) -> str:
         open_f1 = "—" if o is None else f"{o.f1:.1f}"
         rej = "—" if o is None or o.rejection is None else f"{o.rejection:.1f}"
         auc = "—" if not np.isfinite(c.curve.auc) else f"{c.curve.auc:.3f}"
-        label = rule.label + (" †" if rule.free and rule.key not in report.settings.get("taus", {}) else "")
+        label = rule.label + (" †" if c.tau_note.startswith("oracle") else "")
         lines.append(f"{label:<40}{cc.f1:>10.1f}{r1:>8.1f}{open_f1:>16}{rej:>11}{auc:>8}")
     lines.append("F1, R@1 and rejection in percent, the authors' counts (P = TP/(TP+FP), R = TP/(TP+FN)); "
                  "† τ at the best F1 on these queries (oracle)")

@@ -3,7 +3,9 @@
 One body for every layout: the dataset value in use (aligned traversals: the query
 traversal's frames against every other traversal) with its places, recorded by
 ``recording.record_playback``. Any query of the recording opens in the Query inspector
-(same query, k and places), where each method's decision is explained and drawn.
+(same query, k and places), where each method's decision is explained and drawn. A checkbox
+adds the acceptance bench (every acceptance rule on the same value and places, ``cache.bench``)
+to the recording: each rule's decision of every query on the same timeline.
 """
 
 import numpy as np
@@ -12,7 +14,8 @@ import streamlit as st
 from vpr_explorer.method.database import Verdict
 from vpr_explorer.method.places import BETWEEN_PLACES_RULE
 from vpr_explorer.method.retrieval import METHODS_BY_KEY
-from vpr_explorer.recording import RECORDED, TIMELINE, record_playback, verdicts
+from vpr_explorer.protocols.acceptance import REFERENCE_SHARE, BenchOptions
+from vpr_explorer.recording import BENCH_SETS, RECORDED, TIMELINE, bench_lines, record_playback, verdicts
 from vpr_explorer.views.numbers import UNKNOWN, query_label
 
 from vpr_explorer.app.ui import cache, state
@@ -47,6 +50,15 @@ k = cols[1].slider("k: θ_p(k) = θ_p + k·s_p (k = 0 is the paper)", K_RANGE[0]
                         "(its database images' scores against other places): k = 0 is the paper's threshold, and "
                         "raising k moves every place's threshold up, rejecting more queries.",
                    **state.bind("w_playback_k", "k", float(min(max(v.k, K_RANGE[0]), K_RANGE[1]))))
+with_bench = cols[1].checkbox(
+    "include the acceptance bench", key="w_playback_bench",
+    help="Also runs every acceptance rule of the acceptance bench (image-level top-1, per-place θ_p and θ_k, "
+         "per-query threshold, graph matcher, SeqSLAM, top-1 distance, PA-ratio, SUE) on the same queries, database "
+         f"and places, on the whole database (closed set) and on its first {REFERENCE_SHARE:.0%} (natural open set), "
+         "and records each rule's confidence, acceptance (1 or 0) and decision of every query on the same "
+         f"`{TIMELINE}` timeline, under {' and '.join(f'{root}/<rule>' for root, _ in BENCH_SETS.values())}. "
+         "A rule that cannot run here (e.g. the sequence rules against several database traversals) is left out, "
+         "and the recording's bench summary says why.")
 
 if st.button("Record and play", type="primary", icon=":material/play_circle:",
              help="Decides every query against the database under the paper's method and the place-level "
@@ -54,11 +66,17 @@ if st.button("Record and play", type="primary", icon=":material/play_circle:",
                   "viewer below."):
     with stop_on_input_error(hint=PLACES_HINT):
         fitted = cache.fitted(cur.data, cur.places)
+    report = None
+    if with_bench:
+        with stop_on_input_error(hint="Record without the acceptance bench, or choose fewer queries or a smaller "
+                                      "database."):
+            report = cache.bench(cur.data, cur.places, BenchOptions())
     progress, clear = progress_reporter(f"Recording {ds.n_queries} queries of {cur.query}")
     try:
         with stop_on_input_error(hint="Change k above, or the places on the **Places** page."):
             st.session_state["playback"] = record_playback(fitted, cur.data.descriptors, serve=True, k=k,
-                                                           descriptor=cur.data.descriptor, progress=progress)
+                                                           descriptor=cur.data.descriptor, progress=progress,
+                                                           bench=report)
     finally:
         clear()
 
@@ -72,6 +90,10 @@ for key, c in playback.counts().items():
     rows.append(f"| {METHODS_BY_KEY[key].label} | {c[Verdict.RIGHT]} | {c[Verdict.WRONG_ACCEPT]} | "
                 f"{c[Verdict.WRONG_REJECT]} | {c[Verdict.BETWEEN]} |")
 st.markdown("\n".join(rows))
+if playback.bench is not None:
+    told = "; ".join(line.strip() for line in bench_lines(playback.bench))
+    st.caption(f"Acceptance bench recorded with it: {told}. Its summaries, decision logs and series (confidence, "
+               "accepted) are tabs of the viewer's lower right panel.")
 unknown = int((playback.decisions.status == UNKNOWN).sum())
 st.caption(
     f"Recording `{playback.recording_id}`, {playback.n_queries} queries on the `{TIMELINE}` timeline: press play in "
