@@ -1,7 +1,7 @@
-"""The README's tables are what ``vpr-explorer evaluate`` prints, digit for digit.
+"""The README's tables are what ``vpr-explorer evaluate`` and ``vpr-explorer acceptance`` print, digit for digit.
 
 Every fenced block of README.md that holds lines starting with ``$ vpr-explorer evaluate``
-is read as commands, each followed by the lines it printed (up to a blank line, the next
+or ``$ vpr-explorer acceptance`` is read as commands, each followed by the lines it printed (up to a blank line, the next
 ``$`` line or the end of the block). Each command is run with ``python -m vpr_explorer.cli``
 (``$VPR_EXPLORER_DATA`` substituted), after the block's other ``$ python …`` lines above it
 (e.g. the one that writes the example layouts), and the README's lines are compared with
@@ -39,7 +39,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
-PROMPT = "$ vpr-explorer evaluate"
+PROMPTS = ("$ vpr-explorer evaluate", "$ vpr-explorer acceptance")
 DATA_VARIABLE = "$VPR_EXPLORER_DATA"
 _SEPARATOR = re.compile(r"^-+(  +-+)*$")
 # Columns are joined by two spaces or more, and a label cell holds single spaces only. Data
@@ -53,7 +53,7 @@ def cells(line: str) -> list[str]:
 
 @dataclass
 class Command:
-    """One ``$ vpr-explorer evaluate`` line of the README and the output lines shown under it.
+    """One ``$ vpr-explorer evaluate`` (or ``acceptance``) line of the README and the output lines shown under it.
 
     ``line`` is the command's 1-based line number in README.md; ``output`` maps each shown
     line's 1-based number to its text, without the block's indentation; ``setup`` are the
@@ -82,7 +82,7 @@ class Table:
 
 
 def find_commands(text: str) -> list[Command]:
-    """Every ``$ vpr-explorer evaluate`` line inside a fenced block, with the output lines below it."""
+    """Every ``$ vpr-explorer evaluate`` (or ``acceptance``) line inside a fenced block, with the output lines below it."""
     commands: list[Command] = []
     in_block, current, setup = False, None, []
     for number, raw in enumerate(text.splitlines(), start=1):
@@ -91,7 +91,7 @@ def find_commands(text: str) -> list[Command]:
             in_block, current, setup = not in_block, None, []
         elif not in_block:
             continue
-        elif stripped.startswith(PROMPT):
+        elif stripped.startswith(PROMPTS):
             current = Command(number, stripped[2:], raw[: len(raw) - len(raw.lstrip())], tuple(setup))
             commands.append(current)
         elif stripped.startswith("$ "):

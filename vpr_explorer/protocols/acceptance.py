@@ -773,8 +773,9 @@ def render_report(report: AcceptanceReport) -> str:
         auc = "—" if not np.isfinite(c.curve.auc) else f"{c.curve.auc:.3f}"
         label = rule.label + (" †" if c.tau_note.startswith("oracle") else "")
         lines.append(f"{label:<40}{cc.f1:>10.1f}{r1:>8.1f}{open_f1:>16}{rej:>11}{auc:>8}")
-    lines.append("F1, R@1 and rejection in percent, the authors' counts (P = TP/(TP+FP), R = TP/(TP+FN)); "
-                 "† τ at the best F1 on these queries (oracle)")
+    lines += ["", "F1 and rejection in percent, the authors' counts (P = TP/(TP+FP), R = TP/(TP+FN)); R@1: Recall@1 "
+                  "with rejection over the genuine queries (the right place for the per-place rules); "
+                  "† τ at the best F1 on these queries (oracle)"]
     if report.natural is not None:
         n = report.natural
         lines.append(f"natural open set: the first {share:.0%} of the database route; "

@@ -6,7 +6,8 @@ Its right places are those holding one of its right database images (the ground 
 a query with none in a place lies between places (not scored), and one with no right image
 at all is an unknown-place query (rejecting it is right, accepting it a false positive).
 The field's image-level answer (its most similar database image, over every one) is shown
-beside the place-level methods.
+beside the place-level methods. The section "Every acceptance rule" runs the acceptance bench
+on demand and gives each of its rules' own reasons for the query (``ui.reasons``).
 """
 
 from pathlib import Path
@@ -31,6 +32,7 @@ from vpr_explorer.app.ui.candidates import show_candidates
 from vpr_explorer.app.ui.controls import jump_to_next, threshold_controls
 from vpr_explorer.app.ui.current import current
 from vpr_explorer.app.ui.feedback import PLACES_HINT, stop_on_input_error
+from vpr_explorer.app.ui.reasons import show_reasons
 from vpr_explorer.app.ui.routing import ensure_routed
 
 ensure_routed(__file__)
@@ -161,3 +163,5 @@ with right:
 show_candidates(dec, methods, cands, describe, query_image=ds.query_paths[query], query_caption=f"query: {name[:40]}",
                 database_image=lambda i: (ds.database_paths[int(model.images[i])],
                                           database_label(ds, int(model.images[i]))[:40]))
+
+show_reasons(cur, query)
