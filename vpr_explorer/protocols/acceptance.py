@@ -143,7 +143,7 @@ RULES: tuple[BenchRule, ...] = (
               "sequence", "k of θ_p + k·s_p"),
     BenchRule("top1-distance", "top-1 distance", "Zaffar et al., CVPR 2024", None, "τ of d₁ ≤ τ", free=True),
     BenchRule("pa-ratio", "PA-ratio d₁/d₂", "Zaffar et al., CVPR 2024", None, "τ of u ≤ τ", free=True),
-    BenchRule("sue", f"SUE (K = {SUE_K})", "Zaffar et al., CVPR 2024", "positions", "τ of SUE ≤ τ", free=True),
+    BenchRule("sue", "SUE", "Zaffar et al., CVPR 2024", "positions", "τ of SUE ≤ τ", free=True),
 )
 RULES_BY_KEY = {r.key: r for r in RULES}
 
@@ -159,7 +159,8 @@ class BenchOptions:
         reference_share: F of the natural open set.
         patch: p of the per-query threshold.
         fanout: the graph matcher's fan-out.
-        ds: SeqSLAM's sequence length.
+        ds: SeqSLAM's sequence length (and the sequence place scores').
+        sue_k: K of SUE, the nearest database images whose positions it spreads.
         taus: rule key -> a fixed τ for a rule with a free τ (otherwise the oracle τ).
         ks: Recall@K's K values.
     """
@@ -171,6 +172,7 @@ class BenchOptions:
     patch: int = PATCH
     fanout: int = FANOUT
     ds: int = DS
+    sue_k: int = SUE_K
     taus: Mapping[str, float] = field(default_factory=dict)
     ks: tuple[int, ...] = KS
 
@@ -188,7 +190,7 @@ class BenchOptions:
         if not 0 < self.reference_share < 1:
             raise VPRInputError(f"reference_share={self.reference_share!r}: a share of the route strictly between "
                                 "0 and 1 (the authors use 0.7)")
-        for name, low in (("fanout", 1), ("patch", 2), ("ds", 2)):
+        for name, low in (("fanout", 1), ("patch", 2), ("ds", 2), ("sue_k", 1)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
                 raise VPRInputError(f"{name}={value!r}: a whole number, {low} or more")
@@ -577,7 +579,7 @@ def run_bench(similarity: np.ndarray, database: np.ndarray, hard: np.ndarray, *,
                               {"ratio": res.ratio, "velocity": res.velocity}, res)
         elif key in ("top1-distance", "pa-ratio", "sue"):
             ms = {"top1-distance": lambda: top1_distance(s), "pa-ratio": lambda: pa_ratio(s),
-                  "sue": lambda: sue(s, database_xy)}[key]()
+                  "sue": lambda: sue(s, database_xy, k=options.sue_k)}[key]()
             conf = np.where(np.isfinite(ms.score), -ms.score, -np.inf)
             out[key] = _gated(rule, ms.top1, conf, image_rank, hard, genuine, counted, options.taus,
                               {"score": ms.score}, ms)
@@ -750,7 +752,7 @@ def acceptance_report(dataset, descriptors: np.ndarray, *, labels: np.ndarray | 
     all_settings = {"dataset": dataset.name, "n_queries": dataset.n_queries, "n_database": dataset.n_database,
                     "places": str(options.places), "place_score": str(options.place_score),
                     "reference_share": options.reference_share, "patch": options.patch, "fanout": options.fanout,
-                    "ds": options.ds, **(settings or {})}
+                    "ds": options.ds, "sue_k": options.sue_k, **(settings or {})}
     return AcceptanceReport(closed, natural, note, all_settings, tuple(notes))
 
 
