@@ -362,3 +362,15 @@ def test_a_query_just_past_the_cut_is_a_distractor_even_with_a_kept_image_within
         assert c.n_genuine == 140 and c.n_distractor == 60
         # an accepted distractor is a false positive whatever image it names
         assert c.tn == int((~dec.accepted[140:]).sum()), key
+
+
+def test_discovered_places_need_a_database_route(data_root, tmp_path):
+    from vpr_explorer.data.example_layouts import write_gardens_point_layouts
+    from vpr_explorer.pipeline import dataset_descriptors, open_dataset
+
+    paths = write_gardens_point_layouts(data_root / "GardensPointWalking", tmp_path)
+    ds = open_dataset(paths["database-queries"], "database-queries")
+    assert not ds.ordered
+    d = dataset_descriptors(ds, "pixels")
+    with pytest.raises(VPRInputError, match="places=discovered"):
+        acceptance_report(ds, d, labels=None, options=BenchOptions(places="discovered"))

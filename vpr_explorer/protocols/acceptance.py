@@ -720,6 +720,9 @@ def acceptance_report(dataset, descriptors: np.ndarray, *, labels: np.ndarray | 
     d = np.asarray(descriptors, dtype=np.float32)
     if len(d) != dataset.n_images:
         raise VPRInputError(f"{len(d)} descriptors for {dataset.n_images} images of {dataset.name!r}: recompute them")
+    if options.places is PlaceSource.DISCOVERED and not dataset.ordered:
+        raise VPRInputError(f"places=discovered: {dataset.name!r} has no database route in order, and places are "
+                            "discovered along one; use group/step places")
     pairs = dataset.n_queries * dataset.n_database
     if pairs > BENCH_PAIRS:
         raise VPRInputError(f"{dataset.n_queries:,} queries × {dataset.n_database:,} database images = {pairs:,} pairs: "

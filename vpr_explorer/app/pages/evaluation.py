@@ -1,5 +1,5 @@
 """Evaluation page: the protocols that apply to the dataset value; Recall@K, precision–recall, the trade-off,
-runs side by side, the similarity matrix.
+runs side by side, the acceptance bench, the similarity matrix.
 
 The database/queries protocol (``pipeline.evaluate_retrieval`` on the value) runs on every
 layout; on aligned traversals it is the traversal protocol: database traversals against a
@@ -17,6 +17,10 @@ committed settings on every run (they are committed only by **Run**), and the re
 looked up from them, so leaving the page and coming back can never show one protocol's
 controls above another's results. The page draws its controls first and computes after,
 with a progress bar.
+
+The acceptance bench (``ui.bench``: every acceptance rule on one similarity matrix, the
+authors' table and precision–recall) has its own form, in its own expander, and runs only
+when its button is pressed.
 """
 
 from __future__ import annotations
@@ -38,7 +42,7 @@ from vpr_explorer.views import plots
 from vpr_explorer.views.report import method_csv
 from vpr_explorer.views.numbers import AUTO_RUN_PAIRS, evaluation_json, evaluation_rows
 
-from vpr_explorer.app.ui import cache, runs as runs_ui, state
+from vpr_explorer.app.ui import bench as bench_ui, cache, runs as runs_ui, state
 from vpr_explorer.app.ui.current import current
 from vpr_explorer.app.ui.feedback import PLACES_HINT, show_error, stop_on_input_error
 from vpr_explorer.app.ui.routing import ensure_routed, page_file
@@ -334,6 +338,7 @@ def value_to_run() -> cache.Loaded:
 
 results_box = st.container()  # filled last: the controls and the page show before anything is computed
 runs_box = st.container()
+bench_box = st.container()
 st.subheader("Similarity matrix: click a cell to open that pair in the inspector")
 grid_box = st.container()
 
@@ -578,3 +583,10 @@ with grid_box:
     marked = picked if picked and picked[0] < n_q and picked[1] < n_db else None
     fig = plots.similarity_heatmap(grid, query=cur.query, database=cur.database, marked=marked)
     st.plotly_chart(fig, key="simgrid", on_select=open_pair, selection_mode="points", width="stretch")
+
+
+# --------------------------------------------------------------------------- acceptance bench (on demand)
+
+
+with bench_box:
+    bench_ui.section(cur)

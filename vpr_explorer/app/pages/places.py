@@ -3,6 +3,8 @@
 One body for every layout: the place controls the dataset offers (``ui.group_step``), the
 query traversal of aligned traversals, both readings of group/step in frames, the queries
 decided under every method, and the map where the layout has positions (``ui.place_map``).
+Beside group/step, the places discovered online along the route (``ui.bench.discovery_section``)
+where the database is one route in order, and the reason where it is not.
 """
 
 import pandas  # noqa: F401  # before plotly: plotly.py#2433
@@ -14,7 +16,7 @@ from vpr_explorer.method.places import READING_LABELS, PlaceSpec, Reading, frame
 from vpr_explorer.views import plots
 from vpr_explorer.views.numbers import LIVE_METHODS
 
-from vpr_explorer.app.ui import cache, group_step, place_map, state
+from vpr_explorer.app.ui import bench as bench_ui, cache, group_step, place_map, state
 from vpr_explorer.app.ui.current import current
 from vpr_explorer.app.ui.feedback import show_rejected, stop_on_input_error
 from vpr_explorer.app.ui.routing import ensure_routed
@@ -56,6 +58,8 @@ if cur.spec is not None:
             (st.success if in_use else st.info)(f"{n_places} places ({alt.describe()}); "
                                                 f"{int((frame_place < 0).sum())} of {n:,} {unit} skipped")
             st.plotly_chart(plots.route_figure(frame_place, strips), key=f"route_{reading.value}", width="stretch")
+
+bench_ui.discovery_section(cur)
 
 with stop_on_input_error(hint="Change group or step above."):
     fitted = cache.fitted(cur.data, cur.places)
