@@ -334,3 +334,165 @@ def test_the_parser_does_not_import_the_bench():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
 
+
+
+# --------------------------------------------------------------------------- --vary
+
+
+def gp_sweep(gardens_point, parameter: str, values, places=None):
+    """``sweep_bench`` on GardensPoint day_left against day_right, called as the API documents it."""
+    from vpr_explorer.protocols.acceptance_sweep import sweep_bench
+
+    value = database_queries(gardens_point, "day_left", database=["day_right"], tolerance=2)
+    labels, _ = retrieval_places(value, PlaceSpec(3, 10))
+    return sweep_bench(value, dataset_descriptors(value, "pixels"), labels=labels, parameter=parameter, values=values,
+                       places=places)
+
+
+def test_vary_prints_the_sweep_and_writes_it(gardens_point, tmp_path, capsys):
+    from vpr_explorer.protocols.acceptance_sweep import render
+
+    out = tmp_path / "vary.json"
+    assert main(["acceptance", "--dataset", str(gardens_point.root), "--descriptor", "pixels", *GP_PAIR,
+                 "--vary", "ds=4,6", "--json", str(out)]) == 0
+    stdout = capsys.readouterr().out
+    sweep = gp_sweep(gardens_point, "ds", [4, 6])
+    assert render(sweep) in stdout
+    assert stdout.index("rule ") < stdout.index("ds varied")  # the bench's table first, then the sweep's
+    data = strict(out.read_text())
+    assert_same_numbers(data, direct_report(gardens_point, BenchOptions()))  # the table at --ds, as without --vary
+    want = plain(sweep.to_dict())
+    assert data["sweep"]["points"] == want["points"]
+    assert (data["sweep"]["parameter"], data["sweep"]["values"], data["sweep"]["recomputed"]) == (
+        "ds", [4, 6], ["seqslam", "sequence-per-place"])
+    assert data["sweep"]["settings"]["ds"] == [4, 6] and data["sweep"]["settings"]["descriptor"] == "pixels"
+
+
+def test_vary_group_relabels_the_places(gardens_point, tmp_path, capsys):
+    out = tmp_path / "group.json"
+    assert main(["acceptance", "--dataset", str(gardens_point.root), "--descriptor", "pixels", *GP_PAIR,
+                 "--vary", "group=1,5", "--json", str(out)]) == 0
+    stdout = capsys.readouterr().out
+    assert "group=1" in stdout and "group=5" in stdout
+    data = strict(out.read_text())
+    want = plain(gp_sweep(gardens_point, "group", [1, 5], PlaceSpec(3, 10)).to_dict())
+    assert data["sweep"]["points"] == want["points"]
+
+
+def test_vary_refuses_ds_where_the_sequence_rules_are_left_out(database_queries_layout, capsys):
+    r = refused(capsys, "acceptance", "--dataset", str(database_queries_layout), "--descriptor", "pixels",
+                "--vary", "ds=4,6")
+    line = assert_one_error_line(r, "--vary ds=4,6: ds (", "seqslam, sequence-per-place", "not one ordered route")
+    assert "leaves out here" in line
+    r = refused(capsys, "acceptance", "--dataset", str(database_queries_layout), "--descriptor", "pixels",
+                "--vary", "reference_share=0.5")
+    assert_one_error_line(r, "--vary reference_share=0.5", "natural open set", "not one route in order")
+
+
+@pytest.mark.parametrize("args, fragments", [
+    (["--vary", "ds"], ("--vary ds", "PARAM=V1,V2,...")),
+    (["--vary", "ds="], ("--vary ds=", "PARAM=V1,V2,...")),
+    (["--vary", "=4"], ("--vary =4", "PARAM=V1,V2,...")),
+    (["--vary", "tolerance=1,2"], ("'tolerance' is not a parameter", "ds, patch, fanout, sue_k, reference_share")),
+    (["--vary", "ds=4,six"], ("--vary ds=4,six", "'six' is not a whole number")),
+    (["--vary", "reference-share=0.5,half"], ("'half' is not a number",)),
+    (["--vary", "ds=4,1"], ("--vary ds=4,1: ds=1: a whole number, 2 or more",)),
+    (["--vary", "patch=1"], ("--vary patch=1: patch=1: a whole number, 2 or more",)),
+    (["--vary", "fanout=0"], ("--vary fanout=0: fanout=0",)),
+    (["--vary", "reference_share=0.5,1"], ("--vary reference_share=0.5,1: reference_share=1",)),
+    (["--vary", "group=5", "--step", "4"], ("--vary group=5: step=4 < group=5",)),
+    (["--vary", "step=2.5"], ("--vary step=2.5: step=2.5", "whole number of frames")),
+    (["--vary", "group=2", "--places", "discovered"], ("--vary group=2", "places='discovered'")),
+    (["--vary", "ds=4", "--rules", "baseline"], ("--vary ds=4", "rules=['baseline'] leaves them out")),
+    (["--vary", "sue-k=3"], ("--vary sue-k=3: sue_k", "not metres")),
+    (["--soft-tolerance", "3"], ("--soft-tolerance 3", "add --tutorial-pr")),
+    (["--tutorial-pr", "--soft-tolerance", "1"], ("--soft-tolerance 1 is below --tolerance 2",)),
+    (["--tutorial-pr", "--tolerance", "9"], ("--soft-tolerance 8 (the default) is below --tolerance 9",)),
+    (["--tutorial-pr", "--soft-tolerance", "-1"], ("--soft-tolerance=-1", "0 or more")),
+])
+def test_bad_vary_and_tutorial_options_are_one_error_line(capsys, args, fragments):
+    r = refused(capsys, "acceptance", "--dataset", "demo", "--descriptor", "pixels", "--group", "2", "--step", "4",
+                *args)
+    assert_one_error_line(r, *fragments)
+    assert r.stdout == ""
+
+
+def test_vary_names_restate_the_sweeps_parameters():
+    from vpr_explorer.protocols.acceptance_sweep import Parameter
+
+    assert tuple(cli.VARY) == tuple(p.value for p in Parameter)
+    assert cli.SOFT_TOLERANCE == 8  # VPR_Tutorial's GardensPoint: np.ones((17, 1)) about the diagonal
+
+
+# --------------------------------------------------------------------------- --tutorial-pr
+
+
+def frame_truth(n: int, tolerance: int):
+    """``(n, n)`` bool: |query frame − database frame| ≤ tolerance (GardensPoint: frame = image index)."""
+    import numpy as np
+
+    i = np.arange(n)
+    return np.abs(i[:, None] - i[None, :]) <= tolerance
+
+
+def test_tutorial_pr_is_tutorial_pr_on_the_closed_set(gardens_point, tmp_path, capsys):
+    from vpr_explorer.method.retrieval import similarity
+    from vpr_explorer.protocols.tutorial_pr import tutorial_pr
+
+    out = tmp_path / "tutorial.json"
+    assert main(["acceptance", "--dataset", str(gardens_point.root), "--descriptor", "pixels", "--queries",
+                 "night_right", "--database", "day_right", "--rules", "baseline", "--tolerance", "0",
+                 "--soft-tolerance", "5", "--tutorial-pr", "--json", str(out)]) == 0
+    stdout = capsys.readouterr().out
+    data = strict(out.read_text())
+    tutorial = data["tutorial_pr"]
+    assert (tutorial["n_queries"], tutorial["n_database"]) == (200, 200)
+    assert tutorial["hard"] == "same frame" and tutorial["soft"] == "within ±5 frames"
+    assert data["settings"]["soft_tolerance"] == 5
+    value = database_queries(gardens_point, "night_right", database=["day_right"], tolerance=0)
+    d = dataset_descriptors(value, "pixels")
+    s = similarity(d[200:], d[:200])
+    hard, soft = frame_truth(200, 0), frame_truth(200, 5)
+    rows = [line.split() for line in stdout.splitlines() if line.startswith(("single ", "multi "))]
+    assert len(rows) == len(tutorial["curves"]) == 4
+    for (matching, ignored), got, row in zip(cli.TUTORIAL_ROWS, tutorial["curves"], rows):
+        want = tutorial_pr(s, hard, soft if ignored else None, matching=matching)
+        assert got == plain({"ground_truth": "soft ignored" if ignored else "hard only", **want.to_dict()})
+        assert row[0] == matching and " ".join(row[1:3]) == got["ground_truth"]
+        assert row[3:] == [f"{want.auc:.3f}", f"{want.recall_at_100_precision:.3f}"]
+    assert "VPR_Tutorial refuses soft positives with single matching" in stdout
+    assert "R@100P: the largest recall at precision exactly 1" in stdout
+
+
+def test_tutorial_pr_default_soft_tolerance_is_eight(gardens_point, tmp_path, capsys):
+    out = tmp_path / "eight.json"
+    assert main(["acceptance", "--dataset", str(gardens_point.root), "--descriptor", "pixels", *GP_PAIR,
+                 "--rules", "baseline", "--tutorial-pr", "--json", str(out)]) == 0
+    capsys.readouterr()
+    tutorial = strict(out.read_text())["tutorial_pr"]
+    assert tutorial["hard"] == "within ±2 frames" and tutorial["soft"] == "within ±8 frames"
+
+
+def test_tutorial_pr_without_soft_positives(database_queries_layout, tmp_path, capsys):
+    from vpr_explorer.method.retrieval import similarity
+    from vpr_explorer.pipeline import open_dataset
+    from vpr_explorer.protocols.tutorial_pr import tutorial_pr
+
+    out = tmp_path / "dq_tutorial.json"
+    assert main(["acceptance", "--dataset", str(database_queries_layout), "--descriptor", "pixels", "--rules",
+                 "baseline", "--tutorial-pr", "--json", str(out)]) == 0
+    stdout = capsys.readouterr().out
+    assert "no soft positives: the curves count hard positives only" in stdout
+    tutorial = strict(out.read_text())["tutorial_pr"]
+    assert tutorial["soft"] is None and [c["matching"] for c in tutorial["curves"]] == ["single", "multi"]
+    value = open_dataset(str(database_queries_layout), "database-queries")
+    d = dataset_descriptors(value, "pixels")
+    hard = value.ground_truth.dense()
+    kept = hard.any(axis=1)  # the closed set counts the queries with a right image
+    s = similarity(d[value.n_database:], d[:value.n_database])[kept]
+    for got in tutorial["curves"]:
+        want = tutorial_pr(s, hard[kept], matching=got["matching"])
+        assert got["auc"] == want.auc and got["recall_at_100_precision"] == want.recall_at_100_precision
+    r = refused(capsys, "acceptance", "--dataset", str(database_queries_layout), "--descriptor", "pixels",
+                "--tutorial-pr", "--soft-tolerance", "8")
+    assert_one_error_line(r, "--soft-tolerance counts frames of aligned traversals", "drop --soft-tolerance")

@@ -32,6 +32,28 @@ free τ instead of the oracle τ), ``--patch`` (20), ``--fanout`` (5), ``--ds`` 
 ``--authors`` is the authors' follow-up (``AUTHORS``): discovered places, mean place score,
 ±2 frames, fan-out 5; an option given beside it that says otherwise is refused.
 
+**Sweeps** (``--vary PARAM=V1,V2,...``): ``protocols.acceptance_sweep.sweep_bench`` runs the
+bench once per value of one parameter: ``ds``, ``patch``, ``fanout``, ``sue_k``,
+``reference_share`` (``BenchOptions``' fields) or ``group``, ``step`` (of the group/step
+places, in frames, or metres with ``--geometry route|lattice``); the other parameters keep
+their options' values, and the varied one's own option is not read. It prints
+``acceptance_sweep.render`` (rows = rules, columns = values, cells "closed F1 / open F1 /
+rejection") after the bench's table, and ``--json`` holds ``BenchSweep.to_dict()`` under
+``"sweep"``. A parameter the dataset value cannot use (every rule that reads it left out, e.g.
+``ds`` where the sequence rules are; ``sue_k`` without positions in metres;
+``reference_share`` without a natural open set; group/step with discovered places or the
+layout's own) is refused by name, with why, before any descriptor is computed.
+
+**VPR_Tutorial's precision–recall** (``--tutorial-pr``): ``protocols.tutorial_pr.tutorial_pr``
+on the query × database similarity of the closed set (the queries it counts, the whole
+database), matching ``single`` and ``multi``, each on the hard ground truth only and, where the
+value has soft positives, with them "ignored" as the tutorial does (their pairs scored min S).
+Aligned traversals' soft positives are the database frames within ``--soft-tolerance`` frames
+of the query's (default ``SOFT_TOLERANCE`` = 8: VPR_Tutorial's GardensPoint ±8, whose hard
+ground truth is the same frame: ``--tolerance 0``); another layout has soft positives where its
+ground truth holds them. It prints each curve's AUC and R@100P (``TUTORIAL_ROWS``) and
+``--json`` holds the curves under ``"tutorial_pr"``.
+
 Bad input is one ``VPRInputError`` naming the option, raised before any descriptor is
 computed where the option alone tells; an option the dataset does not read is refused by
 name.
@@ -44,7 +66,15 @@ import json
 import math
 from pathlib import Path
 
-from vpr_explorer.cli.common import add_dataset_args, bar, default_note, descriptor_name, retrieval_dataset, write_text
+from vpr_explorer.cli.common import (
+    add_dataset_args,
+    bar,
+    default_note,
+    descriptor_name,
+    number,
+    retrieval_dataset,
+    write_text,
+)
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec
 
@@ -69,6 +99,13 @@ CHOICES = {"places": BENCH_DEFAULTS["places"], "place_score": BENCH_DEFAULTS["pl
 #: ``BenchOptions`` field -> its option
 BENCH_FLAGS = {"rules": "--rules", "places": "--places", "place_score": "--place-score",
                "reference_share": "--reference-share", "patch": "--patch", "fanout": "--fanout", "ds": "--ds"}
+#: the parameters ``--vary`` takes (``protocols.acceptance_sweep.Parameter``), as whole numbers or not
+VARY = {"ds": "whole", "patch": "whole", "fanout": "whole", "sue_k": "whole", "reference_share": "share",
+        "group": "place", "step": "place"}
+#: aligned traversals: frames of slack of the soft positives of ``--tutorial-pr`` (VPR_Tutorial's GardensPoint ±8)
+SOFT_TOLERANCE = 8
+#: ``--tutorial-pr``'s curves in print order: (matching, soft positives ignored)
+TUTORIAL_ROWS = (("single", False), ("single", True), ("multi", False), ("multi", True))
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -106,6 +143,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--authors", action="store_true",
                    help="the authors' follow-up choices: --places discovered --place-score mean --tolerance 2 "
                         "--fanout 5")
+    p.add_argument("--vary", default=None, metavar="PARAM=V1,V2,...",
+                   help=f"also run the bench once per value of one parameter ({', '.join(VARY)}) and print the "
+                        "table of rules × values (closed F1 / open F1 / rejection); the parameter's own option is "
+                        "then not read")
+    p.add_argument("--tutorial-pr", action="store_true",
+                   help="also print VPR_Tutorial's precision–recall summaries (AUC, R@100P) of the closed set: "
+                        "single and multi matching, hard ground truth only and with soft positives ignored")
+    p.add_argument("--soft-tolerance", type=int, default=None,
+                   help="--tutorial-pr on aligned traversals: a database image within this many frames of the "
+                        "query's frame is a soft positive" + default_note(SOFT_TOLERANCE) + ", VPR_Tutorial's "
+                        "GardensPoint ±8")
     p.add_argument("--json", type=Path, default=None,
                    help="write the numbers, and every setting that shaped them, to this JSON file")
 
@@ -121,19 +169,28 @@ def run(args: argparse.Namespace) -> int:
 
     choices = authors_choices(args)
     options = bench_options(args, choices)
+    vary = parse_vary(args.vary)
+    if args.soft_tolerance is not None and not args.tutorial_pr:
+        raise VPRInputError(f"--soft-tolerance {args.soft_tolerance}: it sets the soft positives of --tutorial-pr; "
+                            "add --tutorial-pr or drop it")
     descriptor = descriptor_name(args)
     if args.descriptors is None:
         from vpr_explorer.settings import check_cache_root
 
         check_cache_root(args.cache_dir)  # an unusable cache folder fails before the dataset is read
     value, lines, settings = dataset_value(args, choices)
-    labels = None
+    labels, spec, metric = None, None, None
     if options.places == "group-step":
         spec, metric = place_specs(args, value)
         labels, n_places = retrieval_places(value, spec, metric)
         how = ("places from the layout" if value.database_place is not None
                else metric.describe() if metric is not None else spec.describe())
         settings["group/step"] = f"{n_places} places ({how})"
+    soft_tolerance = tutorial_soft_tolerance(args, value, settings)
+    if soft_tolerance is not None:
+        settings["soft_tolerance"] = soft_tolerance
+    if vary is not None:
+        vary = check_vary(args.vary, vary, value, options, labels, spec or metric)
     desc, descriptor, source, notes = value_descriptors(args, value, descriptor)
     settings = {"descriptor": descriptor, **source, "dtype": args.dtype, **settings, "authors": args.authors}
     if options.rules is not None:
@@ -144,8 +201,24 @@ def run(args: argparse.Namespace) -> int:
     for line in (*lines, *notes, *places_lines(options, settings), *authors_lines(args, value)):
         print(line)
     print(render_report(report))
+    out = report.to_dict()
+    if vary is not None:
+        from vpr_explorer.protocols.acceptance_sweep import render, sweep_bench
+
+        parameter, values = vary
+        sweep = sweep_bench(value, desc, labels=labels, parameter=parameter, values=values, options=options,
+                            places=spec or metric, settings=settings, progress=bar(f"{parameter} values"))
+        print()
+        print(render(sweep))
+        out["sweep"] = sweep.to_dict()
+    if args.tutorial_pr:
+        tutorial = tutorial_curves(value, desc, report.closed.counted, soft_tolerance)
+        print()
+        for line in tutorial_lines(tutorial):
+            print(line)
+        out["tutorial_pr"] = tutorial
     if args.json is not None:
-        write_text(args.json, json.dumps(report.to_dict(), indent=2, allow_nan=False, default=_not_json), "--json")
+        write_text(args.json, json.dumps(out, indent=2, allow_nan=False, default=_not_json), "--json")
     return 0
 
 
@@ -349,6 +422,158 @@ def value_descriptors(args: argparse.Namespace, value, descriptor: str):
     rows = value_rows(value) if value.aligned is not None else None
     desc = imp.descriptors if rows is None else imp.descriptors[rows]
     return desc, imp.name, imp.settings(), tuple(f"{args.descriptors.name}: {note}" for note in imp.notes)
+
+
+# --------------------------------------------------------------------------- --vary
+
+
+def parse_vary(text: str | None) -> tuple[str, tuple[int | float, ...]] | None:
+    """``--vary PARAM=V1,V2,...`` as ``(parameter, values)`` (``None`` without it); ``sue-k`` is ``sue_k``.
+
+    Raises:
+        VPRInputError: not written PARAM=V1,V2,..., a parameter not in ``VARY``, or a value that is
+            not a number of the parameter's kind (whole numbers but for ``reference_share``, and
+            group/step in metres).
+    """
+    if text is None:
+        return None
+    name, sep, rest = text.partition("=")
+    name = name.strip().replace("-", "_")
+    items = [item.strip() for item in rest.split(",")]
+    if not sep or not name or not any(items):
+        raise VPRInputError(f"--vary {text}: write PARAM=V1,V2,..., e.g. --vary ds=4,6,10,20")
+    if name not in VARY:
+        raise VPRInputError(f"--vary {text}: {name!r} is not a parameter the sweep varies; choose from "
+                            f"{', '.join(VARY)}")
+    values = []
+    for item in items:
+        try:
+            if VARY[name] == "whole":
+                values.append(int(item))
+            elif VARY[name] == "share":
+                values.append(float(item))
+            else:
+                values.append(number(item))
+        except (ValueError, argparse.ArgumentTypeError):
+            kind = "a whole number" if VARY[name] == "whole" else "a number"
+            raise VPRInputError(f"--vary {text}: {item!r} is not {kind}") from None
+    return name, tuple(values)
+
+
+def check_vary(text: str, vary: tuple[str, tuple], value, options, labels, places):
+    """``(parameter, values)`` once the bench on ``value`` is known to read the parameter and take every value.
+
+    Raises:
+        VPRInputError: ``--vary`` naming why (``acceptance_sweep.check_parameter``, ``check_values``).
+    """
+    from vpr_explorer.protocols.acceptance_sweep import check_parameter, check_values
+
+    name, values = vary
+    try:
+        parameter, _ = check_parameter(value, name, options, labels=labels, places=places)
+        return parameter.value, check_values(value, parameter, values, options, places=places)
+    except VPRInputError as exc:
+        raise VPRInputError(f"--vary {text}: {exc}") from None
+
+
+# --------------------------------------------------------------------------- --tutorial-pr
+
+
+def tutorial_soft_tolerance(args: argparse.Namespace, value, settings: dict) -> int | None:
+    """``--soft-tolerance`` where ``--tutorial-pr`` reads it (aligned traversals), else ``None``.
+
+    Raises:
+        VPRInputError: ``--soft-tolerance`` on a layout without frames, or below ``--tolerance``.
+    """
+    from vpr_explorer.protocols.options import check_whole
+
+    if not args.tutorial_pr:
+        return None
+    if value.aligned is None:
+        if args.soft_tolerance is not None:
+            raise VPRInputError(f"--soft-tolerance counts frames of aligned traversals; {value.name} is a "
+                                f"{value.layout.value} layout, whose ground truth says which images are right: drop "
+                                "--soft-tolerance")
+        return None
+    given = args.soft_tolerance is not None
+    soft = check_whole("--soft-tolerance", args.soft_tolerance if given else SOFT_TOLERANCE, low=0,
+                       high=value.n_frames, why=f" (frames of slack; {value.name!r} has {value.n_frames:,} frames)")
+    if soft < settings["tolerance"]:
+        shown = f"--soft-tolerance {soft}" + ("" if given else " (the default)")
+        raise VPRInputError(f"{shown} is below --tolerance {settings['tolerance']}: soft positives reach at least "
+                            f"as far as the hard ones; give --soft-tolerance {settings['tolerance']} or more")
+    return soft
+
+
+def tutorial_curves(value, descriptors, counted, soft_tolerance: int | None) -> dict:
+    """VPR_Tutorial's curves of the closed set (module doc), as JSON-ready values.
+
+    Args:
+        value: the dataset value of the bench.
+        descriptors: ``(n_images, D)`` its descriptors, database rows first.
+        counted: ``(n_queries,)`` the queries the closed set counts (``Bench.counted``).
+        soft_tolerance: aligned traversals: frames of slack of the soft positives; ``None`` reads the
+            ground truth's own soft positives, if it has any.
+
+    Returns:
+        ``{"n_queries", "n_database", "hard", "soft", "soft_tolerance", "curves"}``: the ground
+        truths' descriptions (``soft`` ``None`` where there is none), the frames of slack of the
+        soft positives (``None`` where they are the ground truth's own) and one
+        ``TutorialPR.to_dict()`` per row of ``TUTORIAL_ROWS`` that applies, each with its
+        ``"ground_truth"``: "hard only" or "soft ignored".
+    """
+    import numpy as np
+
+    from vpr_explorer.data.groundtruth import GroundTruth
+    from vpr_explorer.method.retrieval import similarity
+    from vpr_explorer.protocols.tutorial_pr import tutorial_pr
+
+    d = np.asarray(descriptors, dtype=np.float32)  # as acceptance_report reads them
+    rows = np.flatnonzero(counted)
+    s = similarity(d[value.n_database:], d[:value.n_database])[rows]
+    gt = value.ground_truth
+    hard = gt.dense(rows)
+    soft, soft_text = None, None
+    if soft_tolerance is not None:
+        soft = GroundTruth.from_frames(value.query_frame, value.database_frame, soft_tolerance).dense(rows)
+        soft_text = f"within ±{soft_tolerance} frames"
+    elif gt.soft_indptr is not None:
+        soft = GroundTruth.from_lists([gt.soft_positives(q) for q in rows], gt.n_database, gt.description).dense()
+        soft_text = "the ground truth's soft positives"
+    curves = []
+    for matching, ignored in TUTORIAL_ROWS:
+        if ignored and soft is None:
+            continue
+        curve = tutorial_pr(s, hard, soft if ignored else None, matching=matching)
+        curves.append({"ground_truth": "soft ignored" if ignored else "hard only", **curve.to_dict()})
+    return {"n_queries": len(rows), "n_database": value.n_database, "hard": gt.description, "soft": soft_text,
+            "soft_tolerance": soft_tolerance, "curves": curves}
+
+
+def tutorial_lines(tutorial: dict) -> list[str]:
+    """``--tutorial-pr``'s lines: what was counted, one row per curve (AUC, R@100P), what each column is."""
+    frames = ((" (--tolerance)", " (--soft-tolerance; VPR_Tutorial's GardensPoint: the same frame hard, ±8 soft)")
+              if tutorial["soft_tolerance"] is not None else ("", ""))
+    lines = [f"VPR_Tutorial's precision–recall (evaluation/metrics.py: createPR, 100 thresholds; "
+             f"recallAt100precision) on the closed set: {tutorial['n_queries']:,} queries × "
+             f"{tutorial['n_database']:,} database images",
+             f"hard ground truth: {tutorial['hard']}{frames[0]}; "
+             + (f"soft: {tutorial['soft']}{frames[1]}, each soft pair that is not hard scored min(S), as VPR_Tutorial "
+                "ignores them" if tutorial["soft"] else "no soft positives: the curves count hard positives only")]
+    head = f"{'matching':<10}{'ground truth':<16}{'AUC':>8}{'R@100P':>9}"
+    lines += [head, "-" * len(head)]
+    for c in tutorial["curves"]:
+        auc = "—" if c["auc"] is None else f"{c['auc']:.3f}"
+        r100 = "—" if c["recall_at_100_precision"] is None else f"{c['recall_at_100_precision']:.3f}"
+        lines.append(f"{c['matching']:<10}{c['ground_truth']:<16}{auc:>8}{r100:>9}")
+    lines.append("AUC: the area under precision over recall (trapezoid rule, from the point recall 0, precision 1); "
+                 "R@100P: the largest recall at precision exactly 1; both fractions of 1. single: each query's best "
+                 "database image is its one detection (positives: the queries with a hard positive); multi: every "
+                 "query–database pair is one (positives: the hard pairs)")
+    if tutorial["soft"]:
+        lines.append("VPR_Tutorial refuses soft positives with single matching; the single row with soft positives "
+                     "ignored counts them as its code would without that check")
+    return lines
 
 
 # --------------------------------------------------------------------------- what is printed

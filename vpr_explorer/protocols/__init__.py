@@ -15,6 +15,8 @@
 * ``acceptance``: the acceptance bench: every acceptance rule (the paper's, the authors'
   follow-up's, the per-query threshold and graph matcher, SeqSLAM, the training-free match
   scores) on the same queries, closed set and natural open set, the authors' counts.
+* ``acceptance_sweep``: the acceptance bench over the values of one of its parameters
+  (sequence length, patch, fan-out, SUE's K, the reference share, group/step).
 * ``sweep``: one protocol over a grid of group × step, in both readings.
 * ``cost``: the image pairs a protocol run scores, said before it runs.
 * ``compare``: runs side by side: records, metric tables, differences, exports with settings.

@@ -194,6 +194,9 @@ class BenchOptions:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
                 raise VPRInputError(f"{name}={value!r}: a whole number, {low} or more")
+        if self.ds % 2:
+            raise VPRInputError(f"ds={self.ds}: SeqSLAM's sequences are centred on the query, so ds is even "
+                                "(OpenSeqSLAM: 10)")
         for key, tau in self.taus.items():
             rule = RULES_BY_KEY.get(key)
             if rule is None or not rule.free:
@@ -479,7 +482,7 @@ def run_bench(similarity: np.ndarray, database: np.ndarray, hard: np.ndarray, *,
     nq, nd = s.shape
     genuine = hard.any(axis=1) if genuine is None else np.asarray(genuine, dtype=bool)
     counted = np.ones(nq, dtype=bool) if counted is None else np.asarray(counted, dtype=bool)
-    wanted = [RULES_BY_KEY[k] for k in (options.rules or RULES_BY_KEY)]
+    wanted = [r for r in RULES if options.rules is None or r.key in options.rules]
     left_out: dict[str, str] = {}
     rows = np.arange(nq)
     image_rank = pessimistic_rank(s.astype(np.float64), hard)
