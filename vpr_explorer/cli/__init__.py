@@ -4,9 +4,11 @@ Commands (``vpr-explorer COMMAND --help`` for each one's options):
 
     evaluate   run a protocol on a dataset and print the paper's kind of table  (evaluate.py)
     acceptance every acceptance rule on one dataset's queries: the authors' table (acceptance.py)
+    failures   one PNG per failing query with its answers and true match, an index  (failures.py)
     record     play a query traversal back against a database into a rerun .rrd  (record.py)
     list       the dataset's images in descriptor order                          (listing.py)
     sweep      one protocol over a grid of group × step: tables, CSV, JSON       (sweep.py)
+    bench      every dataset × descriptor × protocol: table, CSV, JSON, HTML      (bench.py)
     extract    fill the descriptor cache, with local threads or on Ray           (extract.py)
     app        serve the packaged explorer with Streamlit                        (vpr_explorer.app.launch)
 

@@ -12,7 +12,7 @@ import sys
 
 import vpr_explorer
 from vpr_explorer.app import launch
-from vpr_explorer.cli import acceptance, evaluate, extract, listing, record, sweep
+from vpr_explorer.cli import acceptance, bench, evaluate, extract, failures, listing, record, sweep
 from vpr_explorer.cli.common import BARS, HelpFormatter
 from vpr_explorer.descriptors import ExtractionInterrupted
 from vpr_explorer.errors import VPRInputError
@@ -22,9 +22,12 @@ COMMANDS = (
     ("evaluate", evaluate, "run a protocol and print the paper's kind of table"),
     ("acceptance", acceptance, "every acceptance rule on one query traversal against one database: the "
                                "authors' table of F1, rejection and AUC-PR"),
+    ("failures", failures, "draw every query one method fails: a PNG of its candidates each, an index.html and "
+                           "a CSV"),
     ("record", record, "play a query traversal back against a database: write a rerun .rrd"),
     ("list", listing, "print the dataset's images in descriptor order (the rows of a .npy to bring)"),
     ("sweep", sweep, "run a protocol over a grid of group × step (both readings): tables, CSV, JSON"),
+    ("bench", bench, "every dataset × descriptor × protocol in one run: one table, CSV, JSON and an HTML report"),
     ("extract", extract, "fill the descriptor cache for a dataset: local threads, or a Ray cluster with "
                          "--ray ADDRESS|local"),
     ("app", launch, "open the explorer: Streamlit on the packaged app, from any directory"),

@@ -30,6 +30,7 @@ import math
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from enum import StrEnum
 from pathlib import Path
 
 import numpy as np
@@ -95,8 +96,51 @@ def overview_frames(n_frames: int, n_database: int, budget: int = PAIR_BUDGET) -
 
 
 
-#: Kinds of queries ``find_query`` looks for.
-FIND_KINDS = ("rejected", "answered wrong")
+class FindKind(StrEnum):
+    """Which queries ``find_query`` looks for, by one method's answer (``method.database.Verdict``'s terms).
+
+    Every kind counts only scored queries: those with a right place (a positive in a place) and
+    unknown-place queries (no positive at all). A query whose positives all lie between places
+    has no right answer and is never found (``places.BETWEEN_PLACES_RULE``).
+
+    * ``rejected``: rejected, whatever the query (a wrong reject, or an unknown-place query rightly rejected);
+    * ``wrongly rejected``: a query with a right place, rejected (``Verdict.WRONG_REJECT``);
+    * ``wrong answer``: a query with a right place, accepted without that place at rank 1 (a tie at the top
+      counts as wrong, as ``Outcome.right`` says);
+    * ``accepted unknown``: an unknown-place query accepted (a false positive);
+    * ``answered wrong``: any of the three wrong ones (``Verdict.WRONG_REJECT`` or ``Verdict.WRONG_ACCEPT``);
+    * ``right``: a right place answered at rank 1, or an unknown-place query rejected (``Verdict.RIGHT``).
+    """
+
+    REJECTED = "rejected"
+    WRONGLY_REJECTED = "wrongly rejected"
+    WRONG_ANSWER = "wrong answer"
+    ACCEPTED_UNKNOWN = "accepted unknown"
+    ANSWERED_WRONG = "answered wrong"
+    RIGHT = "right"
+
+
+#: Kinds of queries ``find_query`` looks for (``FindKind``'s values, in display order).
+FIND_KINDS = tuple(k.value for k in FindKind)
+
+
+class Direction(StrEnum):
+    """Which way ``find_query`` walks from the current query: to higher indices or lower ones, wrapping round."""
+
+    NEXT = "next"
+    PREVIOUS = "previous"
+
+
+#: Each ``FindKind`` as a test of a block of queries: ``(known, unknown, accepted, right) -> found``, all ``(n,)``
+#: bools (``known``: the query has a right place; ``right``: ``Outcome.right``).
+_FINDS = {
+    FindKind.REJECTED: lambda known, unknown, accepted, right: (known | unknown) & ~accepted,
+    FindKind.WRONGLY_REJECTED: lambda known, unknown, accepted, right: known & ~accepted,
+    FindKind.WRONG_ANSWER: lambda known, unknown, accepted, right: known & accepted & ~right,
+    FindKind.ACCEPTED_UNKNOWN: lambda known, unknown, accepted, right: unknown & accepted,
+    FindKind.ANSWERED_WRONG: lambda known, unknown, accepted, right: (known & ~right) | (unknown & accepted),
+    FindKind.RIGHT: lambda known, unknown, accepted, right: (known & right) | (unknown & ~accepted),
+}
 
 #: Group and step in metres the app starts with: a place about as long as the field's 25 m
 #: radius, one every 100 m (GardensPoint at 10 m a frame: the paper's group 3, step 10).
@@ -352,6 +396,21 @@ def top_candidates(decision: QueryDecision, n: int = 8) -> np.ndarray:
     return np.array(sorted(shown, key=lambda p: (-raw[p] if np.isfinite(raw[p]) else np.inf, p)), dtype=np.int64)
 
 
+def true_place_rank(decision: QueryDecision) -> tuple[int, int] | None:
+    """The query's best right place (the right place of highest raw_p) and its rank by raw_p, 1 for the best place.
+
+    Ranked as ``top_candidates`` orders places: descending raw_p, ties by place id.
+    ``None`` for a query with no right place (unknown place, or between places).
+    """
+    if not len(decision.true_places):
+        return None
+    raw = np.asarray(decision.raw, dtype=np.float64)
+    true = np.asarray(decision.true_places, dtype=np.int64)
+    place = int(true[np.argmax(raw[true])])  # the first of equal bests: the lowest id, as ranked below
+    ahead = (raw > raw[place]) | ((raw == raw[place]) & (np.arange(len(raw)) < place))
+    return place, 1 + int(ahead.sum())
+
+
 # --------------------------------------------------------------------------- the fitted database
 
 
@@ -396,6 +455,19 @@ class RetrievalFitted:
         rows = self.model.images[layout.order]
         rows.setflags(write=False)
         return layout, rows
+
+    @functools.cached_property
+    def between(self) -> np.ndarray:
+        """``(n_queries,)`` bool: the query has positives and none lies in a place (``BETWEEN``: not scored).
+
+        Read from the ground truth's positives (a running count of those in a place), never a
+        queries × places matrix.
+        """
+        gt = self.dataset.ground_truth
+        in_place = np.concatenate([[0], np.cumsum(self.database_place[gt.indices] >= 0)])
+        out = (gt.counts > 0) & (in_place[gt.indptr[1:]] == in_place[gt.indptr[:-1]])
+        out.setflags(write=False)
+        return out
 
     def query_status(self, query: int) -> str:
         """``KNOWN`` (a right place), ``BETWEEN`` (positives, none in a place) or ``UNKNOWN`` (no positive)."""
@@ -724,26 +796,47 @@ def overview(fitted: RetrievalFitted, descriptors: np.ndarray, *, k: float = 0.0
     return RetrievalOverview(queries, n_q, scored, unknown, outcomes, recall1, rejected, unknown_rejected)
 
 
-def find_query(fitted: RetrievalFitted, descriptors: np.ndarray, *, after: int, kind: str, method: str,
-               k: float = 0.0, user_theta: float | None = None, pair_budget: int | None = None,
-               first_chunk: int = 64) -> tuple[int | None, int]:
-    """The next query after ``after`` (wrapping round) that ``method`` rejected or answered wrong.
+def search_order(n: int, after: int, direction: str = Direction.NEXT) -> np.ndarray:
+    """``(n,)`` the queries in the order ``find_query`` looks at them: from the one beside ``after`` round to ``after``.
 
-    "answered wrong": a query with a right place not answered right at rank 1, or an
-    unknown-place query accepted (a false positive). Queries are decided in growing chunks
-    and the search stops at ``pair_budget`` similarities; on a
-    memory-mapped database the first chunk is a whole block of ``decide_queries`` (each chunk
-    reads the database once, whatever its size).
+    ``next``: after + 1, after + 2, …, n − 1, 0, …, after; ``previous``: after − 1, …, 0, n − 1, …, after.
+    """
+    step = -1 if _check_direction(direction) is Direction.PREVIOUS else 1
+    return (after + step * (1 + np.arange(n))) % n
+
+
+def _check_direction(direction: str) -> Direction:
+    if direction not in {d.value for d in Direction}:
+        raise VPRInputError(f"direction={direction!r}: choose {' or '.join(d.value for d in Direction)}")
+    return Direction(direction)
+
+
+def find_query(fitted: RetrievalFitted, descriptors: np.ndarray, *, after: int, kind: str, method: str,
+               direction: str = Direction.NEXT, k: float = 0.0, user_theta: float | None = None,
+               pair_budget: int | None = None, first_chunk: int = 64) -> tuple[int | None, int]:
+    """The first query of kind ``kind`` (``FindKind``) under ``method``, walking from ``after`` in ``direction``.
+
+    The walk is ``search_order``: every query but ``after`` first, wrapping round at the end
+    (``walked`` says whether it did), ``after`` itself last. Queries whose positives all lie
+    between places are never found, whatever the kind. Queries are decided in growing chunks
+    along the walk and the search stops at ``pair_budget`` similarities (default
+    ``PAIR_BUDGET``); on a memory-mapped database the first chunk is a whole block of
+    ``decide_queries`` (each chunk reads the database once, whatever its size).
 
     Returns:
-        ``(query, last)``: the query found (``None`` if none) and the last query searched.
+        ``(query, last)``: the query found (``None`` if none) and the last query searched
+        (the query found; ``after`` when every query was searched; else where the budget ran out).
+
+    Raises:
+        VPRInputError: an unknown kind or direction, or ``after`` not a query.
     """
     if kind not in FIND_KINDS:
         raise VPRInputError(f"kind={kind!r}: choose one of {', '.join(FIND_KINDS)}")
-    n = fitted.dataset.n_queries
-    order = (after + 1 + np.arange(n)) % n
+    order = search_order(fitted.dataset.n_queries, _check_query(fitted, after), _check_direction(direction))
+    n = len(order)
     limit = max(1, (PAIR_BUDGET if pair_budget is None else pair_budget) // max(1, len(fitted.model.images)))
     unknown_all = fitted.dataset.ground_truth.counts == 0
+    found_in = _FINDS[FindKind(kind)]
     lo, chunk = 0, first_chunk
     if not dense(descriptors):  # a pass over a memory map costs the same for 64 queries as for a block of them
         chunk = max(first_chunk, min(limit, SCORE_ELEMS // max(1, len(fitted.model.images))))
@@ -751,16 +844,29 @@ def find_query(fitted: RetrievalFitted, descriptors: np.ndarray, *, after: int, 
         queries = order[lo:lo + min(chunk, limit - lo)]
         truth, outcomes = decide_queries(fitted, descriptors, queries, k=k, user_theta=user_theta)
         o = outcomes[method]
-        if kind == "rejected":
-            hit = ~o.accepted
-        else:
-            hit = (truth.any(axis=1) & ~o.right) | (unknown_all[queries] & o.accepted)
+        hit = found_in(truth.any(axis=1), unknown_all[queries], o.accepted, o.right)
         if hit.any():
             found = int(queries[np.argmax(hit)])
             return found, found
         lo += len(queries)
         chunk *= 2
     return None, int(order[lo - 1])
+
+
+def walked(fitted: RetrievalFitted, after: int, last: int, direction: str = Direction.NEXT) -> tuple[bool, int]:
+    """What ``find_query``'s walk from ``after`` to ``last`` (as it returned it) went past.
+
+    Returns:
+        ``(wrapped, skipped)``: whether it went round the end (past query n − 1 to 0 walking
+        next, past 0 to n − 1 walking previous; a walk over every query did), and how many
+        queries between places it passed over, ``last`` included (``RetrievalFitted.between``).
+    """
+    n = fitted.dataset.n_queries
+    after, last = _check_query(fitted, after), _check_query(fitted, last)
+    forward = _check_direction(direction) is Direction.NEXT
+    steps = ((last - after) if forward else (after - last)) % n or n  # queries walked, ``last`` the final one
+    wrapped = last <= after if forward else last >= after
+    return wrapped, int(fitted.between[search_order(n, after, direction)[:steps]].sum())
 
 
 # --------------------------------------------------------------------------- names

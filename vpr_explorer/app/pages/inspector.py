@@ -1,7 +1,12 @@
 """Query inspector: one query of the dataset value, its candidate places under every method, and the answer in words.
 
 A query is picked by its index (slider or number: for aligned traversals the query
-traversal's frame), by its file name, or as the next one a method rejected or got wrong.
+traversal's frame), by its file name, or by the finder: ◀ previous / next ▶ move to the
+nearest query of a kind (``numbers.FindKind``: rejected, wrongly rejected, a wrong answer,
+an accepted unknown-place query, any wrong answer, right) under one method, wrapping round
+at either end (the note says so) and skipping the queries between places, whose number the
+page gives. The kind and the method are kept in the URL (``inspector_find``,
+``inspector_method``; defaults left out), so a shared link finds the same queries.
 Its right places are those holding one of its right database images (the ground truth);
 a query with none in a place lies between places (not scored), and one with no right image
 at all is an unknown-place query (rejecting it is right, accepting it a false positive).
@@ -19,17 +24,23 @@ from vpr_explorer.errors import VPRInputError
 from vpr_explorer.method.retrieval import METHODS_BY_KEY
 from vpr_explorer.views.numbers import (
     BETWEEN,
+    FIND_KINDS,
+    LIVE_METHODS,
     UNKNOWN,
+    Direction,
+    FindKind,
     database_label,
     describe_answer,
     find_query_by_name,
     query_label,
+    search_order,
+    top_candidates,
+    walked,
 )
-from vpr_explorer.views.numbers import FIND_KINDS, LIVE_METHODS, top_candidates
 
 from vpr_explorer.app.ui import cache, state
 from vpr_explorer.app.ui.candidates import show_candidates
-from vpr_explorer.app.ui.controls import jump_to_next, threshold_controls
+from vpr_explorer.app.ui.controls import threshold_controls
 from vpr_explorer.app.ui.current import current
 from vpr_explorer.app.ui.feedback import PLACES_HINT, stop_on_input_error
 from vpr_explorer.app.ui.reasons import show_reasons
@@ -88,24 +99,112 @@ with st.expander("k and your own global θ", expanded=v.k != 0 or v.theta is not
     k, user_theta = threshold_controls()
 methods = [*LIVE_METHODS, *(["global-user"] if user_theta is not None else [])]
 
-finder = st.columns([2, 2, 1, 3])
-kind = finder[0].selectbox("Find queries that were", list(FIND_KINDS), key="w_find_kind")
-under = finder[1].selectbox("under", methods, index=methods.index("margin-weighted"), key="w_find_method",
-                            format_func=lambda key: METHODS_BY_KEY[key].label)
+# --------------------------------------------------------------------------- the finder
+
+#: The finder's kinds as its selectbox says them (``numbers.FindKind``: the definitions).
+KIND_LABELS = {
+    FindKind.REJECTED: "rejected (any)",
+    FindKind.WRONGLY_REJECTED: "wrongly rejected (its right place was there)",
+    FindKind.WRONG_ANSWER: "a wrong answer (accepted, wrong place)",
+    FindKind.ACCEPTED_UNKNOWN: "accepted unknown (an unknown-place query accepted)",
+    FindKind.ANSWERED_WRONG: "answered wrong (any of the three above)",
+    FindKind.RIGHT: "right",
+}
+#: "no query was …": each kind in the finder's sentences.
+KIND_WORDS = {
+    FindKind.REJECTED: "rejected",
+    FindKind.WRONGLY_REJECTED: "wrongly rejected",
+    FindKind.WRONG_ANSWER: "answered with a wrong place",
+    FindKind.ACCEPTED_UNKNOWN: "accepted though of an unknown place",
+    FindKind.ANSWERED_WRONG: "answered wrong",
+    FindKind.RIGHT: "answered right",
+}
+#: The finder's settings in the URL (the page's own parameters, ``state.page_params``) and their defaults.
+FIND_PARAMS = {"inspector_find": FindKind.REJECTED.value, "inspector_method": "margin-weighted"}
 
 
-def jump() -> None:
-    """Move to the next query (after the current one, wrapping) that ``under`` rejected / got wrong."""
-    jump_to_next(lambda: cache.find(cur.data, cur.places, after=query, kind=kind, method=under, k=k,
-                                    user_theta=user_theta),
-                 query, ds.n_queries, kind=kind, label=METHODS_BY_KEY[under].label)
+def finder_settings() -> dict[str, str]:
+    """The finder's kind and method from the URL; a refused one is said, dropped from the URL and its default used."""
+    given = {**FIND_PARAMS, **{k: v for k, v in state.page_params().items() if k in FIND_PARAMS}}
+    kind, method = given["inspector_find"], given["inspector_method"]
+    if kind not in FIND_KINDS:
+        st.warning(f"inspector_find={kind!r}: choose one of {', '.join(FIND_KINDS)}; finding "
+                   f"{FIND_PARAMS['inspector_find']} queries instead.", icon=":material/warning:")
+        given["inspector_find"] = FIND_PARAMS["inspector_find"]
+        state.set_page_params(inspector_find=None)
+    if method not in methods:
+        why = ("your own global θ is off (tick \"also compare a global θ of my own\" above)"
+               if method == "global-user" else f"choose one of {', '.join(methods)}")
+        st.warning(f"inspector_method={method!r}: {why}; finding under "
+                   f"{METHODS_BY_KEY[FIND_PARAMS['inspector_method']].label} instead.", icon=":material/warning:")
+        given["inspector_method"] = FIND_PARAMS["inspector_method"]
+        state.set_page_params(inspector_method=None)
+    return given
 
 
-finder[2].button("next ▶", key="w_find_next", on_click=jump,
-                 help="Jump to the next such query (an accepted unknown-place query counts as answered wrong)")
-note = st.session_state.pop("find_none", None)
+def keep(name: str, widget: str) -> None:
+    """A finder widget's value into the URL (its default: left out)."""
+    value = st.session_state[widget]
+    state.set_page_params(**{name: None if value == FIND_PARAMS[name] else value})
+
+
+def jump(direction: str) -> None:
+    """Move to the first query of the chosen kind under the chosen method, walking ``direction`` from this one."""
+    kind, under = st.session_state["w_find_kind"], st.session_state["w_find_method"]
+    try:
+        found, last = cache.find(cur.data, cur.places, after=query, kind=kind, method=under, direction=direction,
+                                 k=k, user_theta=user_theta)
+        wrapped, skipped = walked(fitted, query, last, direction)
+    except VPRInputError as exc:
+        st.session_state["find_note"] = str(exc)
+        return
+    st.session_state["find_note"] = found_note(found, last, wrapped, skipped, direction=direction,
+                                               words=KIND_WORDS[FindKind(kind)], label=METHODS_BY_KEY[under].label)
+    if found is not None or last != query:  # out of budget: move on, so that the next press searches on
+        state.update(frame=found if found is not None else last)
+
+
+def found_note(found: int | None, last: int, wrapped: bool, skipped: int, *, direction: str, words: str,
+               label: str) -> str:
+    """What a press of ◀ / ▶ found in a sentence: the query, whether the walk wrapped round, the queries skipped."""
+    forward = direction == Direction.NEXT
+    passed = (f" ({skipped} {'query' if skipped == 1 else 'queries'} between places skipped on the way)" if skipped
+              else "")
+    if found is None and last == query:
+        return f"no query was {words} under {label}{passed}; try raising k or another method"
+    if found is None:
+        return (f"no query {words} under {label} from query {search_order(ds.n_queries, query, direction)[0]} to "
+                f"{last}{passed}; moved to query {last}, press {direction} again to search on")
+    if found == query:
+        return f"query {query} is the only query {words} under {label}{passed}"
+    if not wrapped:
+        return f"query {found}: the {direction} query {words} under {label}{passed}"
+    if forward:
+        return (f"no later one after query {query}: wrapped round to the start, query {found} is the first query "
+                f"{words} under {label}{passed}")
+    return (f"no earlier one before query {query}: wrapped round to the end, query {found} is the last query "
+            f"{words} under {label}{passed}")
+
+
+settings = finder_settings()
+st.session_state["w_find_kind"], st.session_state["w_find_method"] = settings["inspector_find"], \
+    settings["inspector_method"]
+finder = st.columns([3, 3, 1, 1], vertical_alignment="bottom")
+finder[0].selectbox("Find a query that was", list(FIND_KINDS), format_func=lambda kind: KIND_LABELS[FindKind(kind)],
+                    key="w_find_kind", on_change=keep, args=("inspector_find", "w_find_kind"))
+finder[1].selectbox("under", methods, format_func=lambda key: METHODS_BY_KEY[key].label, key="w_find_method",
+                    on_change=keep, args=("inspector_method", "w_find_method"))
+finder[2].button("◀ previous", key="w_find_previous", on_click=jump, args=(Direction.PREVIOUS.value,),
+                 help="The nearest such query before this one (after query 0: from the last query back)")
+finder[3].button("next ▶", key="w_find_next", on_click=jump, args=(Direction.NEXT.value,),
+                 help="The nearest such query after this one (after the last query: from query 0 on)")
+n_between = int(fitted.between.sum())
+st.caption("The finder walks the queries in order, wrapping round at either end"
+           + (f", and skips the {n_between} of {ds.n_queries} whose right database images all lie between places "
+              "(not scored)." if n_between else f"; none of the {ds.n_queries} queries lies between places."))
+note = st.session_state.pop("find_note", None)
 if note:
-    finder[3].info(note)
+    st.info(note, icon=":material/search:")
 
 # --------------------------------------------------------------------------- its decision
 

@@ -487,17 +487,17 @@ def image_answer(data: Loaded, query: int) -> views.ImageAnswer:
 
 
 @st.cache_data(show_spinner=False, max_entries=256)
-def _found(key: str, places: tuple, after: int, kind: str, method: str, k: float, user_theta,
+def _found(key: str, places: tuple, after: int, kind: str, method: str, direction: str, k: float, user_theta,
            _data: Loaded) -> tuple[int | None, int]:
     f = _fitted(key, places, _data)
-    return views.find_query(f, _data.descriptors, after=after, kind=kind, method=method, k=k,
+    return views.find_query(f, _data.descriptors, after=after, kind=kind, method=method, direction=direction, k=k,
                             user_theta=user_theta)
 
 
-def find(data: Loaded, places: RetrievalPlaces, *, after: int, kind: str, method: str, k: float = 0.0,
-         user_theta: float | None = None) -> tuple[int | None, int]:
-    """``numbers.find_query``: the next query after ``after`` that ``method`` rejected or got wrong."""
-    return _found(data.key, places_key(places), int(after), kind, method, float(k), user_theta, data)
+def find(data: Loaded, places: RetrievalPlaces, *, after: int, kind: str, method: str, direction: str = "next",
+         k: float = 0.0, user_theta: float | None = None) -> tuple[int | None, int]:
+    """``numbers.find_query``: the first query of kind ``kind`` under ``method`` from ``after``, walking ``direction``."""
+    return _found(data.key, places_key(places), int(after), kind, method, str(direction), float(k), user_theta, data)
 
 
 @st.cache_resource(show_spinner=False, max_entries=1)

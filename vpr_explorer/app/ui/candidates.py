@@ -1,7 +1,9 @@
 """The Query inspector's candidate places: one chart per method, then the best candidates' images.
 
 Each chart shows raw_p against the method's threshold, the answer outlined and the right
-places starred; the images beside the query's are the best candidates' best database images.
+places starred; the images beside the query's are the ``BEST_IMAGES`` best candidates' best
+database images (by raw_p), and the true place's best image (``numbers.true_place_rank``) after
+them, labelled with its rank, when it is not among them: the true place is always shown.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import numpy as np
 import streamlit as st
 
 from vpr_explorer.views import plots
+from vpr_explorer.views.numbers import true_place_rank
 from vpr_explorer.method.retrieval import QueryDecision
 
 from vpr_explorer.app.ui import cache
@@ -41,10 +44,24 @@ def show_candidates(dec: QueryDecision, methods: Sequence[str], cands: np.ndarra
                 st.caption(describe(key))
 
     st.subheader("Best candidates beside the query")
-    cols = st.columns(BEST_IMAGES + 1)
+    shown = [int(p) for p in cands[:BEST_IMAGES]]
+    true = true_place_rank(dec)
+    extra = true if true is not None and true[0] not in shown else None
+    if extra is not None:
+        st.caption(f"The {BEST_IMAGES} best places by raw_p, then the true place's best image: it ranks "
+                   f"{ordinal(extra[1])} of {dec.n_places}.")
+    cols = st.columns(BEST_IMAGES + 2 if extra is not None else BEST_IMAGES + 1)
     cols[0].image(cache.thumbnail(query_image, 160), caption=query_caption, width="stretch")
-    for col, p in zip(cols[1:], cands[:BEST_IMAGES]):
+    tiles = [(p, "right place" if p in dec.true_places else "other place") for p in shown]
+    if extra is not None:
+        tiles.append((extra[0], f"true place, ranked {ordinal(extra[1])}"))
+    for col, (p, verdict) in zip(cols[1:], tiles):
         path, label = database_image(int(dec.best_image[p]))
-        verdict = "right place" if p in dec.true_places else "other place"
         col.image(cache.thumbnail(path, 160), width="stretch",
                   caption=f"P{p}, {label}: raw_p {dec.raw[p]:.3f} ({verdict})")
+
+
+def ordinal(n: int) -> str:
+    """1st, 2nd, 3rd, 4th, …, 11th, 12th, 13th, …, 21st, 22nd, …"""
+    suffix = "th" if n % 100 in (11, 12, 13) else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"{n}{suffix}"

@@ -1,12 +1,8 @@
-"""Widgets that several pages share: the threshold family's k, the user's global θ, the inspector's "next"."""
+"""Widgets that several pages share: the threshold family's k and the user's global θ."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import streamlit as st
-
-from vpr_explorer.errors import VPRInputError
 
 from vpr_explorer.app.ui import state
 from vpr_explorer.app.ui.state import K_RANGE, THETA_RANGE
@@ -31,25 +27,3 @@ def threshold_controls(container=st) -> tuple[float, float | None]:
     v = state.view()
     return v.k, v.theta
 
-
-def jump_to_next(search: Callable[[], tuple[int | None, int]], current: int, n: int, *, kind: str,
-                 label: str) -> None:
-    """The Query inspector's "next ▶": move the view's ``frame`` to the query ``search()`` found after ``current``.
-
-    ``search`` returns ``(found, last)`` as ``numbers.find_query`` does (``last``: where
-    a search that ran out of budget stopped); ``n`` queries in all. What could not be found is
-    kept for the page to show (``st.session_state["find_none"]``).
-    """
-    try:
-        found, last = search()
-    except VPRInputError as exc:
-        st.session_state["find_none"] = str(exc)
-        return
-    if found is not None:
-        state.update(frame=found)
-    elif last == current:
-        st.session_state["find_none"] = f"no query was {kind} under {label}; try raising k or another method"
-    else:  # the search budget ran out: move on, so that the next press searches on
-        state.update(frame=last)
-        st.session_state["find_none"] = (f"no query {kind} under {label} from query {(current + 1) % n} to {last}; "
-                                         f"moved to query {last}, press next again to search on")
