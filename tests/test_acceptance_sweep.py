@@ -204,7 +204,7 @@ def test_sequence_parameters_are_refused_where_the_sequence_rules_are_left_out(g
     for parameter in ("ds", "patch", "fanout"):
         with pytest.raises(VPRInputError) as exc:
             sweep_bench(value, d, labels=labels, parameter=parameter, values=[4])
-        assert str(exc.value).startswith(f"{parameter} (") and "not one ordered route" in str(exc.value)
+        assert str(exc.value).startswith(f"{parameter} (") and "no database route in order" in str(exc.value)
     with pytest.raises(VPRInputError, match="reference_share cuts the natural open set.*not one route in order"):
         sweep_bench(value, d, labels=labels, parameter="reference_share", values=[0.5])
     # the per-place rules still read group/step there

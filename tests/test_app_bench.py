@@ -268,7 +268,7 @@ def test_a_layout_that_is_not_a_route_says_why(layouts):
     said = left_out_text(at)
     for key in SEQUENCE_RULES:
         label = next(r.label for r in RULES if r.key == key)
-        assert f"**{label}** (both sets): dataset" in said and "is not one ordered route" in said, said
+        assert f"**{label}** (both sets): " in said and "has no database route in order" in said, said
     assert any(c.value.startswith("Natural open set not run:") and "not one route in order" in c.value
                for c in at.caption)
     assert table["open F1"].isna().all()

@@ -212,7 +212,7 @@ def test_database_queries_layout_leaves_sequences_and_the_natural_open_set_out(d
     for key in SEQUENCE_RULES:
         assert key in data["closed_set"]["left_out"]
         line = next(line for line in stdout.splitlines() if line.startswith(f"{key} left out: "))
-        assert "not one ordered route" in line
+        assert "no database route in order" in line
     assert set(table_rows(stdout)) == set(RULES_BY_KEY) - set(SEQUENCE_RULES)  # SUE runs: positions in metres
     assert data["natural_open_set"] is None
     line = next(line for line in stdout.splitlines() if line.startswith("natural open set not run: "))
@@ -382,7 +382,7 @@ def test_vary_group_relabels_the_places(gardens_point, tmp_path, capsys):
 def test_vary_refuses_ds_where_the_sequence_rules_are_left_out(database_queries_layout, capsys):
     r = refused(capsys, "acceptance", "--dataset", str(database_queries_layout), "--descriptor", "pixels",
                 "--vary", "ds=4,6")
-    line = assert_one_error_line(r, "--vary ds=4,6: ds (", "seqslam, sequence-per-place", "not one ordered route")
+    line = assert_one_error_line(r, "--vary ds=4,6: ds (", "seqslam, sequence-per-place", "no database route in order")
     assert "leaves out here" in line
     r = refused(capsys, "acceptance", "--dataset", str(database_queries_layout), "--descriptor", "pixels",
                 "--vary", "reference_share=0.5")

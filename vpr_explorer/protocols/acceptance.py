@@ -675,13 +675,22 @@ class AcceptanceReport:
 
 
 def sequence_reason(dataset) -> str | None:
-    """``None`` when the value's queries and database are each one route in order, else why not."""
-    from vpr_explorer.method.sequences import check_sequence
+    """``None`` when the value's queries and database are each one route in order, else why not.
 
-    try:
-        check_sequence(dataset)
-    except VPRInputError as exc:
-        return str(exc)
+    The per-query threshold, the graph matcher, SeqSLAM and the sequence place scores read
+    runs of consecutive images on both sides (``sequences.check_sequence`` checks the same).
+    """
+    rules = "the sequence rules (per-query threshold, graph matcher, SeqSLAM, sequence place scores)"
+    if not dataset.ordered:
+        return (f"{dataset.name!r} ({dataset.layout.value}) has no database route in order, and {rules} read the "
+                "database along one: choose one database traversal of aligned traversals or a layout with a route")
+    for side, traversal, frame in (("database", dataset.database_traversal, dataset.database_frame),
+                                   ("queries", dataset.query_traversal, dataset.query_frame)):
+        n = len(np.unique(traversal))
+        if n > 1:
+            return f"the {side} come from {n} traversals, and {rules} read one traversal in order: choose one"
+        if frame is not None and np.any(np.diff(frame) <= 0):
+            return f"the {side} are not in frame order, and {rules} read them along the route"
     return None
 
 

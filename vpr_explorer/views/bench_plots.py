@@ -14,6 +14,12 @@ A leaf like ``views.plots``: results in, ``go.Figure`` (or table rows) out, no s
   (the answer is the place's best image), so a point may sit off its curve.
 * ``tutorial_pr_figure``: VPR_Tutorial's single-best-match and multi-match curves
   (``protocols.tutorial_pr``), named with the ground truth each counts.
+* ``sweep_figure``: the bench swept over one parameter (``protocols.acceptance_sweep``): one
+  line per rule across the parameter's values for one metric (``SWEEP_METRICS``: closed-set
+  F1, natural open-set F1, distractor rejection), the values in increasing order; a rule the
+  parameter does not affect (``sweep_affected``) is drawn faint and dashed. ``sweep_table``:
+  the same numbers as rows (one per rule, one column per value); ``sweep_rows``: every number
+  of the sweep, one row per rule and value (the CSV).
 * ``discovery_figure``: the database route (x = database frame) with the group/step places
   and the discovered places as two band rows, place starts marked, and under it the online
   score against its threshold θ (``method.place_discovery.Discovery``).
@@ -33,8 +39,10 @@ import pandas  # noqa: F401  # imported before plotly: plotly.py#2433 (lazy-impo
 import plotly.graph_objects as go
 from plotly.subplots import make_subplots
 
+from vpr_explorer.errors import VPRInputError
 from vpr_explorer.method.place_discovery import Discovery
-from vpr_explorer.protocols.acceptance import RULES, AcceptanceReport, Bench
+from vpr_explorer.protocols.acceptance import RULES, RULES_BY_KEY, AcceptanceReport, Bench
+from vpr_explorer.protocols.acceptance_sweep import BenchSweep, Parameter, SweepPoint
 from vpr_explorer.protocols.tutorial_pr import TutorialPR
 from vpr_explorer.views.plots import BASELINE, PALETTE, SKIPPED, place_colours
 
@@ -183,6 +191,133 @@ def tutorial_pr_figure(curves: Mapping[str, TutorialPR], *, title: str = "VPR_Tu
                       yaxis=dict(title="precision", tickformat=".0%", range=[-0.02, 1.04]),
                       height=360, margin=MARGIN, legend=dict(orientation="h", y=-0.3))
     return fig
+
+
+# --------------------------------------------------------------------------- one parameter varied
+
+#: metric key -> what a sweep figure or table shows of each rule at each value (percent)
+SWEEP_METRICS = {"closed": "closed-set F1", "open": "natural open-set F1", "rejection": "rejection"}
+#: how a rule the parameter does not affect is drawn: its numbers stand the same at every value
+FAINT = 0.35
+
+
+def sweep_value(point: SweepPoint, key: str, metric: str) -> float:
+    """One rule's number at one value of a sweep, in percent: NaN where the rule did not run on that set (or, for
+    rejection, the set has no distractor).
+
+    Args:
+        point: the bench at one value.
+        key: a rule key.
+        metric: a ``SWEEP_METRICS`` key.
+    """
+    if metric not in SWEEP_METRICS:
+        raise VPRInputError(f"metric={metric!r}: choose one of {', '.join(SWEEP_METRICS)}")
+    if metric == "closed":
+        c = point.closed.counts.get(key)
+        return math.nan if c is None else float(c.f1)
+    o = None if point.natural is None else point.natural.counts.get(key)
+    if o is None:
+        return math.nan
+    return float(o.f1) if metric == "open" else _num(o.rejection)
+
+
+def sweep_keys(sweep: BenchSweep) -> list[str]:
+    """The rules that ran at one value at least, in ``RULES`` order (the sweep's rows and lines)."""
+    return [r.key for r in RULES if any(r.key in pt.closed.counts for pt in sweep.points)]
+
+
+def sweep_affected(sweep: BenchSweep, metric: str) -> tuple[str, ...]:
+    """The rules whose ``metric`` the parameter moves: those run again at each value (``BenchSweep.recomputed``),
+    except that ``reference_share`` cuts the natural open set only, so it moves no rule's closed-set F1."""
+    if metric == "closed" and sweep.parameter is Parameter.REFERENCE_SHARE:
+        return ()
+    return tuple(sweep.recomputed)
+
+
+def value_label(parameter: Parameter | str, value: float) -> str:
+    """A value's column head, e.g. ``"ds=4"`` (as ``acceptance_sweep.render`` heads its columns)."""
+    return f"{parameter}={value:g}"
+
+
+def sweep_figure(sweep: BenchSweep, metric: str, *, title: str = "") -> go.Figure:
+    """One line per rule across the swept values for one metric (module doc).
+
+    Traces: ``meta`` = the rule's key; ``x`` = the values in increasing order, ``y`` = the
+    rule's ``sweep_value`` at each (NaN, a gap, where it did not run); ``customdata`` = τ at
+    each value (NaN for a rule with thresholds of its own). A rule in ``sweep_affected`` is a
+    solid line with markers, the others faint and dashed (``FAINT`` opacity).
+    """
+    order = np.argsort(np.asarray(sweep.values, dtype=float), kind="stable")
+    points = [sweep.points[i] for i in order]
+    x = [sweep.values[i] for i in order]
+    affected = sweep_affected(sweep, metric)
+    colours = rule_colours()
+    what = SWEEP_METRICS[metric]
+    p = sweep.parameter
+    fig = go.Figure()
+    for key in sweep_keys(sweep):
+        rule = RULES_BY_KEY[key]
+        moves = key in affected
+        y = np.array([sweep_value(pt, key, metric) for pt in points], dtype=float)
+        tau = np.array([pt.closed.tau.get(key, math.nan) for pt in points], dtype=float)
+        fig.add_trace(go.Scatter(
+            x=x, y=y, mode="lines+markers" if moves else "lines", meta=key, legendgroup=key,
+            name=rule.label if moves else f"{rule.label} (does not read {p})",
+            opacity=1.0 if moves else FAINT,
+            line=dict(color=colours[key], width=2.5 if moves else 1.5, dash="solid" if moves else "dash"),
+            marker=dict(size=7), customdata=tau,
+            hovertemplate=(f"{p} = %{{x:g}}: {what} %{{y:.1f}}%"
+                           + (" (τ %{customdata:.4g})" if rule.free else "") + f"<extra>{rule.label}</extra>"),
+        ))
+    fig.update_layout(title=title or f"{what} of every rule as {p} varies",
+                      xaxis=dict(title=p.value, tickvals=x, ticktext=[f"{v:g}" for v in x]),
+                      yaxis=dict(title=f"{what}, %", range=[-2, 102]),
+                      height=460, margin=MARGIN, legend=dict(orientation="h", y=-0.2))
+    return fig
+
+
+def sweep_table(sweep: BenchSweep, metric: str) -> list[dict]:
+    """One metric of a sweep as rows: ``key``, ``rule`` (label, "†" where τ is the oracle's at some value),
+    ``reads`` (the parameter moves it: ``sweep_affected``), then one column per value (``value_label``, in
+    the order given), percent."""
+    affected = sweep_affected(sweep, metric)
+
+    def label(key: str) -> str:
+        oracle = any(pt.closed.tau_note.get(key, "").startswith("oracle") for pt in sweep.points)
+        return RULES_BY_KEY[key].label + (" †" if oracle else "")
+
+    return [{"key": key, "rule": label(key), "reads": key in affected,
+             **{value_label(sweep.parameter, v): sweep_value(pt, key, metric)
+                for v, pt in zip(sweep.values, sweep.points)}}
+            for key in sweep_keys(sweep)]
+
+
+def sweep_rows(sweep: BenchSweep) -> list[dict]:
+    """Every number of a sweep, one dict per rule and value (rules in ``RULES`` order, values as given).
+
+    Keys: ``key``, ``rule``, the parameter's name (its value), ``recomputed`` (run again at each
+    value), ``closed F1``, ``R`` and ``P`` (closed set), ``AUC-PR`` (closed set), ``τ``,
+    ``τ from``, ``open F1``, ``rejection`` (natural open set; NaN where it did not run or has no
+    distractor), ``left out`` (why the rule did not run at this value, else empty).
+    """
+    p = sweep.parameter.value
+    rows = []
+    for key in sweep_keys(sweep):
+        for v, pt in zip(sweep.values, sweep.points):
+            c = pt.closed.counts.get(key)
+            rows.append({
+                "key": key, "rule": RULES_BY_KEY[key].label, p: v, "recomputed": key in sweep.recomputed,
+                "closed F1": sweep_value(pt, key, "closed"),
+                "R": math.nan if c is None else float(c.recall),
+                "P": math.nan if c is None else float(c.precision),
+                "AUC-PR": pt.closed.auc.get(key, math.nan),
+                "τ": pt.closed.tau.get(key, math.nan),
+                "τ from": pt.closed.tau_note.get(key, ""),
+                "open F1": sweep_value(pt, key, "open"),
+                "rejection": sweep_value(pt, key, "rejection"),
+                "left out": pt.closed.left_out.get(key, ""),
+            })
+    return rows
 
 
 # --------------------------------------------------------------------------- discovered places

@@ -18,11 +18,29 @@ again while the dataset value, its places and the settings stay the same. Settin
   (defaults ``PATCH``, ``FANOUT``, ``DS``).
 
 Shown: the authors' table (``bench_plots.bench_rows``), the rules left out with their
-reasons, every rule's precision–recall curve with its own decisions marked (closed set, or
-the natural open set by a toggle), and VPR_Tutorial's single- and multi-match curves on the
-same value (``protocols.tutorial_pr``; soft positives ignored in the multi-match curve where
-the ground truth has them; the single curve counts hard positives only, as VPR_Tutorial
-refuses soft positives with single matching).
+reasons, the bench varied over one parameter (below), every rule's precision–recall curve
+with its own decisions marked (closed set, or the natural open set by a toggle), and
+VPR_Tutorial's single- and multi-match curves on the same value (``protocols.tutorial_pr``;
+soft positives ignored in the multi-match curve where the ground truth has them; the single
+curve counts hard positives only, as VPR_Tutorial refuses soft positives with single
+matching).
+
+**Vary one parameter** (``protocols.acceptance_sweep.sweep_bench``, the app's counterpart of
+``vpr-explorer acceptance --vary``), under the table: the bench once per value of one
+parameter, the others at the committed settings. The picker offers only the parameters the
+value's bench reads (``offered_parameters``: ``check_parameter``, whose refusals are listed
+with why, e.g. ds where the queries are not one route in order); the values box starts from
+``DEFAULT_VALUES`` (group/step: around the sidebar's, ``default_values``), comma-separated,
+whole numbers but for ``reference_share`` (a fraction, as the CLI takes it) and metres.
+Nothing runs before **Vary** is pressed (Nordland's 3,576 frames: 4–8 s a value, under a
+spinner); the sweep is cached (``bench_sweep``: keyed like ``cache.bench``, with the
+parameter and its values) and shown while the bench's value, places and settings stay those
+it was pressed with. Shown: for one metric (closed-set F1, natural open-set F1 or rejection,
+a radio) one line per rule across the values, the rules the parameter does not affect faint
+and dashed (``bench_plots.sweep_figure``); the same numbers as a table, the rules left out at
+some value, a CSV of every number (``bench_plots.sweep_rows``) and the CLI's text table. A
+value list that does not parse, or one the library refuses, is an ``st.error`` with the
+library's message, never a traceback.
 
 **Discovered places** (``method.place_discovery.discover``, the authors' defaults): on the
 database images of one route in order. For aligned traversals, one database traversal
@@ -32,7 +50,9 @@ when it is one route in order, and otherwise the reason.
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import math
 from dataclasses import asdict, dataclass, replace
 
 import numpy as np
@@ -43,13 +63,30 @@ from vpr_explorer.data.layouts import RetrievalDataset
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.method.graph_matcher import FANOUT
 from vpr_explorer.method.place_discovery import ALPHA, HYSTERESIS, MIN_SIZE, Discovery, discover
-from vpr_explorer.method.places import retrieval_places
+from vpr_explorer.method.places import MetricPlaceSpec, PlaceSpec, Reading, retrieval_places
 from vpr_explorer.method.query_threshold import PATCH
 from vpr_explorer.method.retrieval import similarity
 from vpr_explorer.method.sequences import DS
-from vpr_explorer.protocols.acceptance import REFERENCE_SHARE, AcceptanceReport, BenchOptions, PlaceScore, PlaceSource
+from vpr_explorer.protocols.acceptance import (
+    REFERENCE_SHARE,
+    RULES,
+    RULES_BY_KEY,
+    AcceptanceReport,
+    BenchOptions,
+    PlaceScore,
+    PlaceSource,
+)
+from vpr_explorer.protocols.acceptance_sweep import (
+    DESCRIPTIONS,
+    BenchSweep,
+    Parameter,
+    check_parameter,
+    render,
+    sweep_bench,
+)
 from vpr_explorer.protocols.tutorial_pr import Matching, TutorialPR, tutorial_pr
 from vpr_explorer.views import bench_plots
+from vpr_explorer.views.numbers import RetrievalPlaces
 
 from vpr_explorer.app.ui import cache
 from vpr_explorer.app.ui.current import Current
@@ -76,6 +113,12 @@ BENCH_CAPTION = (
     "rejected. AUC-PR: the closed set's curve. † τ at the best F1 on these very queries (oracle): a bound on what "
     "the rule can do, not a rule you could run."
 )
+#: the values box's first values per parameter (group/step: ``default_values``, around the sidebar's)
+DEFAULT_VALUES: dict[Parameter, tuple[int | float, ...]] = {
+    Parameter.DS: (4, 6, 10, 20), Parameter.PATCH: (10, 20, 40), Parameter.FANOUT: (1, 3, 5, 10),
+    Parameter.SUE_K: (5, 10, 20), Parameter.REFERENCE_SHARE: (0.5, 0.6, 0.7, 0.8)}
+#: the parameters whose values are whole numbers (reference_share is a fraction; group/step follow the places)
+WHOLE = (Parameter.DS, Parameter.PATCH, Parameter.FANOUT, Parameter.SUE_K)
 
 
 @dataclass(frozen=True)
@@ -234,7 +277,8 @@ def section(cur: Current) -> None:
         if not (ran or asked):
             return
         try:
-            report = cache.bench(value, cur.places, bench_options(s, value.dataset))
+            options = bench_options(s, value.dataset)
+            report = cache.bench(value, cur.places, options)
         except VPRInputError as exc:
             st.session_state.pop("bench_ran", None)
             show_error(exc, hint=getattr(exc, "hint", None)
@@ -242,6 +286,8 @@ def section(cur: Current) -> None:
             return
         st.session_state["bench_ran"] = identity
         results(report, value)
+        vary_section(cur, value, options, identity)
+        curves(report, value)
 
 
 def _column_config(share: int) -> dict:
@@ -268,7 +314,7 @@ def _column_config(share: int) -> dict:
 
 
 def results(report: AcceptanceReport, value: cache.Loaded) -> None:
-    """The table, the rules left out, the precision–recall figures of one report."""
+    """The table and the rules left out of one report."""
     ds = value.dataset
     share = round(100 * report.settings["reference_share"])
     places = PLACE_LABELS[report.settings["places"]]
@@ -299,6 +345,10 @@ def results(report: AcceptanceReport, value: cache.Loaded) -> None:
     st.download_button("Download the bench (JSON)", json.dumps(report.to_dict(), indent=1, allow_nan=False),
                        file_name=f"acceptance-{ds.name}.json", mime="application/json", key="w_bench_json")
 
+
+def curves(report: AcceptanceReport, value: cache.Loaded) -> None:
+    """Every rule's precision–recall figure of one report, and VPR_Tutorial's on the same value."""
+    share = round(100 * report.settings["reference_share"])
     sets = ["closed"] + (["natural"] if report.natural is not None else [])
     if st.session_state.get("w_bench_set") not in sets:
         st.session_state["w_bench_set"] = "closed"
@@ -327,6 +377,256 @@ def results(report: AcceptanceReport, value: cache.Loaded) -> None:
                   "(their scores lowered to min S); the single curve counts hard positives only, as VPR_Tutorial "
                   "refuses soft positives with single matching." if soft else
                   "This ground truth has no soft positives: both curves count hard positives only."))
+
+
+# --------------------------------------------------------------------------- vary one parameter
+
+
+def place_spec(places: RetrievalPlaces) -> PlaceSpec | MetricPlaceSpec | None:
+    """The group/step spec whose group or step a sweep varies: metres where the places are, else frames (``None``
+    for the layout's own places)."""
+    return places.metric if places.metric is not None else places.spec
+
+
+def bench_labels(ds: RetrievalDataset, places: RetrievalPlaces) -> np.ndarray:
+    """``(n_database,)`` place of each database image, as ``cache.bench`` gives the bench: the layout's own ids
+    where it has them, else group/step (``-1`` between places).
+
+    Raises:
+        VPRInputError: group/step that make no places (``retrieval_places``).
+    """
+    if ds.database_place is not None:
+        return ds.database_place
+    return retrieval_places(ds, places.spec, places.metric)[0]
+
+
+def offered_parameters(ds: RetrievalDataset, options: BenchOptions, labels: np.ndarray | None,
+                       places: PlaceSpec | MetricPlaceSpec | None) -> tuple[list[Parameter], dict[Parameter, str]]:
+    """The parameters the bench on ``ds`` reads (``Parameter`` order), and each other one with why not
+    (``acceptance_sweep.check_parameter``'s refusal)."""
+    offered, refused = [], {}
+    for p in Parameter:
+        try:
+            check_parameter(ds, p.value, options, labels=labels, places=places)
+        except VPRInputError as exc:
+            refused[p] = str(exc)
+        else:
+            offered.append(p)
+    return offered, refused
+
+
+def _spread(centre: int | float, whole: bool) -> list[int | float]:
+    """Half, the value itself and double (half at least 1 frame for whole numbers)."""
+    half = max(1, int(centre) // 2) if whole else centre / 2
+    return sorted({half, centre, 2 * centre})
+
+
+def default_values(parameter: Parameter, places: PlaceSpec | MetricPlaceSpec | None) -> tuple[int | float, ...]:
+    """The values box's first values: ``DEFAULT_VALUES``; group/step: half, the sidebar's value and double, kept
+    where the stride reading's places would not overlap (group ≤ step)."""
+    if parameter not in (Parameter.GROUP, Parameter.STEP):
+        return DEFAULT_VALUES[parameter]
+    if places is None:
+        return ()
+    whole = isinstance(places, PlaceSpec)
+    stride = places.reading is Reading.STRIDE
+    if parameter is Parameter.GROUP:
+        return tuple(v for v in _spread(places.group, whole) if not stride or v <= places.step)
+    return tuple(v for v in _spread(places.step, whole) if not stride or v >= places.group)
+
+
+def values_text(values: tuple[int | float, ...]) -> str:
+    """Values as the box shows them, e.g. ``"4, 6, 10, 20"``."""
+    return ", ".join(f"{v:g}" for v in values)
+
+
+def parse_values(parameter: Parameter, text: str, places: PlaceSpec | MetricPlaceSpec | None = None,
+                 ) -> tuple[int | float, ...]:
+    """The values box as numbers: whole numbers for ``WHOLE`` and group/step in frames, a fraction for
+    ``reference_share``, metres (a whole number where it is one) for group/step of ``MetricPlaceSpec``.
+    Empty items (``"4,,6"``, a trailing comma) are skipped; the library checks the values themselves.
+
+    Raises:
+        VPRInputError: no value, or an item that is not a number of the parameter's kind.
+    """
+    example = values_text(default_values(parameter, places)) or "1, 2"
+    items = [item.strip() for item in str(text).split(",") if item.strip()]
+    if not items:
+        raise VPRInputError(f"{parameter} values: none given; write them comma-separated, e.g. {example}")
+    whole = parameter in WHOLE or (parameter in (Parameter.GROUP, Parameter.STEP)
+                                   and not isinstance(places, MetricPlaceSpec))
+    out: list[int | float] = []
+    for item in items:
+        try:
+            number = float(item)
+        except ValueError:
+            number = math.nan
+        if whole and not (math.isfinite(number) and number.is_integer()):
+            raise VPRInputError(f"{parameter} values {text!r}: {item!r} is not a whole number; write whole numbers "
+                                f"comma-separated, e.g. {example}")
+        if not math.isfinite(number):
+            raise VPRInputError(f"{parameter} values {text!r}: {item!r} is not a number; write numbers "
+                                f"comma-separated, e.g. {example}")
+        metres_whole = isinstance(places, MetricPlaceSpec) and number.is_integer()
+        out.append(int(number) if whole or metres_whole else number)
+    return tuple(out)
+
+
+def _options_key(options: BenchOptions) -> tuple:
+    """``options`` as plain values (what Streamlit hashes), as ``cache.bench`` keys them."""
+    return tuple((f.name, repr(getattr(options, f.name))) for f in dataclasses.fields(options))
+
+
+# the rules that read the parameter once per value, the others once (Nordland: 14 s for ds=4,6,10,20)
+@st.cache_resource(show_spinner=False, max_entries=8)
+def _sweep(key: str, places: tuple, options: tuple, parameter: str, values: tuple, _data: cache.Loaded,
+           _places: RetrievalPlaces, _options: BenchOptions) -> BenchSweep:
+    ds = _data.dataset
+    return sweep_bench(ds, _data.descriptors, labels=bench_labels(ds, _places), parameter=parameter, values=values,
+                       options=_options, places=place_spec(_places),
+                       settings={"descriptor": _data.descriptor, "group/step": _places.describe(ds)})
+
+
+def bench_sweep(value: cache.Loaded, places: RetrievalPlaces, options: BenchOptions, parameter: Parameter | str,
+                values: tuple[int | float, ...]) -> BenchSweep:
+    """The bench of ``cache.bench(value, places, options)`` at each value of one parameter (cached).
+
+    Raises:
+        VPRInputError: as ``acceptance_sweep.sweep_bench`` (a parameter the bench does not read, a value
+            it refuses).
+    """
+    p = Parameter(parameter)
+    with st.spinner(f"Varying {p} over {len(values)} value{'s' * (len(values) != 1)}: the rules that read it run "
+                    "once per value (Nordland: 4–8 s a value)…"):
+        return _sweep(value.key, cache.places_key(places), _options_key(options), p.value, tuple(values), value,
+                      places, options)
+
+
+def _new_parameter(places: PlaceSpec | MetricPlaceSpec | None) -> None:
+    """Another parameter picked: the values box starts again from its defaults."""
+    p = Parameter(st.session_state["w_vary_parameter"])
+    st.session_state["w_vary_values"] = values_text(default_values(p, places))
+
+
+def _commit_vary(identity: tuple) -> None:
+    """**Vary**: the picked parameter and the box's text are run on the bench shown (``identity``)."""
+    ss = st.session_state
+    ss["vary_settings"] = (identity, ss["w_vary_parameter"], ss["w_vary_values"])
+
+
+def vary_section(cur: Current, value: cache.Loaded, options: BenchOptions, identity: tuple) -> None:
+    """The bench varied over one parameter: picker, values, **Vary**, then the figure, the table and the CSV."""
+    st.markdown("**Vary one parameter**")
+    st.caption("The bench once per value of one parameter, every other setting as above (`vpr-explorer acceptance "
+               "--vary`): the rules that read it run again at each value, the others once. Computed when you press "
+               "**Vary** (Nordland: 4–8 s a value).")
+    ds = value.dataset
+    spec = place_spec(cur.places)
+    try:
+        labels = bench_labels(ds, cur.places)
+    except VPRInputError:  # the bench above ran on these places; without them its per-place rules are left out
+        labels = None
+    offered, refused = offered_parameters(ds, options, labels, spec)
+    if refused:
+        st.markdown("**Not offered here**\n\n" + "\n".join(f"- **{p}**: {why}" for p, why in refused.items()))
+    if not offered:
+        st.info("The bench on this value reads none of the parameters a sweep varies.", icon=":material/info:")
+        return
+    ss = st.session_state
+    names = [p.value for p in offered]
+    if ss.get("w_vary_parameter") not in names:
+        ss["w_vary_parameter"] = names[0]
+        ss["w_vary_values"] = values_text(default_values(offered[0], spec))
+    elif "w_vary_values" not in ss:
+        ss["w_vary_values"] = values_text(default_values(Parameter(ss["w_vary_parameter"]), spec))
+    c = st.columns([2, 3, 1], vertical_alignment="bottom")
+    c[0].selectbox("parameter", names, key="w_vary_parameter", on_change=_new_parameter, args=(spec,),
+                   format_func=lambda name: f"{name}: {DESCRIPTIONS[Parameter(name)]}",
+                   help="Only the parameters the bench on this value reads; the others are listed above with why.")
+    c[1].text_input("values (comma-separated)", key="w_vary_values",
+                    help="Whole numbers; reference_share as a fraction of the route (0.5, 0.7); group and step in "
+                         "the places' unit (frames, or metres). Each value is checked as the bench checks it.")
+    c[2].button("Vary", key="w_vary_run", on_click=_commit_vary, args=(identity,), width="stretch")
+
+    committed = ss.get("vary_settings")
+    if committed is None or committed[0] != identity:
+        return
+    _, name, text = committed
+    try:
+        parameter = Parameter(name)
+        sweep = bench_sweep(value, cur.places, options, parameter, parse_values(parameter, text, spec))
+    except VPRInputError as exc:
+        show_error(exc, hint="Change the values or the parameter and press **Vary** again.")
+        return
+    sweep_results(sweep, value)
+
+
+def _sweep_column_config(sweep: BenchSweep, metric: str) -> dict:
+    what = bench_plots.SWEEP_METRICS[metric]
+    p = sweep.parameter
+    config: dict = {
+        "key": None,
+        "rule": st.column_config.TextColumn("rule", width=190, help="† τ at the best F1 on these queries (oracle), "
+                                                                  "at each value"),
+        "reads": st.column_config.CheckboxColumn(f"reads {p}", width=80,
+                                                 help=f"the rule's {what} moves with {p} (run again at each value)"),
+    }
+    for v in sweep.values:
+        label = bench_plots.value_label(p, v)
+        config[label] = st.column_config.NumberColumn(label, width=72, format="%.1f", help=f"{what} at {label}, %")
+    return config
+
+
+def _left_out_lines(sweep: BenchSweep) -> list[str]:
+    """A rule run again at each value and left out at every one, once; one left out at some values, per value
+    (closed set). The rules run once are the bench's own: its list above says why they are left out."""
+    out = []
+    for r in RULES:
+        if r.key not in sweep.recomputed:
+            continue
+        whys = [pt.closed.left_out.get(r.key, "") for pt in sweep.points]
+        if all(whys) and len(set(whys)) == 1:
+            out.append(f"- **{r.label}**: {whys[0]}")
+        else:
+            out += [f"- **{r.label}** at {bench_plots.value_label(sweep.parameter, v)}: {why}"
+                    for v, why in zip(sweep.values, whys) if why]
+    return out
+
+
+def sweep_results(sweep: BenchSweep, value: cache.Loaded) -> None:
+    """One metric of a sweep as a figure and a table (a radio picks it), the rules left out, the CSV, the text."""
+    ss = st.session_state
+    p = sweep.parameter
+    ds = value.dataset
+    metrics = ["closed"] + (["open", "rejection"] if any(pt.natural is not None for pt in sweep.points) else [])
+    if ss.get("w_vary_metric") not in metrics:
+        ss["w_vary_metric"] = "closed"
+    metric = st.radio("metric", metrics, format_func=bench_plots.SWEEP_METRICS.get, horizontal=True,
+                      key="w_vary_metric")
+    what = bench_plots.SWEEP_METRICS[metric]
+    fig = bench_plots.sweep_figure(sweep, metric, title=f"{ds.name}: {what} of every rule as {p} varies")
+    st.plotly_chart(fig, key="bench_sweep", width="stretch")
+    if metric == "closed" and p is Parameter.REFERENCE_SHARE:
+        st.caption("reference_share cuts the natural open set only: no rule's closed-set F1 moves with it, so every "
+                   "line is faint here; pick the open-set F1 or rejection.")
+    else:
+        readers = ", ".join(RULES_BY_KEY[k].label for k in sweep.recomputed)
+        st.caption(f"Solid: the rules that read {p} ({DESCRIPTIONS[p]}), run again at each value: {readers}. Faint "
+                   f"and dashed: the rules that do not read it, run once; their numbers stand the same at every "
+                   "value. A gap: the rule did not run at that value (see below).")
+    st.dataframe(pd.DataFrame(bench_plots.sweep_table(sweep, metric)), hide_index=True, width="stretch",
+                 column_config=_sweep_column_config(sweep, metric), key="bench_sweep_table", placeholder="—")
+    left = _left_out_lines(sweep)
+    if left:
+        st.markdown("**Left out in the sweep**\n\n" + "\n".join(left))
+    notes = list(dict.fromkeys(pt.natural_note for pt in sweep.points if pt.natural is None and pt.natural_note))
+    if notes:
+        st.caption("Natural open set not run: " + "; ".join(notes))
+    csv = pd.DataFrame(bench_plots.sweep_rows(sweep)).to_csv(index=False)
+    st.download_button("Download the sweep (CSV)", csv, file_name=f"acceptance-{ds.name}-{p}.csv", mime="text/csv",
+                       key="w_vary_csv")
+    with st.expander("The sweep as `vpr-explorer acceptance --vary` prints it"):
+        st.code(render(sweep), language=None)
 
 
 def soft_matrix(ds: RetrievalDataset) -> np.ndarray | None:
