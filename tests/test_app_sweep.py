@@ -10,9 +10,9 @@ import pytest
 import streamlit as st
 from streamlit.testing.v1 import AppTest
 
-from test_app import decode
+from test_app import decode, downloads  # noqa: F401  (a fixture)
 from vpr_explorer.app import ENTRY, PAGES
-from vpr_explorer.method.places import MetricPlaceSpec, PlaceSpec
+from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec
 
 pytestmark = pytest.mark.realdata
 
@@ -148,3 +148,62 @@ def test_places_the_layout_names_leave_nothing_to_sweep(layouts):
     assert not at.exception and not at.error
     assert any("Group/step do not apply: the layout names its places" in i.value for i in at.info)
     assert not at.get("plotly_chart")
+
+
+# --------------------------------------------------------------------------- protocols, spreads, one colour scale
+
+
+def test_the_page_says_which_protocol_a_cell_runs_and_where_the_places_numbers_come_from(data_root, gp_pixels):
+    gp = str(data_root / "GardensPointWalking")
+    at = sweep_page({"source": gp, "sweep_groups": "3", "sweep_steps": "5 10", "sweep_runs": "3"})
+    assert not at.exception and not at.error, [e.value for e in at.exception]
+    assert at.radio(key="w_sweep_protocol").value == "paper"  # the default
+    note = next(i.value for i in at.info if "Each cell runs" in i.value)
+    assert "paper protocol: 3 random splits" in note and "The **Places** page shows another protocol" in note
+    assert "the traversal protocol, the query traversal night_right against the database day_left + day_right" in note
+    # the method list shows labels, not keys
+    method = at.selectbox(key="w_sweep_method")
+    assert method.value == "margin-weighted" and "margin, weighted θ" in method.options
+    assert "margin-weighted" not in method.options
+    # both readings on one colour scale, said in a caption; the hover gives mean ± std and the interval
+    stride, skip = heat(at, "stride")["values"], heat(at, "skip")["values"]
+    assert (stride["zmin"], stride["zmax"]) == (skip["zmin"], skip["zmax"])
+    assert any(c.value.startswith("One colour scale: both readings share it") for c in at.caption)
+    spec = json.loads(chart(at, "sweep_stride").proto.spec)
+    hover = next(t for t in spec["data"] if t.get("meta") == "cells")["text"]
+    assert all(" ± " in h and "[95% " in h and "3 splits" in h for h in hover)
+    assert any(c.value.startswith("In use, over the splits: place-level baseline R@1 (%)") for c in at.caption)
+
+
+def test_traversal_cells_are_the_places_pages_numbers(data_root, gardens_point, gp_pixels, downloads):
+    from vpr_explorer.data.aligned import database_queries, value_rows
+    from vpr_explorer.method.places import make_places
+    from vpr_explorer.pipeline import run_protocol
+    from vpr_explorer.views import numbers as views
+
+    gp = str(data_root / "GardensPointWalking")
+    at = sweep_page({"source": gp, "sweep_groups": "2 3", "sweep_steps": "10", "sweep_protocol": "traversal",
+                     "sweep_readings": "stride", "sweep_metric": "gain"})
+    assert not at.exception and not at.error, [e.value for e in at.exception]
+    assert any("Method: margin, weighted θ." in c.value for c in at.caption)  # its label, not its key
+    note = next(i.value for i in at.info if "Each cell runs" in i.value)
+    assert "on the **Places** page's traversals: night_right queried against day_left + day_right" in note
+    z = decode(heat(at, "stride")["values"]["z"])
+    value = database_queries(gardens_point, query=2, database=[0, 1])  # what the Places page decides
+    rows = value_rows(value)
+    d = gp_pixels if rows is None else gp_pixels[rows]
+    for i, g in enumerate((2, 3)):
+        spec = PlaceSpec(g, 10)
+        ev = run_protocol("traversal", gardens_point, make_places(gardens_point, spec), gp_pixels,
+                          database=["day_left", "day_right"], queries="night_right")
+        places = views.RetrievalPlaces(PlaceGeometry.FRAMES, spec=spec)
+        overview = views.overview(views.fit_retrieval(d, value, places), d)
+        gain = ev.row("margin-weighted").recall[1][0] - ev.row("place-baseline").recall[1][0]
+        assert z[i][0] == pytest.approx(100 * gain, abs=1e-9)
+        assert ev.row("place-baseline").recall[1][0] == pytest.approx(overview.recall1["place-baseline"])
+    button = next(b for b in at.get("download_button") if b.proto.label == "Download CSV")
+    text = downloads(button).decode()
+    header = text.splitlines()[0].split(",")
+    for name in ("n_splits", "r1_std", "r1_ci95_low", "r1_ci95_high", "gain_p", "gain_test"):
+        assert name in header, name
+    assert "night_right" in text and "day_left day_right" in text  # the traversals the cells ran

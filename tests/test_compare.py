@@ -189,3 +189,74 @@ def test_overlaid_curves_are_each_runs_curves(runs):
 
 
 
+
+
+# --------------------------------------------------------------------------- over splits
+
+
+def _split_row(key: str, r1: tuple[float, ...], precision: tuple[float, ...]) -> MethodRow:
+    return MethodRow(key=key, label=key, source="", recall={1: (float(np.mean(r1)), float(np.std(r1)))},
+                     accepted=(1.0, 0.0), precision=(float(np.nanmean(precision)), 0.0),
+                     per_split={"recall@1": r1, "accepted": (1.0,) * len(r1), "precision": precision})
+
+
+@pytest.fixture
+def split_runs():
+    """Two paper runs of the same splits (tolerance 0 and 1) and one of another seed, with per-split values."""
+    pr = [_pr("place-baseline", "place-level baseline", 0.5, 0.2, 0.6)]
+    made = []
+    for settings, shift in (({}, 0.0), ({"tolerance": 1}, 0.05), ({"seed": 1}, 0.02)):
+        r1 = tuple(x + shift for x in (0.6, 0.7, 0.8, 0.55))
+        made.append(_evaluation(Protocol.PAPER, {**SETTINGS, "runs": 4, **settings},
+                                [_split_row("place-baseline", r1, (r1[0], math.nan, *r1[2:]))], pr))
+    kept: tuple = ()
+    for ev in made:
+        kept = compare.add_run(kept, compare.record(ev, run_id=compare.next_id(kept, 0)))
+    return kept
+
+
+def test_metric_stats_hold_summaries_and_paired_or_welch_differences(split_runs):
+    a, b, c = split_runs
+    rows = compare.metric_stats(split_runs, ["R@1", "precision", "AUC"])
+    table = compare.metric_table(split_runs, ["R@1", "precision", "AUC"])
+    assert [list(r) for r in rows] == [list(r) for r in table]  # the same cells
+    r1 = rows[0]
+    s = r1[a.name]
+    assert s.n == 4 and s.mean == pytest.approx(np.mean([0.6, 0.7, 0.8, 0.55]))
+    assert s.std == pytest.approx(np.std([0.6, 0.7, 0.8, 0.55], ddof=1))
+    same = r1[compare.difference_column(b, a)]
+    assert same.paired and same.mean == pytest.approx(0.05) and same.p == 0.0  # +0.05 on every split
+    other = r1[compare.difference_column(c, a)]
+    assert not other.paired and "seed 1 vs 0" in other.note
+    assert other.mean == pytest.approx(0.02) and other.mean == pytest.approx(table[0][compare.difference_column(c, a)])
+    prec = rows[1][a.name]
+    assert prec.n == 3  # the split with no precision (nothing accepted) is left out
+    auc = rows[2]
+    assert auc[a.name].n == 1 and auc[a.name].note == compare.POOLED and math.isnan(auc[a.name].std)
+    assert "pooled" in auc[compare.difference_column(b, a)].note
+    assert compare.splits_note(split_runs) == [f"{b.name} − {a.name}: the same splits, paired",
+                                               f"{c.name} − {a.name}: splits differ (seed 1 vs 0): Welch's t-test, "
+                                               "unpaired"]
+    # a hand-built run without per-split values says so, never an interval it cannot have
+    assert "no per-split values" in compare.record(_evaluation(Protocol.PAPER, SETTINGS, [
+        _row("place-baseline", "place-level baseline", 0.6, 0.6)]), run_id="x").summary("R@1", "place-baseline").note
+
+
+def test_runs_csv_and_json_carry_std_and_interval(split_runs):
+    a = split_runs[0]
+    text = compare.runs_csv(split_runs, ["R@1", "precision", "AUC"])
+    header = next(csv.reader(io.StringIO(text)))
+    assert header[-15:] == [c for m in ("R@1", "precision", "AUC") for c in (m, *(f"{m} {x}" for x in
+                                                                                  compare.STAT_COLUMNS))]
+    line = next(r for r in compare.read_runs_csv(text) if r["run"] == a.id)
+    s = a.summary("R@1", "place-baseline")
+    assert (line["R@1"], line["R@1 std"], line["R@1 n"], line["R@1 ci95 low"], line["R@1 ci95 high"]) == \
+        pytest.approx((s.mean, s.std, 4, s.low, s.high))
+    assert line["AUC"] == 0.5 and line["AUC n"] == 1 and math.isnan(line["AUC std"])
+    data = compare.read_runs_json(compare.runs_json(split_runs, ["R@1"]))
+    stat = data["comparison"]["statistics"][0]
+    assert stat[a.name]["std"] == pytest.approx(s.std) and stat[a.name]["ci95_low"] == pytest.approx(s.low)
+    diff = stat[compare.difference_column(split_runs[1], a)]
+    assert diff["paired"] is True and diff["mean"] == pytest.approx(0.05)
+    assert data["per_split"][0]["methods"]["place-baseline"]["precision"][1] is None  # NaN in strict JSON
+    assert data["comparison"]["splits"][1].startswith(f"{split_runs[2].name} − {a.name}: splits differ")

@@ -23,11 +23,15 @@ from vpr_explorer.cli import main
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.pipeline import evaluate_dataset, evaluate_retrieval, open_dataset
 from vpr_explorer.method.places import MetricPlaceSpec, PlaceSpec
+from vpr_explorer.protocols import paired
 from vpr_explorer.protocols.shared_scores import SharedScores
 from vpr_explorer.protocols.sweep import (
+    SPREAD_COLUMNS,
     Metric,
     SweepCache,
     SweepSpec,
+    colour_range,
+    scale_note,
     selected_cell,
     sweep,
     sweep_cost,
@@ -91,6 +95,8 @@ def test_open_set_rejection_at_k_equals_a_separate_evaluation(gardens_point, gp_
         ev = _separate(data_root, PlaceSpec(c.group, c.step), "open-set", runs=RUNS, k_grid=[0.0, 1.0, 1.25])
         row = next(t for t in ev.tradeoff if t.series == "θ_p(k) weighted" and t.rule == "margin" and t.param == 1.25)
         assert c.rejection == row.unknown_rejection[0]
+        assert c.stats["rejection"] == paired.summary(row.per_split["unknown_rejection"])
+        assert c.stats["rejection"].mean == c.rejection and c.stats["rejection"].n == RUNS
         assert c.r1 == ev.row("place-baseline").recall[1][0]
         assert c.auc == next(r.auc for r in ev.pr if r.key == "margin-weighted")
         assert _everything(c.evaluation) == _everything(ev)
@@ -99,6 +105,15 @@ def test_open_set_rejection_at_k_equals_a_separate_evaluation(gardens_point, gp_
                                                      protocol="open-set", runs=RUNS, k=0.0, k_grid=(0.0, 1.0)),
                 pipeline)
     assert all(h.rejection >= lo.rejection for h, lo in zip(result.cells, low.cells))
+    # R@1 and the rejection (both % of queries) share one colour scale, spanning both grids
+    span = colour_range(result, "r1")
+    assert span == colour_range(result, "rejection")
+    values = [100 * v for c in result.cells for v in (c.r1, c.rejection)]
+    assert span == (min(values), max(values))
+    for metric in ("r1", "rejection"):
+        heat = next(t for t in sweep_figure(result, metric, "stride").data if t.meta == "values")
+        assert (heat.zmin, heat.zmax) == span
+    assert "the same for R@1 and the rejection" in scale_note(result, "rejection")
 
 
 def test_traversal_cells_and_method(gardens_point, gp_pixels, data_root):
@@ -109,6 +124,59 @@ def test_traversal_cells_and_method(gardens_point, gp_pixels, data_root):
     assert c.gain == ev.row("raw-simple").recall[1][0] - ev.row("place-baseline").recall[1][0]
     assert c.auc == next(r.auc for r in ev.pr if r.key == "raw-simple")
     assert _everything(c.evaluation) == _everything(ev)
+    # one deterministic run: its numbers, no interval, said as one run
+    assert c.n_splits == 1 and c.stats["r1"].note == "one run" and math.isnan(c.stats["r1"].std)
+    assert c.stats["gain"].tag == "one run" and math.isnan(c.stats["gain"].p)
+    assert c.spread("r1") == f"{100 * c.r1:.1f} (one run)"
+
+
+def test_cells_state_their_spread_over_splits(paper_sweep):
+    """R@1: mean ± std (ddof 1) and the t interval of the baseline's per-split R@1; the gain: the paired
+    comparison of the method and the baseline on the cell's splits; the AUC: one pooled number."""
+    result, _ = paper_sweep
+    for c in result.cells:
+        if c.empty:
+            assert c.stats == {} and c.n_splits == 0 and c.spread("r1") == ""
+            continue
+        base = np.asarray(c.evaluation.row("place-baseline").per_split["recall@1"])
+        method = np.asarray(c.evaluation.row("margin-weighted").per_split["recall@1"])
+        assert len(base) == RUNS and c.n_splits == RUNS
+        r1 = c.stats["r1"]
+        assert r1.mean == c.r1 and r1.std == pytest.approx(np.std(base, ddof=1), abs=1e-15)
+        half = 12.706204736174698 * r1.std / math.sqrt(2)  # t₀.₉₇₅ with 1 degree of freedom
+        assert (r1.low, r1.high) == pytest.approx((c.r1 - half, c.r1 + half), abs=1e-12)
+        gain = c.stats["gain"]
+        assert gain.paired and gain.mean == pytest.approx(c.gain, abs=1e-15)
+        d = method - base
+        if np.ptp(d) > 1e-12:
+            assert gain.std == pytest.approx(np.std(d, ddof=1)) and 0 < gain.p <= 1
+        else:
+            assert gain.identical or gain.p == 0.0
+        assert c.stats["auc"].mean == c.auc and c.stats["auc"].note == "pooled over the splits"
+        assert "rejection" not in c.stats  # a closed set
+        assert c.spread("r1").endswith(f", {RUNS} splits") and " ± " in c.spread("r1")
+
+
+def test_heatmaps_share_one_colour_scale_and_hover_the_spread(paper_sweep):
+    result, _ = paper_sweep
+    for metric in ("r1", "gain", "auc"):
+        span = colour_range(result, metric)
+        figures = [sweep_figure(result, metric, r) for r in ("stride", "skip")]
+        heats = [next(t for t in f.data if t.meta == "values") for f in figures]
+        assert all((h.zmin, h.zmax) == pytest.approx(span) for h in heats), metric  # both readings: one scale
+        z = np.concatenate([np.asarray(h.z, dtype=float).ravel() for h in heats])
+        z = z[np.isfinite(z)]
+        if metric == "gain":
+            assert span == (-max(np.abs(z).max(), 1.0), max(np.abs(z).max(), 1.0))
+        else:
+            assert span == pytest.approx((z.min(), z.max()))
+        assert "both readings share it" in scale_note(result, metric)
+    cells = next(t for t in sweep_figure(result, "r1", "stride").data if t.meta == "cells")
+    c = result.cell(2, 5, "stride")
+    assert any(c.spread("r1") in text for text in cells.text)
+    gain = next(t for t in sweep_figure(result, "gain", "stride").data if t.meta == "cells")
+    assert any("paired over 2 splits" in text or "identical on every split" in text or "no spread" in text
+               or "the same difference" in text for text in gain.text)
 
 
 def test_empty_cells_say_why(paper_sweep, gardens_point, gp_pixels):
@@ -201,13 +269,25 @@ def test_csv_and_json_carry_every_setting(paper_sweep):
         assert name in rows[0], name
     assert {r["dataset"] for r in rows} == {"GardensPointWalking"} and {r["descriptor"] for r in rows} == {"pixels"}
     assert {r["protocol"] for r in rows} == {"paper"} and {r["runs"] for r in rows} == {str(RUNS)}
+    for name in SPREAD_COLUMNS:
+        assert name in rows[0], name
     for row, c in zip(rows, result.cells):
         assert (int(row["group"]), int(row["step"]), row["reading"]) == c.spec
         assert row["r1"] == ("" if c.empty else repr(c.r1))  # repr: the exact float
         if not c.empty:
             assert float(row["auc"]) == c.auc
+            assert int(row["n_splits"]) == RUNS and float(row["r1_std"]) == c.stats["r1"].std
+            assert (float(row["r1_ci95_low"]), float(row["r1_ci95_high"])) == (c.stats["r1"].low, c.stats["r1"].high)
+            assert float(row["gain_ci95_high"]) == c.stats["gain"].high
+            gain_p = c.stats["gain"].p
+            assert row["gain_p"] == ("" if math.isnan(gain_p) else repr(gain_p))
+            assert row["gain_test"] == c.stats["gain"].note
+        else:
+            assert row["r1_std"] == "" and row["n_splits"] == "0"
     data = json.loads(result.to_json())
     assert data["settings"]["runs"] == RUNS and data["settings"]["descriptor"] == "pixels"
+    first = next(c for c in result.cells if not c.empty)
+    assert data["cells"][[x.spec for x in result.cells].index(first.spec)]["r1_std"] == first.stats["r1"].std
     assert data["groups"] == [2, 3] and data["readings"] == ["stride", "skip"]
     overlap = next(c for c in data["cells"] if (c["group"], c["step"], c["reading"]) == (3, 2, "stride"))
     assert overlap["r1"] is None and "overlap" in overlap["empty"]

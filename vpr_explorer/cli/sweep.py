@@ -170,7 +170,12 @@ def _print_result(result: SweepResult, spec: SweepSpec, descriptor: str, metrics
     if shared:
         print(f"{len(shared)} cell(s) share their places with another reading's cell (skip g/s = stride g/g+s): "
               "evaluated once")
+    if spec.protocol in (Protocol.PAPER, Protocol.OPEN_SET):
+        print(f"The grids are means over {spec.runs} split(s); each cell's std, 95% interval and the gain's paired "
+              "p-value are in the CSV and JSON.")
     for metric in metrics:
         best = result.best(metric)
         if best is not None:
-            print(f"best {metric.value}: group {best.group:g}, step {best.step:g} {spec.unit} ({best.reading.value})")
+            spread = best.spread(metric)
+            print(f"best {metric.value}: group {best.group:g}, step {best.step:g} {spec.unit} ({best.reading.value})"
+                  + (f": {spread}" if spread else ""))

@@ -20,4 +20,7 @@
 * ``sweep``: one protocol over a grid of group × step, in both readings.
 * ``cost``: the image pairs a protocol run scores, said before it runs.
 * ``compare``: runs side by side: records, metric tables, differences, exports with settings.
+* ``paired``: a rate over splits (mean ± std and its 95% interval), and two on the same
+  splits compared split by split (paired t-test), or marked where the splits differ.
+* ``many``: every dataset × descriptor × protocol in one run (``vpr-explorer bench``).
 """

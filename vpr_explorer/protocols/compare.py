@@ -9,11 +9,33 @@ numbers per method, whatever made them.
 * ``RunRecord`` / ``record``: one run, with an id, a name the user may change, a pin;
 * ``add_run``, ``rename``, ``pin``, ``remove``: a list of runs kept as a tuple (pure: each
   returns a new tuple); unpinned runs beyond ``MAX_RUNS`` are dropped oldest first;
-* ``metric_table``: chosen metrics × methods across runs, with a difference column
-  (run − reference) for every run but the reference;
+* ``metric_table``: chosen metrics × methods across runs (means), with a difference column
+  (run − reference) for every run but the reference; ``metric_stats``: the same cells as
+  ``paired.Summary`` (mean ± std, 95% interval) and ``paired.Difference`` values;
+* ``same_splits``: whether two runs scored the same splits, read from their settings;
+  ``difference`` (one metric of one method, run − reference) and ``method_difference``
+  (two methods of one run) compare split by split where the splits are the same;
 * ``settings_rows``: every setting of every run, the settings that differ first;
 * ``runs_csv`` / ``read_runs_csv``, ``runs_json`` / ``read_runs_json``: exports with every
-  setting in columns (and ``export_stem``: in the file name), and their round trip.
+  setting in columns (and ``export_stem``: in the file name), each metric's mean with its
+  std, count and 95% interval, and their round trip.
+
+**Over splits** (``paired`` states the formulas): a rate the protocol counts split by
+split (Recall@K, accepted, precision, unknown rejected, own-traversal top-1;
+``MethodRow.per_split``) is shown as mean ± std (ddof 1) over the splits with the 95%
+Student-t interval of the mean. The precision–recall numbers (AUC, R@100P, R@99P, max F1)
+are pooled over the splits (one curve of every split's queries): one number, no interval.
+
+**Same splits.** ``evaluation.draw_splits`` draws a run's splits from its places, its number
+of runs and its seed alone (the open set also from its share of unknown places). Two runs
+of the same protocol whose recorded ``dataset``, ``places``, ``group``, ``step``,
+``reading``, ``runs`` and ``seed`` (and ``unknown_share``) agree therefore scored the same
+query images in the same splits, whatever their descriptors, tolerance, θ or
+cross-condition: their difference is **paired** (per-split differences, their interval, the
+paired t-test). Two runs that differ in any of those are compared by Welch's test and
+marked **splits differ**, naming the setting. The traversal and database/queries protocols
+run once (one "split"): the same dataset, places, database and queries are the same
+queries, with no interval and no test. Two methods of one run always share its splits.
 
 Rates are in [0, 1] everywhere, as in ``Evaluation``; a difference is in the same unit
 (0.05 = 5 points). A metric a run does not have (the precision–recall of a run made
@@ -32,9 +54,12 @@ import re
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
+import numpy as np
+
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.protocols.evaluation import Evaluation, strict
 from vpr_explorer.method.retrieval import METHODS_BY_KEY
+from vpr_explorer.protocols import paired
+from vpr_explorer.protocols.evaluation import Evaluation, Protocol, strict
 
 #: Unpinned runs kept; the oldest unpinned one goes when another arrives.
 MAX_RUNS = 12
@@ -89,6 +114,19 @@ METRICS: dict[str, tuple[str, Callable[[Evaluation, str], float]]] = {
     "max F1": ("the best F1 = 2PR/(P + R) over the sweep, pooled over runs", _pr_stat("max_f1")),
 }
 DEFAULT_METRICS = ("R@1", "precision", "AUC", "R@100P", "max F1")
+#: metric name -> its key in ``MethodRow.per_split``; the others are pooled over the splits.
+SPLIT_METRICS = {**{f"R@{k}": f"recall@{k}" for k in (1, 3, 5, 10)}, "accepted": "accepted",
+                 "precision": "precision", "unknown rejected": "unknown_rejection",
+                 "own-traversal top-1": "own_traversal"}
+#: What a precision–recall number is: one curve of every split's queries.
+POOLED = "pooled over the splits"
+#: The settings that choose a run's splits (``evaluation.draw_splits``), by protocol.
+SPLIT_SETTINGS = {
+    Protocol.PAPER.value: ("dataset", "places", "group", "step", "reading", "runs", "seed"),
+    Protocol.OPEN_SET.value: ("dataset", "places", "group", "step", "reading", "runs", "seed", "unknown_share"),
+    Protocol.TRAVERSAL.value: ("dataset", "places", "group", "step", "reading", "database", "queries"),
+    Protocol.DATABASE.value: ("dataset", "places", "group", "step", "reading", "database", "queries"),
+}
 
 
 # --------------------------------------------------------------------------- one run
@@ -115,6 +153,34 @@ class RunRecord:
     def value(self, metric: str, key: str) -> float:
         """One metric of one method (NaN where this run does not have it)."""
         return METRICS[metric][1](self.evaluation, key)
+
+    def splits(self, metric: str, key: str) -> np.ndarray | None:
+        """``(n_splits,)`` one metric of one method split by split (NaN where a split leaves it undefined).
+
+        ``None`` for a metric pooled over the splits (precision–recall), a method or metric the
+        run does not have, or a run recorded without its per-split values.
+        """
+        name = SPLIT_METRICS.get(metric)
+        row = next((r for r in self.evaluation.rows if r.key == key), None)
+        if name is None or row is None or name not in row.per_split:
+            return None
+        return np.asarray(row.per_split[name], dtype=np.float64)
+
+    def summary(self, metric: str, key: str) -> paired.Summary:
+        """mean ± std and the 95% interval over the splits (``paired.summary``).
+
+        A pooled metric, or a run without per-split values, is its one number (``n`` = 1, its
+        note saying which); a metric the run does not have is ``paired.NO_SUMMARY``.
+        """
+        values = self.splits(metric, key)
+        if values is not None:
+            s = paired.summary(values)
+            one_run = self.settings.get("protocol") in (Protocol.TRAVERSAL.value, Protocol.DATABASE.value)
+            return paired.single(s.mean, "one run") if one_run and s.n == 1 else s
+        value = self.value(metric, key)
+        if math.isnan(value):
+            return paired.NO_SUMMARY
+        return paired.single(value, POOLED if metric not in SPLIT_METRICS else "no per-split values")
 
 
 def _flat(value: object) -> object:
@@ -244,16 +310,7 @@ def metric_table(runs: Sequence[RunRecord], metrics: Sequence[str] = DEFAULT_MET
         "Δ <run> − <reference>": run − reference, …}``; a value a run lacks is NaN, its
         difference too.
     """
-    if not runs:
-        raise VPRInputError("compare: choose at least one run")
-    unknown = [m for m in metrics if m not in METRICS]
-    if unknown:
-        raise VPRInputError(f"metric(s) {', '.join(map(repr, unknown))}: choose from {', '.join(METRICS)}")
-    ref = runs[_find(runs, reference)] if reference is not None else runs[0]
-    keys = list(methods) if methods is not None else methods_of(runs)
-    bad = [k for k in keys if k not in METHODS_BY_KEY]
-    if bad:
-        raise VPRInputError(f"method(s) {', '.join(map(repr, bad))}: choose from {', '.join(METHODS_BY_KEY)}")
+    ref, keys = _checked(runs, metrics, methods, reference)
     rows = []
     for key in keys:
         for metric in metrics:
@@ -266,6 +323,132 @@ def metric_table(runs: Sequence[RunRecord], metrics: Sequence[str] = DEFAULT_MET
                     row[difference_column(r, ref)] = row[r.name] - base  # NaN stays NaN
             rows.append(row)
     return rows
+
+
+def same_splits(run: RunRecord, other: RunRecord) -> tuple[bool, str]:
+    """Whether two runs scored the same splits (module doc), and in words why not.
+
+    Read from the recorded settings: the protocol, then the settings that choose its
+    splits (``SPLIT_SETTINGS``). Returns ``(True, "")`` or ``(False, "seed 0 vs 1")`` (every
+    setting that differs, ``;``-separated).
+    """
+    p, q = run.settings.get("protocol"), other.settings.get("protocol")
+    if p != q:
+        return False, f"protocol {p} vs {q}"
+    differ = [f"{k} {run.settings.get(k, '—')} vs {other.settings.get(k, '—')}"
+              for k in SPLIT_SETTINGS.get(str(p), SPLIT_SETTINGS[Protocol.PAPER.value])
+              if str(run.settings.get(k)) != str(other.settings.get(k))]
+    return (not differ), "; ".join(differ)
+
+
+def _pooled_difference(a: float, b: float, is_paired: bool, why: str, tag: str) -> paired.Difference:
+    nan = math.nan
+    return paired.Difference(is_paired, 1, a - b, nan, nan, nan, nan, nan, nan, why, tag)
+
+
+def difference(run: RunRecord, reference: RunRecord, metric: str, key: str) -> paired.Difference:
+    """One metric of one method, ``run`` − ``reference``: paired on the same splits, else Welch's (module doc).
+
+    A pooled metric (or runs without per-split values) is the difference of the two numbers,
+    with no interval and no test, its note saying so; NaN where either run lacks it.
+    """
+    same, why = same_splits(run, reference)
+    a, b = run.splits(metric, key), reference.splits(metric, key)
+    if a is None or b is None:
+        note = POOLED if metric not in SPLIT_METRICS else "no per-split values"
+        tag = "pooled, no test" if metric not in SPLIT_METRICS else "no test"
+        if not same:
+            note, tag = f"{paired.SPLITS_DIFFER} ({why}); {note}", f"{tag}, {paired.SPLITS_DIFFER}"
+        return _pooled_difference(run.value(metric, key), reference.value(metric, key), same,
+                                  f"{note}: no interval, no test", tag)
+    if same and len(a) == len(b):
+        return _one_run(run, paired.paired(a, b))
+    why = why or f"{len(a)} vs {len(b)} splits"
+    d = paired.welch(a, b)
+    return dataclasses.replace(d, note=d.note.replace(paired.SPLITS_DIFFER, f"{paired.SPLITS_DIFFER} ({why})", 1))
+
+
+def method_difference(run: RunRecord, metric: str, key: str, other: str) -> paired.Difference:
+    """One metric of two methods of one run, ``key`` − ``other``: always paired (one run's splits)."""
+    a, b = run.splits(metric, key), run.splits(metric, other)
+    if a is None or b is None:
+        note = POOLED if metric not in SPLIT_METRICS else "no per-split values"
+        return _pooled_difference(run.value(metric, key), run.value(metric, other), True,
+                                  f"{note}: no interval, no test",
+                                  "pooled, no test" if metric not in SPLIT_METRICS else "no test")
+    return _one_run(run, paired.paired(a, b))
+
+
+def _one_run(run: RunRecord, d: paired.Difference) -> paired.Difference:
+    """``d`` of a one-run protocol (traversal, database/queries) said as such rather than as one split."""
+    if d.n == 1 and run.settings.get("protocol") in (Protocol.TRAVERSAL.value, Protocol.DATABASE.value):
+        return dataclasses.replace(d, note="one run: no interval, no test", tag="one run")
+    return d
+
+
+def _checked(runs: Sequence[RunRecord], metrics: Sequence[str], methods: Sequence[str] | None,
+             reference: str | None) -> tuple[RunRecord, list[str]]:
+    if not runs:
+        raise VPRInputError("compare: choose at least one run")
+    unknown = [m for m in metrics if m not in METRICS]
+    if unknown:
+        raise VPRInputError(f"metric(s) {', '.join(map(repr, unknown))}: choose from {', '.join(METRICS)}")
+    ref = runs[_find(runs, reference)] if reference is not None else runs[0]
+    keys = list(methods) if methods is not None else methods_of(runs)
+    bad = [k for k in keys if k not in METHODS_BY_KEY]
+    if bad:
+        raise VPRInputError(f"method(s) {', '.join(map(repr, bad))}: choose from {', '.join(METHODS_BY_KEY)}")
+    return ref, keys
+
+
+def metric_stats(runs: Sequence[RunRecord], metrics: Sequence[str] = DEFAULT_METRICS, *,
+                 methods: Sequence[str] | None = None, reference: str | None = None) -> list[dict[str, object]]:
+    """``metric_table``'s cells over splits: each run's ``paired.Summary``, each difference's ``paired.Difference``.
+
+    Rows and columns as ``metric_table`` (the same keys, in the same order); a run's cell is
+    ``RunRecord.summary``, a difference column ``difference(run, reference, …)``.
+    """
+    ref, keys = _checked(runs, metrics, methods, reference)
+    rows = []
+    for key in keys:
+        for metric in metrics:
+            row: dict[str, object] = {"method": METHODS_BY_KEY[key].label, "key": key, "metric": metric}
+            for r in runs:
+                row[r.name] = r.summary(metric, key)
+            for r in runs:
+                if r.id != ref.id:
+                    row[difference_column(r, ref)] = difference(r, ref, metric, key)
+            rows.append(row)
+    return rows
+
+
+def method_differences(runs: Sequence[RunRecord], metrics: Sequence[str], key: str,
+                       other: str) -> list[dict[str, object]]:
+    """Two methods of each run compared split by split: one row per metric, one ``paired.Difference`` per run.
+
+    Rows ``{"metric": name, "difference": "Δ <label> − <label>", <run name>: Difference, …}``.
+    """
+    for k in (key, other):
+        if k not in METHODS_BY_KEY:
+            raise VPRInputError(f"method {k!r}: choose from {', '.join(METHODS_BY_KEY)}")
+    head = f"Δ {METHODS_BY_KEY[key].label} − {METHODS_BY_KEY[other].label}"
+    return [{"metric": m, "difference": head, **{r.name: method_difference(r, m, key, other) for r in runs}}
+            for m in metrics]
+
+
+def splits_note(runs: Sequence[RunRecord], reference: str | None = None) -> list[str]:
+    """For every run but the reference: whether its differences are paired, in one line each."""
+    if not runs:
+        return []
+    ref = runs[_find(runs, reference)] if reference is not None else runs[0]
+    lines = []
+    for r in runs:
+        if r.id == ref.id:
+            continue
+        same, why = same_splits(r, ref)
+        lines.append(f"{r.name} − {ref.name}: " + ("the same splits, paired" if same
+                                                   else f"{paired.SPLITS_DIFFER} ({why}): Welch's t-test, unpaired"))
+    return lines
 
 
 def setting_names(runs: Sequence[RunRecord]) -> list[str]:
@@ -325,40 +508,60 @@ def _csv_value(x: object) -> object:
     return x
 
 
+#: The columns ``runs_csv`` writes beside each metric's mean: ``"<metric> std"`` …
+STAT_COLUMNS = ("std", "n", "ci95 low", "ci95 high")
+
+
+def _stat_values(s: paired.Summary) -> list[object]:
+    return [_csv_value(s.std), s.n if s.n and np.isfinite(s.mean) else "", _csv_value(s.low), _csv_value(s.high)]
+
+
 def runs_csv(runs: Sequence[RunRecord], metrics: Sequence[str] = tuple(METRICS)) -> str:
     """One row per run and method: run id, name, pinned, every setting (columns), method key and label, each metric.
 
-    Rates in [0, 1]; a metric a run lacks is an empty cell.
+    Each metric is its mean, then ``"<metric> std"`` (ddof 1), ``"<metric> n"`` (the splits
+    counted) and ``"<metric> ci95 low"`` / ``"… high"`` (the 95% t interval of the mean;
+    ``paired.summary``); a pooled metric (precision–recall) has n = 1 and no std or
+    interval. Rates in [0, 1]; a metric a run lacks is an empty cell.
     """
     names = setting_names(runs)
     buf = io.StringIO()
     w = csv.writer(buf)
-    w.writerow(["run", "name", "pinned", *names, "method", "label", *metrics])
+    w.writerow(["run", "name", "pinned", *names, "method", "label",
+                *(c for m in metrics for c in (m, *(f"{m} {x}" for x in STAT_COLUMNS)))])
     for r in runs:
         for row in r.evaluation.rows:
+            values = []
+            for m in metrics:
+                values += [_csv_value(r.value(m, row.key)), *_stat_values(r.summary(m, row.key))]
             w.writerow([r.id, r.name, r.pinned, *(_csv_value(r.settings.get(k, "")) for k in names), row.key, row.label,
-                        *(_csv_value(r.value(m, row.key)) for m in metrics)])
+                        *values])
     return buf.getvalue()
 
 
 def read_runs_csv(text: str) -> list[dict[str, object]]:
-    """``runs_csv`` back: one dict per row, metrics as floats (NaN for empty), other columns as text."""
+    """``runs_csv`` back: one dict per row, metrics and their statistics as floats (NaN for empty), the rest as text."""
     rows = list(csv.DictReader(io.StringIO(text)))
+    numbers = {c for m in METRICS for c in (m, *(f"{m} {x}" for x in STAT_COLUMNS))}
     out = []
     for row in rows:
         parsed: dict[str, object] = dict(row)
-        for m in METRICS:
-            if m in row:
-                parsed[m] = float(row[m]) if row[m] != "" else math.nan
+        for c in numbers & set(row):
+            parsed[c] = float(row[c]) if row[c] != "" else math.nan
         out.append(parsed)
     return out
+
+
+def _to_dict(value: object) -> object:
+    return value.to_dict() if isinstance(value, (paired.Summary, paired.Difference)) else value
 
 
 
 def runs_json(runs: Sequence[RunRecord], metrics: Sequence[str] = DEFAULT_METRICS, *,
               reference: str | None = None) -> str:
-    """Strict JSON (NaN as ``null``): every run with its settings and its whole ``Evaluation.to_dict()``, and the
-    comparison table of ``metrics`` against ``reference``."""
+    """Strict JSON (NaN as ``null``): every run with its settings and its whole ``Evaluation.to_dict()``, the
+    comparison table of ``metrics`` against ``reference`` (means, then ``metric_stats``: mean ± std, intervals,
+    differences with their p-values and whether they are paired), and every method's rates split by split."""
     ref = runs[_find(runs, reference)] if reference is not None and runs else (runs[0] if runs else None)
     data = {
         "setting_names": setting_names(runs),
@@ -366,7 +569,13 @@ def runs_json(runs: Sequence[RunRecord], metrics: Sequence[str] = DEFAULT_METRIC
         "runs": [{"id": r.id, "name": r.name, "pinned": r.pinned, "settings": dict(r.settings),
                   "evaluation": r.evaluation.to_dict()} for r in runs],
         "comparison": {"reference": None if ref is None else ref.id, "metrics": list(metrics),
-                       "rows": metric_table(runs, metrics, reference=None if ref is None else ref.id) if runs else []},
+                       "rows": metric_table(runs, metrics, reference=None if ref is None else ref.id) if runs else [],
+                       "splits": splits_note(runs, None if ref is None else ref.id),
+                       "statistics": [{k: _to_dict(v) for k, v in row.items()} for row in
+                                      metric_stats(runs, metrics, reference=None if ref is None else ref.id)]
+                       if runs else []},
+        "per_split": [{"id": r.id, "methods": {row.key: dict(row.per_split) for row in r.evaluation.rows}}
+                      for r in runs],
     }
     return json.dumps(strict(data), indent=1)
 

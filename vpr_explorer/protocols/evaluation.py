@@ -113,6 +113,10 @@ class MethodRow:
     precision: Stat
     own_traversal: Stat | None = None
     unknown_rejection: Stat | None = None
+    #: each rate split by split, in split order ("recall@1" …, "accepted", "precision", and "own_traversal",
+    #: "unknown_rejection" where the row has them), NaN where a split leaves it undefined: what
+    #: ``paired`` compares split by split
+    per_split: dict[str, tuple[float, ...]] = field(default_factory=dict, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -130,6 +134,8 @@ class TradeoffRow:
     unknown_rejection: Stat
     precision: Stat
     accepted: Stat
+    #: each rate split by split, as ``MethodRow.per_split``
+    per_split: dict[str, tuple[float, ...]] = field(default_factory=dict, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -387,6 +393,9 @@ def summarise(splits: list[SplitScores], ks: tuple[int, ...], *, own_traversal: 
             accepted=_mean_std(acc), precision=_mean_std(prec),
             own_traversal=_mean_std(own) if own_traversal else None,
             unknown_rejection=_mean_std(rej) if has_unknown else None,
+            per_split={**{f"recall@{k}": tuple(v) for k, v in per.items()}, "accepted": tuple(acc),
+                       "precision": tuple(prec), **({"own_traversal": tuple(own)} if own_traversal else {}),
+                       **({"unknown_rejection": tuple(rej)} if has_unknown else {})},
         ))
     return tuple(rows)
 
@@ -399,6 +408,8 @@ def _tradeoff(splits: list[SplitScores], k_grid: Sequence[float]) -> tuple[Trade
         rows.append(TradeoffRow(
             series=series, rule=rule.value, param=float(param),
             **{name: _mean_std([r[name] for r in rates]) for name in ("known_recall1", "unknown_rejection", "precision", "accepted")},
+            per_split={name: tuple(r[name] for r in rates)
+                       for name in ("known_recall1", "unknown_rejection", "precision", "accepted")},
         ))
 
     for base in (ThresholdMethod.SIMPLE, ThresholdMethod.WEIGHTED):

@@ -50,6 +50,21 @@ What is shared between cells, and what is not:
   so a cell and a separate ``evaluate`` agree bit for bit. Above the limit each cell fits
   its own in closed form.
 
+**Over splits** (``paired`` states the formulas). The paper and open-set protocols score
+``runs`` random splits, every cell the same seed: each cell keeps its numbers split by split
+(``Cell.stats``): R@1 and the rejection as mean ± std (ddof 1) over the splits with the 95%
+Student-t interval of the mean (``paired.summary``); the gain as the paired comparison of the
+method with the place-level baseline on the cell's splits (per-split differences, their mean,
+its 95% interval and the paired t-test's p, ``paired.paired``; "identical on every split" when
+the two agree in every split); the AUC is pooled over the splits (one number). The traversal
+and database/queries protocols run once: one value, no interval. The CSV and JSON carry each
+cell's std, interval and the gain's p; the heatmap's hover says them.
+
+**One colour scale.** The heatmaps of one sweep compare: both readings of a metric share one
+colour scale (``colour_range``), and R@1 and the rejection (both % of queries) share it too;
+the gain's scale is symmetric about 0 (±its largest magnitude over both readings); the AUC's
+spans its values over both readings.
+
 A cell with no numbers says why (``Cell.empty``): the stride reading with ``step < group``
 would overlap places; a group/step that leaves fewer than two places; a protocol that
 refuses the places (the paper protocol needs two images per place, the open set three
@@ -88,6 +103,7 @@ from vpr_explorer.method.places import (
     retrieval_places,
 )
 from vpr_explorer.method.retrieval import METHODS_BY_KEY
+from vpr_explorer.protocols import paired
 from vpr_explorer.protocols.cost import protocol_pairs
 from vpr_explorer.protocols.evaluation import Evaluation, Progress, Protocol
 from vpr_explorer.protocols.options import K_GRID, RUNS, SEED, UNKNOWN_SHARE, check_finite
@@ -308,6 +324,8 @@ class Cell:
         seconds: time this cell took here (0 when shared or cached).
         cost: image pairs the protocol scores for this cell (``cost.protocol_pairs``).
         evaluation: the full ``Evaluation`` behind the numbers (``None`` when empty).
+        stats: metric value -> its numbers over the splits (``cell_stats``): a ``paired.Summary``
+            (r1, rejection, auc) or the gain's paired ``paired.Difference``; empty when ``empty``.
     """
 
     group: int | float
@@ -325,10 +343,33 @@ class Cell:
     seconds: float = 0.0
     cost: int = 0
     evaluation: Evaluation | None = field(default=None, repr=False)
+    stats: dict[str, paired.Summary | paired.Difference] = field(default_factory=dict, repr=False)
 
     @property
     def spec(self) -> tuple[int | float, int | float, str]:
         return (self.group, self.step, self.reading.value)
+
+    @property
+    def n_splits(self) -> int:
+        """The splits behind R@1 (the protocol's runs; 1 for the traversal and database/queries protocols)."""
+        r1 = self.stats.get(Metric.R1.value)
+        return r1.n if isinstance(r1, paired.Summary) else 0
+
+    def spread(self, metric: Metric | str) -> str:
+        """``metric`` over the splits in words, in the heatmap's unit: ``"68.5 ± 4.1 [95% 63.4, 73.6], 5 splits"``.
+
+        The gain: ``"+3.5 [95% 1.2, 5.8], p = 0.012 (paired over 5 splits)"``; empty where the
+        cell has no such number.
+        """
+        metric = Metric(metric)
+        s = self.stats.get(metric.value)
+        if s is None or not np.isfinite(s.mean):
+            return ""
+        scale, digits = (1.0, 3) if metric is Metric.AUC else (100.0, 1)
+        if isinstance(s, paired.Difference):
+            return s.text(scale, digits)
+        text = s.text(scale, digits)
+        return text if s.n < 2 else f"{text}, {s.n} splits"
 
     def value(self, metric: Metric | str) -> float:
         return float(getattr(self, Metric(metric).value))
@@ -341,10 +382,25 @@ class Cell:
         def num(x):
             return float(x) if x is not None and np.isfinite(x) else None
 
+        spread = {}
+        for m in SPREAD_METRICS:
+            s = self.stats.get(m.value)
+            spread.update({f"{m.value}_std": num(s.std) if s else None, f"{m.value}_ci95_low": num(s.low) if s else None,
+                           f"{m.value}_ci95_high": num(s.high) if s else None})
+        gain = self.stats.get(Metric.GAIN.value)
         return {"group": self.group, "step": self.step, "reading": self.reading.value, "n_places": self.n_places,
-                **{m.value: num(self.value(m)) for m in Metric}, "empty": self.empty, "missing": dict(self.missing),
+                **{m.value: num(self.value(m)) for m in Metric}, "n_splits": self.n_splits, **spread,
+                "gain_p": num(gain.p) if gain else None, "gain_test": gain.note if gain else None,
+                "empty": self.empty, "missing": dict(self.missing),
                 "same_as": None if self.same_as is None else dict(zip(("group", "step", "reading"), self.same_as)),
                 "seconds": self.seconds, "cost_pairs": self.cost}
+
+
+#: The metrics a cell states with a spread over splits (std, interval); the AUC is pooled over them.
+SPREAD_METRICS = (Metric.R1, Metric.GAIN, Metric.REJECTION)
+#: ``Cell.to_dict``'s columns of those spreads, with the gain's test, in the CSV's order.
+SPREAD_COLUMNS = ("n_splits", *(f"{m.value}_{x}" for m in SPREAD_METRICS for x in ("std", "ci95_low", "ci95_high")),
+                  "gain_p", "gain_test")
 
 
 def cell_numbers(ev: Evaluation, method: str, k: float) -> tuple[dict[str, float], dict[str, str]]:
@@ -388,6 +444,45 @@ def cell_numbers(ev: Evaluation, method: str, k: float) -> tuple[dict[str, float
         if key not in missing and not np.isfinite(value):
             missing[key] = "undefined in this run (no query counted)"
     return numbers, missing
+
+
+def cell_stats(ev: Evaluation, method: str, k: float) -> dict[str, paired.Summary | paired.Difference]:
+    """``cell_numbers``' numbers over the splits (``Cell.stats``; module doc).
+
+    R@1: ``paired.summary`` of the place-level baseline's per-split R@1; gain: ``paired.paired``
+    of the method's and the baseline's per-split R@1 (the same splits); rejection: the
+    summary of the open set's trade-off row at ``k`` split by split, or of the database/queries
+    protocol's one run; AUC: one number pooled over the splits. A metric the run lacks is
+    left out.
+    """
+    m = METHODS_BY_KEY[method]
+    base, row = ev.row(BASELINE), ev.row(method)
+    out: dict[str, paired.Summary | paired.Difference] = {}
+    if "recall@1" in base.per_split:
+        out[Metric.R1.value] = paired.summary(base.per_split["recall@1"])
+        if "recall@1" in row.per_split:
+            out[Metric.GAIN.value] = paired.paired(row.per_split["recall@1"], base.per_split["recall@1"])
+    rejected = None
+    if ev.protocol is Protocol.OPEN_SET:
+        t = next((t for t in ev.tradeoff if t.series == f"θ_p(k) {m.threshold}" and t.rule == m.rule.value
+                  and abs(t.param - k) <= 1e-12), None)
+        rejected = None if t is None else t.per_split.get("unknown_rejection")
+    elif ev.protocol is Protocol.DATABASE:
+        rejected = row.per_split.get("unknown_rejection")
+    if rejected is not None:
+        out[Metric.REJECTION.value] = paired.summary(rejected)
+    pr = next((r for r in ev.pr if r.key == method), None)
+    if pr is not None and np.isfinite(pr.auc):
+        out[Metric.AUC.value] = paired.single(pr.auc, "pooled over the splits")
+    if ev.protocol in (Protocol.TRAVERSAL, Protocol.DATABASE):  # one deterministic run, not a random split
+        out = {k: paired.single(v.mean, "one run") if isinstance(v, paired.Summary) and v.n == 1 and not v.note
+               else dataclasses.replace(v, note=ONE_RUN, tag="one run") if isinstance(v, paired.Difference) else v
+               for k, v in out.items()}
+    return out
+
+
+#: What a one-run protocol's gain says in place of an interval.
+ONE_RUN = "one run: no interval, no test"
 
 
 def _restate(ev: Evaluation, spec: PlaceSpec | MetricPlaceSpec, other: PlaceSpec | MetricPlaceSpec) -> Evaluation:
@@ -629,10 +724,15 @@ class SweepResult:
         return json.dumps(self.to_dict(), indent=2, allow_nan=False)
 
     def to_csv(self) -> str:
-        """One row per cell, every setting in its own column beside the cell's numbers."""
+        """One row per cell, every setting in its own column beside the cell's numbers and their spreads.
+
+        Rates in [0, 1]: each metric's mean, then ``n_splits``, each of R@1, gain and rejection's
+        ``_std`` (ddof 1) and ``_ci95_low`` / ``_ci95_high`` (the 95% t interval of the mean; the
+        gain's is the paired one), the gain's paired p-value ``gain_p`` and its test in words.
+        """
         settings = self.settings()
-        columns = [*settings, "reading", "group", "step", "n_places", *(m.value for m in Metric), "empty", "missing",
-                   "same_as", "seconds", "cost_pairs"]
+        columns = [*settings, "reading", "group", "step", "n_places", *(m.value for m in Metric), *SPREAD_COLUMNS,
+                   "empty", "missing", "same_as", "seconds", "cost_pairs"]
         buf = io.StringIO()
         w = csv.DictWriter(buf, fieldnames=columns, lineterminator="\n")
         w.writeheader()
@@ -640,7 +740,8 @@ class SweepResult:
         for c in self.cells:
             d = c.to_dict()
             w.writerow({**flat, **{k: d[k] for k in ("reading", "group", "step", "n_places", "seconds", "cost_pairs")},
-                        **{m.value: "" if d[m.value] is None else repr(d[m.value]) for m in Metric},
+                        **{m: "" if d[m] is None else repr(d[m]) if isinstance(d[m], float) else d[m]
+                           for m in (*(m.value for m in Metric), *SPREAD_COLUMNS)},
                         "empty": c.empty or "", "missing": "; ".join(f"{k}: {v}" for k, v in c.missing.items()),
                         "same_as": "" if c.same_as is None else " ".join(map(str, c.same_as))})
         return buf.getvalue()
@@ -745,7 +846,8 @@ def sweep(
                 ev = value if ran_as == cell.spec else _restate(value, cell.spec, ran_as)
                 numbers, missing = cell_numbers(ev, spec.method, spec.k)
                 cells.append(Cell(g, s, r, n_places=cell.n_places, **numbers, missing=missing, same_as=same_as,
-                                  cached=cached, seconds=seconds, cost=cost, evaluation=ev))
+                                  cached=cached, seconds=seconds, cost=cost, evaluation=ev,
+                                  stats=cell_stats(ev, spec.method, spec.k)))
         if progress:
             progress(i + 1, len(plan), f"group {g:g}, step {s:g} ({r.value})")
     return SweepResult(spec, tuple(cells), dataset.name, descriptor, dataset.n_images, time.perf_counter() - t0,
@@ -788,23 +890,70 @@ def missing_reasons(result: SweepResult) -> list[str]:
 
 # --------------------------------------------------------------------------- the heatmap
 
+#: Metrics in the same unit (% of queries) whose heatmaps share one colour scale.
+SHARED_SCALE = (Metric.R1, Metric.REJECTION)
+
+
+def _display_scale(metric: Metric) -> float:
+    return 1.0 if metric is Metric.AUC else 100.0
+
+
+def colour_range(result: SweepResult, metric: Metric | str) -> tuple[float, float] | None:
+    """The one colour scale of ``metric``'s heatmaps, in their unit (``sweep_figure``): ``(zmin, zmax)``.
+
+    Over every reading of the sweep; R@1 and the rejection (``SHARED_SCALE``) over both; the
+    gain symmetric about 0 (±its largest magnitude, at least 1 point); a single value widened
+    by 1 (0.01 for the AUC). ``None`` when no cell has a number.
+    """
+    metric = Metric(metric)
+    group = SHARED_SCALE if metric in SHARED_SCALE else (metric,)
+    z = np.concatenate([result.grid(m, r).ravel() * _display_scale(m) for m in group for r in result.spec.readings])
+    z = z[np.isfinite(z)]
+    if not z.size:
+        return None
+    if metric is Metric.GAIN:
+        bound = max(float(np.abs(z).max()), 1.0)
+        return -bound, bound
+    low, high = float(z.min()), float(z.max())
+    if high - low <= 0:
+        pad = 0.01 if metric is Metric.AUC else 1.0
+        low, high = low - pad, high + pad
+    return low, high
+
+
+def scale_note(result: SweepResult, metric: Metric | str) -> str:
+    """The heatmaps' colour scale in words, for a caption: which heatmaps share it, and its range."""
+    metric = Metric(metric)
+    span = colour_range(result, metric)
+    if span is None:
+        return ""
+    readings = "both readings share" if len(result.spec.readings) > 1 else "the heatmap has"
+    fmt = "{:.3f}" if metric is Metric.AUC else "{:+.1f}" if metric is Metric.GAIN else "{:.1f}"
+    unit = "" if metric is Metric.AUC else " points" if metric is Metric.GAIN else "%"
+    what = {Metric.GAIN: ", symmetric about 0", Metric.AUC: ""}.get(
+        metric, " (the same for R@1 and the rejection, both % of queries)")
+    return f"One colour scale: {readings} it, {fmt.format(span[0])} to {fmt.format(span[1])}{unit}{what}."
+
 
 def sweep_figure(result: SweepResult, metric: Metric | str, reading: Reading | str, *,
-                 marked: tuple[int | float, int | float] | None = None):
+                 marked: tuple[int | float, int | float] | None = None,
+                 zrange: tuple[float, float] | None = None):
     """A Plotly heatmap of ``metric`` over group (rows) × step (columns) in one reading; click a cell to pick it.
 
     Plotly heatmaps emit no selection events in Streamlit (streamlit#8760), so a marker
-    sits on every cell with numbers (``meta="cells"``, invisible, carrying the hover text),
-    ``customdata`` = ``[group, step, reading]`` (``selected_cell``); empty cells get a
-    marker without customdata (``meta="empty"``) whose hover says why. ``marked``: the
-    (group, step) in use, outlined.
+    sits on every cell with numbers (``meta="cells"``, invisible, carrying the hover text:
+    the mean with its spread over the splits, ``Cell.spread``), ``customdata`` =
+    ``[group, step, reading]`` (``selected_cell``); empty cells get a marker without
+    customdata (``meta="empty"``) whose hover says why. ``marked``: the (group, step) in use,
+    outlined. ``zrange``: the colour scale (default ``colour_range``: one scale for every
+    reading, so the heatmaps of one sweep compare).
     """
     import plotly.graph_objects as go
 
     metric, reading = Metric(metric), Reading(reading)
     spec = result.spec
     z = result.grid(metric, reading)
-    scale = 1.0 if metric is Metric.AUC else 100.0
+    scale = _display_scale(metric)
     xs, ys = [f"{s:g}" for s in spec.steps], [f"{g:g}" for g in spec.groups]
     fmt = ".3f" if metric is Metric.AUC else "+.1f" if metric is Metric.GAIN else ".1f"
     text = [["" if not np.isfinite(v) else format(scale * v, fmt) for v in row] for row in z]
@@ -823,14 +972,14 @@ def sweep_figure(result: SweepResult, metric: Metric | str, reading: Reading | s
             full["x"].append(xs[j])
             full["y"].append(ys[i])
             full["data"].append([g, s, reading.value])
-            full["hover"].append(f"{where}: " + (f"no number<br>{why}" if why else text[i][j]) + "<br>click to use it")
+            full["hover"].append(f"{where}: " + (f"no number<br>{why}" if why else c.spread(metric) or text[i][j])
+                                 + "<br>click to use it")
     gain = metric is Metric.GAIN
-    finite = np.abs(z[np.isfinite(z)]) * scale
-    bound = float(finite.max()) if gain and finite.size and finite.max() > 0 else None
+    span = colour_range(result, metric) if zrange is None else zrange
     fig = go.Figure(go.Heatmap(
         z=z * scale, x=xs, y=ys, text=text, texttemplate="%{text}", hoverinfo="skip", meta="values",
         colorscale="RdBu" if gain else "Viridis", zmid=0 if gain else None,
-        zmin=-bound if bound else None, zmax=bound if bound else None, xgap=2, ygap=2,
+        zmin=span[0] if span else None, zmax=span[1] if span else None, xgap=2, ygap=2,
         colorbar=dict(title=dict(text=METRIC_LABELS[metric].replace(" (", "<br>(").replace(" over", "<br>over"),
                                  side="right")),
     ))

@@ -8,9 +8,15 @@ its route or over a lattice when that is the geometry in use (set on the Places 
 Places the layout names (prepared places, a manifest's place column) leave nothing to sweep.
 
 Widgets → one library call (``sweep.sweep``, with progress bars, its cells memoised in one
-``SweepCache`` per server) → render (``sweep.sweep_figure``). The sweep's own settings (groups, steps, readings,
+``SweepCache`` per server) → render (``sweep.sweep_figure``, one colour scale for both readings:
+``sweep.colour_range``). The sweep's own settings (groups, steps, readings,
 protocol, runs, method, metric) live in the URL as ``sweep_*`` page parameters; group/step
 and the reading chosen by a click go into the view (``state.commit``), so every page uses them.
+
+The traversal protocol's cells query the view's query traversal against every other one (the
+database and queries of the **Places** page), so a cell of it reads what the Places page
+reads for that group/step; the paper and open-set protocols draw their queries from every
+traversal, and the page says so beside the grid, naming where the Places page's numbers come from.
 """
 
 import pandas as pd  # before plotly: plotly.py#2433
@@ -19,18 +25,23 @@ import streamlit as st
 from vpr_explorer import pipeline
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.method.places import GEOMETRY_LABELS, READING_LABELS, PlaceGeometry, Reading
+from vpr_explorer.method.retrieval import METHODS_BY_KEY
 from vpr_explorer.protocols.evaluation import PROTOCOL_LABELS, Protocol
 from vpr_explorer.protocols.sweep import (
     ALIGNED_PROTOCOLS,
+    BASELINE,
     METRIC_HELP,
     METRIC_LABELS,
+    SPREAD_COLUMNS,
     SWEEP_METHODS,
     Metric,
     SweepCache,
     SweepSpec,
     check_data,
+    colour_range,
     empty_reasons,
     missing_reasons,
+    scale_note,
     selected_cell,
     sweep,
     sweep_cost,
@@ -92,9 +103,12 @@ def _spec(p: dict) -> SweepSpec:
         raise VPRInputError(f"runs {p['sweep_runs']!r}: give a whole number from 1 to {MAX_SWEEP_RUNS}") from None
     if not 1 <= runs <= MAX_SWEEP_RUNS:
         raise VPRInputError(f"runs={runs}: give a whole number from 1 to {MAX_SWEEP_RUNS}")
+    # the traversal protocol queries the Places page's query traversal against the others (aligned traversals)
+    traversals = dict(database=cur.database, queries=cur.query) if aligned else {}
     spec = SweepSpec(groups=_numbers(p["sweep_groups"], "groups"), steps=_numbers(p["sweep_steps"], "steps"),
                      readings=tuple(p["sweep_readings"].split()), protocol=p["sweep_protocol"], geometry=geometry,
-                     method=p["sweep_method"], runs=runs, k=float(state.view().k), user_theta=state.view().theta)
+                     method=p["sweep_method"], runs=runs, k=float(state.view().k), user_theta=state.view().theta,
+                     **traversals)
     if spec.protocol not in protocols:
         if not aligned:
             check_data(data.dataset, spec)  # names why: the protocol needs aligned traversals
@@ -167,6 +181,28 @@ def _pick(reading: str) -> None:
     st.session_state["sweep_picked"] = cell
 
 
+def protocol_note(spec: SweepSpec) -> str:
+    """Which protocol a cell runs, and where the **Places** page's numbers for the same group/step come from."""
+    if spec.protocol is Protocol.DATABASE:
+        return (f"Each cell runs the {Protocol.DATABASE.value} protocol (one run): every query against the database, "
+                "thresholds from the database only, as on the **Places** page: the same numbers for a group/step.")
+    database = " + ".join(cur.database)
+    if spec.protocol is Protocol.TRAVERSAL:
+        return (f"Each cell runs the traversal protocol on the **Places** page's traversals: {cur.query} queried "
+                f"against {database}, thresholds from the database only (one run). A cell's place-level R@1 is the "
+                "one the Places page shows for that group/step.")
+    draw = ("one image of every place is the query (from any traversal) and every other image, its own "
+            "traversal's included, trains and is the database")
+    if spec.protocol is Protocol.OPEN_SET:
+        draw += f"; {spec.unknown_share:.0%} of the places are held out as unknown"
+    return (f"Each cell runs the {spec.protocol.value} protocol: {spec.runs} random split{'s' if spec.runs != 1 else ''}"
+            f" (seed {spec.seed}) in which {draw}; R@1 is the mean over the splits. The **Places** page shows another "
+            f"protocol for the same group/step: the traversal protocol, the query traversal {cur.query} against the "
+            f"database {database}, thresholds from the database only. Neighbouring frames of a query's own traversal "
+            "make this protocol far easier, so its R@1 is higher. Choose the traversal protocol above for the Places "
+            "page's numbers.")
+
+
 how = (f"group/step in metres ({GEOMETRY_LABELS[geometry]}; the geometry is set on the **Places** page)"
        if unit == "m" else "group/step in frames" if cur.aligned is not None
        else "group/step counting database images in listed order")
@@ -199,7 +235,8 @@ with st.form("sweep_form"):
     c[1].number_input("runs per cell (paper: 50)", 1, MAX_SWEEP_RUNS, key="w_sweep_runs", disabled=not aligned,
                       help="random splits of the paper and open-set protocols; the traversal and database/queries "
                            "protocols run once")
-    c[2].selectbox("thresholded method (gain, rejection, AUC)", list(SWEEP_METHODS), key="w_sweep_method")
+    c[2].selectbox("thresholded method (gain, rejection, AUC)", list(SWEEP_METHODS), key="w_sweep_method",
+                   format_func=lambda k: METHODS_BY_KEY[k].label)
     st.form_submit_button("Run sweep", type="primary", on_click=_submit)
 
 rejected = ss.pop("rejected_sweep", None)
@@ -219,6 +256,7 @@ settings_line = (f"{PROTOCOL_LABELS[spec.protocol]}; {', '.join(r.value for r in
                  + ("; rejection of the queries with no right image, at θ_p (k = 0)"
                     if spec.protocol is Protocol.DATABASE else ""))
 st.caption(f"**Cost:** {cost.describe()}. {settings_line}.")
+st.info(protocol_note(spec), icon=":material/info:")
 if cost.runs and cost.large and not go:
     st.warning(f"{ds.n_images:,} images: this sweep scores about **{cost.pairs:.1e} image pairs** in "
                f"{cost.runs} protocol runs (minutes to hours), so it does not start by itself. Trim the grid or the "
@@ -258,13 +296,21 @@ if picked:
 metric = st.radio("metric", [m.value for m in Metric], format_func=lambda m: METRIC_LABELS[Metric(m)],
                   index=[m.value for m in Metric].index(params["sweep_metric"]), horizontal=True, key="w_sweep_metric",
                   on_change=lambda: state.set_page_params(sweep_metric=ss["w_sweep_metric"]))
-st.caption(METRIC_HELP[Metric(metric)] + (f" Method: {spec.method}." if metric != Metric.R1 else ""))
+method_label = METHODS_BY_KEY[spec.method].label
+st.caption(METRIC_HELP[Metric(metric)] + (f" Method: {method_label}." if metric != Metric.R1 else "")
+           + (" Hover a cell for its mean ± std over the splits and the 95% interval of the mean"
+              + (" (the gain: the paired difference from the place level on the cell's splits, with its p-value)."
+                 if metric == Metric.GAIN else ".") if spec.protocol in (Protocol.PAPER, Protocol.OPEN_SET) else ""))
 v = cur.spec if unit == "frames" else cur.places.metric
+zrange = colour_range(result, metric)
 for col, reading in zip(st.columns(len(spec.readings)), spec.readings):
     with col:
         marked = (v.group, v.step) if v.reading is reading else None
-        st.plotly_chart(sweep_figure(result, metric, reading, marked=marked), key=f"sweep_{reading.value}",
-                        on_select=lambda r=reading.value: _pick(r), selection_mode="points", width="stretch")
+        st.plotly_chart(sweep_figure(result, metric, reading, marked=marked, zrange=zrange),
+                        key=f"sweep_{reading.value}", on_select=lambda r=reading.value: _pick(r),
+                        selection_mode="points", width="stretch")
+if zrange is not None:
+    st.caption(scale_note(result, metric))
 best = result.best(metric)
 ran = sum(c.evaluation.seconds for c in result.cells if c.evaluation is not None and c.same_as is None)
 st.caption(f"In use: group {v.group:g}{metres}, step {v.step:g}{metres} ({v.reading.value}), outlined. "
@@ -272,6 +318,13 @@ st.caption(f"In use: group {v.group:g}{metres}, step {v.step:g}{metres} ({v.read
               f"({best.reading.value}). " if best else "")
            + f"The protocol runs took {ran:.1f} s "
            "(each kept in memory); a cell shared by both readings (skip g/s = stride g/g+s) is run once.")
+in_use = next((c for c in result.cells if (c.group, c.step, c.reading) == (v.group, v.step, v.reading)
+               and not c.empty), None)
+if in_use is not None:
+    st.caption(f"In use, over the splits: {METHODS_BY_KEY[BASELINE].label} R@1 (%) {in_use.spread(Metric.R1)}; "
+               f"{method_label} minus it (points) {in_use.spread(Metric.GAIN)}"
+               + (f"; rejection (%) {in_use.spread(Metric.REJECTION)}" if in_use.spread(Metric.REJECTION) else "")
+               + ".")
 for line in empty_reasons(result):
     st.caption(f"empty: {line}")
 for line in missing_reasons(result):
@@ -279,12 +332,18 @@ for line in missing_reasons(result):
 
 rows = pd.DataFrame([{**c.to_dict(), "missing": "; ".join(f"{k}: {w}" for k, w in c.missing.items()),
                       "same_as": "" if c.same_as is None else " ".join(map(str, c.same_as))} for c in result.cells])
-for m in (Metric.R1, Metric.GAIN, Metric.REJECTION):
-    rows[m.value] = rows[m.value].astype(float) * 100
+rates = [c for c in SPREAD_COLUMNS if c.endswith(("_std", "_low", "_high"))]
+for c in (Metric.R1.value, Metric.GAIN.value, Metric.REJECTION.value, *rates):
+    rows[c] = rows[c].astype(float) * 100
 with st.expander("Every cell as a table"):
     st.dataframe(rows, hide_index=True, key="sweep_table", column_config={
-        m.value: st.column_config.NumberColumn(METRIC_LABELS[m], format="%.3f" if m is Metric.AUC else "%.1f")
-        for m in Metric})
+        **{m.value: st.column_config.NumberColumn(METRIC_LABELS[m], format="%.3f" if m is Metric.AUC else "%.1f")
+           for m in Metric},
+        **{c: st.column_config.NumberColumn(c.replace("_", " "), format="%.1f") for c in rates},
+        "gain_p": st.column_config.NumberColumn("gain p (paired t-test)", format="%.4f")})
+    st.caption("Rates in %, the gain in points: each metric's mean over the splits, its std (ddof 1) and the 95% "
+               "Student-t interval of the mean (ci95 low/high); the gain's std, interval and p are those of the "
+               "per-split differences from the place level (paired). The AUC is pooled over the splits.")
 stem = (f"{ds.name}_{data.descriptor}_{spec.protocol.value}_sweep_g{'-'.join(f'{g:g}' for g in spec.groups)}"
         f"_s{'-'.join(f'{s:g}' for s in spec.steps)}{'' if unit == 'frames' else f'_{geometry.value}'}"
         f"_{'-'.join(r.value for r in spec.readings)}")

@@ -1,18 +1,23 @@
 """Runs side by side on the Evaluation page: every run kept while the app is open, pinned, renamed, compared.
 
 The list lives in ``st.session_state`` (one browser session's runs; a reload starts a new
-list) as ``compare.RunRecord`` s; everything numeric is ``vpr_explorer.protocols.compare`` and
-``compare_plots``: this module only draws widgets around them.
+list) as ``compare.RunRecord`` s; everything numeric is ``vpr_explorer.protocols.compare``
+(means, mean ± std and 95% intervals over splits, paired or Welch differences:
+``protocols.paired``) and ``compare_plots``: this module only draws widgets around them.
+A table's cells hold the numbers (means, differences of means) and show their text
+(``"0.755 ± 0.104 [95% 0.681, 0.829]"``) through the table's formatting.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 
+import numpy as np
 import pandas as pd  # before plotly: plotly.py#2433
 import streamlit as st
 
 from vpr_explorer.protocols import compare
+from vpr_explorer.protocols import paired
 from vpr_explorer.views import compare_plots
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.protocols.evaluation import Evaluation
@@ -79,9 +84,63 @@ def _act(action: str) -> None:
 MISSING = "—"
 
 
-def _table(rows: list[dict], fmt: Mapping[str, str]):
+def _table(rows: list[dict], texts: list[dict]):
+    """``rows`` (numbers) as a table whose cells show ``texts`` (same rows, same keys; text where given)."""
     df = pd.DataFrame(rows)
-    return df.style.format({c: f for c, f in fmt.items() if c in df.columns}, na_rep=MISSING)
+    styler = df.style.format(na_rep=MISSING)
+    for i, shown in enumerate(texts):
+        for column, text in shown.items():
+            styler = styler.format(lambda _, t=text: t, subset=pd.IndexSlice[[i], [column]])
+    return styler
+
+
+def _text(value: paired.Summary | paired.Difference) -> str:
+    if isinstance(value, paired.Difference):
+        return value.text(short=True)
+    if value.note == compare.POOLED and np.isfinite(value.mean):  # the caption says what pooled means
+        return f"{value.mean:.3f} (pooled)"
+    return value.text()
+
+
+def _texts(row: dict) -> dict[str, str]:
+    """The text of each ``Summary`` / ``Difference`` of a ``compare.metric_stats`` row."""
+    return {k: _text(v) for k, v in row.items() if isinstance(v, (paired.Summary, paired.Difference))}
+
+
+#: A run's column: wide enough for "0.755 ± 0.104 [95% 0.681, 0.829]"; a difference's for its interval and p.
+RUN_WIDTH, DIFF_WIDTH = 250, 380
+
+
+def _method_difference(compared: list[compare.RunRecord], metrics: list[str], methods: list[str]) -> None:
+    """Two methods of each run compared split by split: one paired difference row per metric."""
+    if len(methods) < 2:
+        return
+    ss = st.session_state
+    first = next((m for m in ("raw-weighted", "margin-weighted") if m in methods), methods[0])
+    second = next((m for m in ("place-baseline", *methods) if m in methods and m != first))
+    if ss.get("w_paired_a") not in methods:
+        ss["w_paired_a"] = first
+    if ss.get("w_paired_b") not in methods:
+        ss["w_paired_b"] = second
+    c = st.columns(2)
+    label = lambda k: METHODS_BY_KEY[k].label  # noqa: E731
+    a = c[0].selectbox("paired difference of", methods, format_func=label, key="w_paired_a")
+    b = c[1].selectbox("minus", methods, format_func=label, key="w_paired_b")
+    if a == b:
+        st.caption("Choose two different methods to compare them split by split.")
+        return
+    # one row per metric; the first column is "Δ of" (the Evaluation page's tests find the comparison table by
+    # its "metric" column)
+    found = [{"Δ of": row.pop("metric"), **row} for row in compare.method_differences(compared, metrics, a, b)]
+    rows = [{k: v.mean if isinstance(v, paired.Difference) else v for k, v in row.items()} for row in found]
+    wide = {r.name: st.column_config.NumberColumn(r.name, width=DIFF_WIDTH, help=r.name) for r in compared}
+    st.dataframe(_table(rows, [_texts(row) for row in found]), hide_index=True, key="paired_table",
+                 width="stretch", placeholder=MISSING,
+                 column_config={"difference": None,  # the same in every row: the selectboxes and caption say it
+                                "Δ of": st.column_config.TextColumn("Δ of", width=80), **wide})
+    st.caption(f"{label(a)} − {label(b)} in each run, split by split (the same splits): the mean of the per-split "
+               "differences [95% Student-t interval] and the paired t-test's p. 'identical on every split': every "
+               "split gave both the same number, so there is nothing to test.")
 
 
 def render() -> None:
@@ -99,7 +158,8 @@ def render() -> None:
         st.error(message, icon=":material/error:")
     rows = [{k: x if k == "pinned" else (None if x is None else str(x)) for k, x in row.items()}
             for row in compare.settings_rows(runs)]  # as given: 20 stays "20" beside a run without runs
-    st.dataframe(pd.DataFrame(rows), hide_index=True, key="runs_table", width="stretch", placeholder=MISSING)
+    st.dataframe(pd.DataFrame(rows), hide_index=True, key="runs_table", width="stretch", placeholder=MISSING,
+                 column_config={"name": st.column_config.TextColumn("name", width="large")})
 
     ids = [r.id for r in runs]
     names = {r.id: r.name for r in runs}
@@ -140,15 +200,24 @@ def render() -> None:
     keys = c[1].multiselect("methods", methods, key="w_compare_methods", format_func=lambda k: METHODS_BY_KEY[k].label)
     if metrics and keys:
         rows = compare.metric_table(compared, metrics, methods=keys, reference=ref)
-        fmt = {r.name: "{:.3f}" for r in compared}
-        fmt.update({compare.difference_column(r, next(x for x in compared if x.id == ref)): "{:+.3f}"
-                    for r in compared if r.id != ref})
-        narrow = {c: st.column_config.NumberColumn(c, width=105, help=c) for c in fmt}  # the full name on hover
-        st.dataframe(_table(rows, fmt), hide_index=True, key="compare_table", width="stretch", placeholder=MISSING,
+        texts = [_texts(row) for row in compare.metric_stats(compared, metrics, methods=keys, reference=ref)]
+        reference = next(x for x in compared if x.id == ref)
+        wide = {r.name: st.column_config.NumberColumn(r.name, width=RUN_WIDTH, help=r.name) for r in compared}
+        wide.update({(c := compare.difference_column(r, reference)): st.column_config.NumberColumn(
+            c, width=DIFF_WIDTH, help=c) for r in compared if r.id != ref})
+        st.dataframe(_table(rows, texts), hide_index=True, key="compare_table", width="stretch", placeholder=MISSING,
                      column_config={"key": None, "method": st.column_config.TextColumn("method", width=140),
-                                    "metric": st.column_config.TextColumn("metric", width=70), **narrow})
-        st.caption("Rates and areas in [0, 1]; a difference of +0.050 is 5 points. '—': the run has no such number "
-                   "(e.g. a closed-set protocol has no unknown-place rejection; a run without precision–recall no AUC).")
+                                    "metric": st.column_config.TextColumn("metric", width=80), **wide})
+        st.caption("Each run: mean ± std over its splits (ddof 1) [the 95% Student-t interval of the mean]; the "
+                   "precision–recall numbers (AUC, R@100P, R@99P, max F1) are pooled over the splits: one number. "
+                   "Each difference (run − reference): on the same splits (same dataset, places, runs and seed) the "
+                   "mean of the per-split differences with their 95% interval and the paired t-test's p; otherwise "
+                   "Welch's interval and test, marked 'splits differ'. Rates and areas in [0, 1]; +0.050 is 5 points. "
+                   "'—': the run has no such number (e.g. a closed-set protocol has no unknown-place rejection; a "
+                   "run without precision–recall no AUC).")
+        for line in compare.splits_note(compared, ref):
+            st.caption(line)
+        _method_difference(compared, metrics, methods)
 
     with_pr = [m for m in methods if any(p.key == m for r in compared for p in r.evaluation.pr)]
     if with_pr:
