@@ -164,6 +164,84 @@ def test_sequence_similarity_is_the_mean_along_the_best_trajectory():
     np.testing.assert_array_equal(got[rows[:, None], best[rows]], raw[rows])
 
 
+def ramp_rows(seed, shape, every=3):
+    """Random similarities whose every ``every``-th row is an exact ramp: there E is 0 away from the
+    ends (each window's mean is its centre, exactly), so trajectories that differ only on those rows
+    tie exactly, while the similarities along them differ."""
+    s = np.random.default_rng(seed).random(shape).astype(np.float32)
+    s[::every] = ((np.arange(shape[1])[None, :] + 3 * np.arange(0, shape[0], every)[:, None]) / 4096).astype(np.float32)
+    return s
+
+
+@pytest.mark.parametrize("velocities, every", [(V, 2), ((1.2, 0.7, 1.0, 0.7, 1.5), 1)])
+def test_exact_ties_go_to_the_first_velocity(velocities, every):
+    """On an exact tie of S the first velocity listed wins, for the velocity, the match's velocity and the values
+    (unsorted velocities reach the fold out of list order)."""
+    s = ramp_rows(11, (30, 60), every)
+    e = contrast_enhance(1.0 - s.astype(np.float64))
+    ref, ref_vel, ref_mean = ref_scores(e, 10, velocities, values=s.astype(np.float64))
+    ties = 0
+    for q, j in zip(*np.nonzero(np.isfinite(ref))):
+        sums = [ref_trajectory(e, q, j - 5, v, 10)[0] for v in velocities]
+        ties += len({v for v, x in zip(velocities, sums) if x == ref[q, j]}) > 1
+    assert ties > 50  # the case has many exact ties between different velocities
+
+    scores, vel = sequence_scores(1.0 - s.astype(np.float64), velocities=velocities)
+    np.testing.assert_array_equal(scores, ref)
+    np.testing.assert_array_equal(vel, ref_vel)
+    got = sequence_similarity(s, velocities=velocities)
+    np.testing.assert_allclose(got, ref_mean, rtol=0, atol=1e-12)  # a wrong pick is off by ≥ 1/4096/11
+    r = seqslam(s, kind="similarity", velocities=velocities)
+    m = r.matched
+    np.testing.assert_array_equal(r.velocity[m], np.asarray(velocities)[ref_vel[m, r.match[m]]])
+
+
+@pytest.mark.parametrize("velocities", [V, (1.0, 0.8, 1.1), (1.2, 0.7, 1.0, 0.7, 1.5), (0.9, 0.5, 0.8)])
+def test_the_fold_over_velocities_on_whole_number_costs(monkeypatch, velocities):
+    """Costs of 0, 1 or 2 make exact ties between any velocities: S, the first velocity attaining it, the values
+    along it and the velocity at the match equal the loop's, whatever order the trajectories are folded in."""
+    import vpr_explorer.method.sequences as seq
+
+    rng = np.random.default_rng(13)
+    e = rng.integers(0, 3, (26, 48)).astype(np.float64)
+    x = rng.random((26, 48))
+    ref, ref_vel, ref_mean = ref_scores(e, 10, velocities, values=x)
+    offsets = trajectory_offsets(10, velocities)
+    monkeypatch.setattr(seq, "_BLOCK_BYTES", 8 * 61 * 14)  # a few blocks
+    t = seq._trajectories(e, 0.0, 10, offsets, velocity=True, values=x, ratio_window=10)
+    np.testing.assert_array_equal(t.scores, ref)
+    np.testing.assert_array_equal(t.velocity, ref_vel)
+    np.testing.assert_allclose(t.mean, ref_mean, rtol=0, atol=1e-12)
+    m = t.match >= 0
+    at = seq._velocity_at(e, 0.0, 10, offsets, t.match, t.score)
+    np.testing.assert_array_equal(at[m], ref_vel[m, t.match[m]])
+    assert (at[~m] == -1).all()
+    means = seq._trajectories(e, 0.0, 10, offsets, scores=False, values=x).mean  # the values alone
+    np.testing.assert_array_equal(means, t.mean)
+
+
+def test_blocks_and_threads_change_no_bit(monkeypatch):
+    """Blocks of a few rows, on one thread or several, give the same numbers as one block."""
+    import vpr_explorer.method.sequences as seq
+
+    s = ramp_rows(12, (40, 70), every=4)
+    s[7, 20:40] = 0.25  # a flat stretch in one block only
+    d = 1.0 - s.astype(np.float64)
+
+    def run():
+        r = seqslam(s, kind="similarity")
+        return (r.match, r.score, r.ratio, r.velocity, r.scores, *sequence_scores(d),
+                sequence_similarity(s), contrast_enhance(d))
+
+    whole = run()
+    for block_bytes, workers in ((8 * 90 * 14, 1), (8 * 90 * 14, 3), (8 * 90 * 11, 2)):
+        monkeypatch.setattr(seq, "_BLOCK_BYTES", block_bytes)
+        monkeypatch.setattr(seq, "default_workers", lambda: workers)
+        for a, b in zip(whole, run()):
+            assert a.dtype == b.dtype
+            np.testing.assert_array_equal(a, b)
+
+
 # --------------------------------------------------------------------------- hand cases
 
 
@@ -214,6 +292,10 @@ def test_ratio_window_and_boundary():
         [0.0, 9.0, 9.0, 9.0, 0.0, 9.0, 9.0],   # second best 0: ratio 1
         [inf] * 7,                              # no trajectory: no match
     ])
+    given = scores.copy()
+    given.setflags(write=False)
+    uniqueness(given, 4)  # a read-only matrix is read, never written
+    np.testing.assert_array_equal(given, scores)
     m4, s4, r4 = uniqueness(scores[:1], 4)
     assert m4[0] == 2 and s4[0] == 3.0 and r4[0] == 0.75
     match, score, ratio = uniqueness(scores[1:], 2)

@@ -63,18 +63,32 @@ in order (``ordered`` false: database-queries, manifest, several database traver
 queries are not one traversal in frame order. The sequence functions take matrices and cannot
 check; callers run ``check_sequence`` on the value first.
 
-**Cost.** Everything is shifted adds over blocks of query rows that stay in the CPU cache
-(no loop over queries; the blocks of trajectory sums run on ``settings.default_workers()``
-threads, each writing its own rows), in float64: the enhancement is 2(R + 1) of them (two passes, so that
-a flat window's std is 0 to rounding), the trajectories ds + 1 per velocity less the prefixes
-velocities share (32 for OpenSeqSLAM's five instead of 55), each sum added in k order, so
-that a plain loop over queries, starts and velocities gets the same numbers bit for bit.
-``benchmarks/bench_acceptance.py`` times it beside the similarity matrix.
+**Cost.** Everything is shifted adds over blocks of query rows that stay in the CPU's cache (no
+loop over queries): both steps run their blocks on ``settings.default_workers()`` threads, each
+writing its own rows and keeping its buffers from block to block. All in float64, each sum
+added in the order of the definition, so that a plain loop over queries, starts and velocities
+gets the same numbers bit for bit: the enhancement is 2(R + 1) shifted passes (two passes over
+each window, so that a flat window's std is 0 to rounding; running sums would round
+differently); the trajectories are ds + 1 adds per velocity less the prefixes velocities share
+(32 for OpenSeqSLAM's five instead of 55), each trajectory folded into S as soon as it is summed
+(no matrix per velocity). Choices are made without branches — ``np.minimum`` for S, a select on
+the bits for ``sequence_similarity``'s values — since a masked copy on a mask as mixed as "this
+velocity is better" costs about fifteen adds. ``seqslam`` finds each query's best and second best in
+the same blocks and sums each velocity's trajectory again at the match alone for its velocity.
+On Nordland 64×32, winter queries against summer (3,576 × 3,576, pixels, D = 2048), on 2 cores,
+``seqslam`` takes 0.2 s: 0.9× the similarity matrix it reads (``retrieval.similarity``, a
+float32 GEMM of 0.22 s on OpenBLAS's Haswell kernel, which ``OPENBLAS_CORETYPE=Haswell``
+chooses) and 1.8–2.1× it on the SkylakeX kernel OpenBLAS picks by itself (0.11 s);
+``sequence_similarity`` 0.29 s (1.4× and 2.7×; the benchmark's "sequence place scores" add
+``retrieval.place_scores`` to it). Measured by
+``python benchmarks/bench_acceptance.py --data /work/shared/datasets --only nordland``, once as
+is and once under ``env -u OPENBLAS_CORETYPE``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import threading
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from enum import StrEnum
@@ -95,7 +109,9 @@ RATIO_WINDOW = 10
 FLOOR_GUARD = 1e-9
 #: A window whose std is at most this × (1 + |mean|) is flat: its entries get E = 0 (module doc, step 2).
 FLAT_STD = 1e-9
-#: Bytes of one block of rows the shifted adds work on (kept within a CPU's L2 cache).
+#: Bytes of one array of a block of query rows (the enhancement's padded differences, the trajectories' costs
+#: with their ds-row halo): near a CPU's L2 cache, yet big enough that a numpy call holds the GIL for a small
+#: part of its time (on Nordland, two threads on blocks a quarter this size ran 1.3× one thread, not 1.75×).
 _BLOCK_BYTES = 1 << 20
 
 
@@ -261,6 +277,43 @@ def _rows_per_block(width: int, halo: int) -> int:
     return max(1, _BLOCK_BYTES // (8 * width) - halo)
 
 
+def _each_block(starts: range, work: Callable[[int, dict], None]) -> None:
+    """``work(start, scratch)`` for every start, on ``settings.default_workers()`` threads.
+
+    Blocks are handed out in order to whichever thread is free; ``scratch`` is the thread's
+    own dict of buffers, kept from one block to the next (a block never has more rows than the
+    first, so buffers sized on a thread's first block fit every later one).
+    """
+    n = max(1, min(default_workers(), len(starts)))
+    todo = iter(starts)
+    lock = threading.Lock()
+
+    def worker() -> None:
+        scratch: dict = {}
+        while True:
+            with lock:
+                start = next(todo, None)
+            if start is None:
+                return
+            work(start, scratch)
+
+    if n == 1:
+        worker()
+        return
+    with ThreadPoolExecutor(max_workers=n) as pool:
+        for future in [pool.submit(worker) for _ in range(n)]:
+            future.result()
+
+
+def _buffer(scratch: dict, name: str, shape: tuple[int, int], dtype: type = np.float64,
+            fill: float | None = None) -> np.ndarray:
+    """The ``shape`` corner of the thread's buffer ``name``, made (and filled) on first use."""
+    buf = scratch.get(name)
+    if buf is None:
+        buf = scratch[name] = np.empty(shape, dtype) if fill is None else np.full(shape, fill, dtype)
+    return buf[:shape[0], :shape[1]]
+
+
 def _enhance(m: np.ndarray, kind: MatrixKind, r: int) -> tuple[np.ndarray, float]:
     """E before the shift (module doc, step 2) and its minimum, from a validated matrix.
 
@@ -275,44 +328,58 @@ def _enhance(m: np.ndarray, kind: MatrixKind, r: int) -> tuple[np.ndarray, float
     lo, hi = np.maximum(0, j - h), np.minimum(nd - 1, j + h)
     count = (hi - lo + 1).astype(np.float64)
     edges = np.flatnonzero(count < r + 1)  # windows cut by an end of the route
+    windows = (lo, hi, count, count - 1.0, edges)
     out = np.empty((nq, nd), dtype=np.float64)
-    rows = _rows_per_block(4 * (nd + r), 0)
-    starts = range(0, nq, rows)
-    windows = (lo, hi, count, edges)
-    with ThreadPoolExecutor(max_workers=max(1, min(default_workers(), len(starts)))) as pool:
-        list(pool.map(lambda r0: _enhance_block(m[r0:r0 + rows], kind, r, windows, out[r0:r0 + rows]), starts))
-    return out, float(out.min())
+    rows = _rows_per_block(nd + r, 0)
+    lows: list[float] = []
+    _each_block(range(0, nq, rows), lambda r0, scratch: lows.append(
+        _enhance_block(m[r0:r0 + rows], kind, r, windows, out[r0:r0 + rows], scratch)))
+    return out, float(np.min(lows))  # NaN if any block's is, as the whole matrix's minimum
 
 
-def _enhance_block(block: np.ndarray, kind: MatrixKind, r: int, windows: tuple, out: np.ndarray) -> None:
-    """``_enhance`` of a block of query rows, written into ``out`` (that block's rows of the result)."""
-    lo, hi, count, edges = windows
+def _enhance_block(block: np.ndarray, kind: MatrixKind, r: int, windows: tuple, out: np.ndarray,
+                   scratch: dict) -> float:
+    """``_enhance`` of a block of query rows, written into ``out`` (that block's rows of the result); its minimum."""
+    lo, hi, count, count_less_one, edges = windows
     b, nd = block.shape
     h = r // 2
-    padded = np.zeros((b, nd + r), dtype=np.float64)
+    padded = _buffer(scratch, "padded", (b, nd + r), fill=0.0)  # zeros beyond either end add nothing
+    mean, squares, dev, centred = (_buffer(scratch, name, (b, nd)) for name in ("mean", "squares", "dev", "centred"))
     d = padded[:, h:h + nd]
-    d[...] = block
     if kind is MatrixKind.SIMILARITY:
-        np.subtract(1.0, d, out=d)
-    total = padded[:, 0:nd].copy()  # zeros beyond either end add nothing
+        np.subtract(1.0, block, out=d, dtype=np.float64)  # widened first, then 1 − S in float64
+    else:
+        d[...] = block
+    np.add(padded[:, 0:nd], padded[:, 1:1 + nd], out=mean)
+    for o in range(2, r + 1):
+        mean += padded[:, o:o + nd]
+    np.divide(mean, count, out=mean)
+    # squares of the deviations, added in window order from the first (0 + x is x)
+    np.subtract(padded[:, 0:nd], mean, out=dev)
+    np.multiply(dev, dev, out=squares)
     for o in range(1, r + 1):
-        total += padded[:, o:o + nd]
-    mean = np.divide(total, count, out=total)
-    squares = np.zeros((b, nd), dtype=np.float64)
-    dev = np.empty((b, nd), dtype=np.float64)
-    for o in range(r + 1):
-        np.subtract(padded[:, o:o + nd], mean, out=dev)
-        np.multiply(dev, dev, out=dev)
+        if o == h:  # the centre's deviation is E's numerator: kept
+            np.subtract(d, mean, out=centred)
+            np.multiply(centred, centred, out=dev)
+        else:
+            np.subtract(padded[:, o:o + nd], mean, out=dev)
+            np.multiply(dev, dev, out=dev)
         squares += dev
     for c in edges:  # the zeros beyond the end are not in the window: recount those columns
         w = d[:, lo[c]:hi[c] + 1] - mean[:, c:c + 1]
         squares[:, c] = np.einsum("ij,ij->i", w, w)
-    std = np.sqrt(np.divide(squares, count - 1.0, out=squares), out=squares)
-    e = np.subtract(d, mean, out=dev)
-    flat = std <= FLAT_STD * (1.0 + np.abs(mean))
-    np.divide(e, std, out=e, where=~flat)
-    e[flat] = 0.0
-    out[...] = e
+    std = np.sqrt(np.divide(squares, count_less_one, out=squares), out=squares)
+    # a flat window has std ≤ FLAT_STD·(1 + |mean|) ≤ FLAT_STD·(1 + max |mean|): test each entry unless
+    # the block's smallest std is above that (a NaN from overflowing values takes the test too)
+    bound = FLAT_STD * (1.0 + max(abs(float(mean.max())), abs(float(mean.min()))))
+    if not float(std.min()) > bound:
+        flat = std <= FLAT_STD * (1.0 + np.abs(mean))
+        std[flat] = 1.0
+        np.divide(centred, std, out=out)
+        out[flat] = 0.0
+    else:
+        np.divide(centred, std, out=out)
+    return float(out.min())
 
 
 def contrast_enhance(difference: np.ndarray, contrast_window: int = CONTRAST_WINDOW) -> np.ndarray:
@@ -335,87 +402,235 @@ def contrast_enhance(difference: np.ndarray, contrast_window: int = CONTRAST_WIN
     return e
 
 
-def _path_sums(e: np.ndarray, b: int, nd: int, ds: int, offsets: np.ndarray) -> list[np.ndarray]:
-    """Σ_k e[c + k, s + off[k]] for every trajectory, ``(b, nd)`` each, added in k order.
+def _walk_paths(sources: tuple[np.ndarray, ...], b: int, ns: int, ds: int, offsets: np.ndarray,
+                take: Callable[[], tuple[np.ndarray, ...]],
+                leaf: Callable[[int, tuple[np.ndarray, ...]], None]) -> None:
+    """Σ_k src[k + c, s + off[i, k]] for every source, centre row c < ``b`` and start s < ``ns``, added in k order.
 
-    Trajectories sharing their first offsets share those partial sums (0.8 and 0.9 share
-    six, 1.0 and 1.1 ten): 32 shifted adds for OpenSeqSLAM's five velocities instead of 55.
+    Calls ``leaf(i, sums)`` once per distinct trajectory, ``i`` the first velocity with those
+    offsets and ``sums`` one ``(b, ns)`` array per source, handed over to ``leaf``. Trajectories
+    sharing their first offsets share those partial sums (0.8 and 0.9 share six, 1.0 and 1.1
+    ten): 32 shifted adds for OpenSeqSLAM's five velocities instead of 55. Where the
+    trajectories part, each branch but the last adds into a fresh array from ``take``, the last
+    into its parent's; branches go in order of their first velocity, so OpenSeqSLAM's five reach
+    ``leaf`` in list order.
     """
-    out: list[np.ndarray | None] = [None] * len(offsets)
-    # (partial sum, next k, velocities sharing it); the sum may be handed on without a copy
-    stack = [(e[0:b, 0:nd].copy(), 1, list(range(len(offsets))))]
-    while stack:
-        acc, k, group = stack.pop()
-        while k <= ds and len({int(offsets[i, k]) for i in group}) == 1:
-            o = int(offsets[group[0], k])
-            acc += e[k:k + b, o:o + nd]
-            k += 1
-        if k > ds:
+    moves = offsets.tolist()
+
+    def shifted(k: int, o: int) -> tuple[np.ndarray, ...]:
+        return tuple(src[k:k + b, o:o + ns] for src in sources)
+
+    def walk(acc: tuple[np.ndarray, ...], owned: bool, k: int, group: list[int]) -> None:
+        while k <= ds:
+            branches: dict[int, list[int]] = {}
             for i in group:
-                out[i] = acc if i == group[0] else acc.copy()
-            continue
-        branches: dict[int, list[int]] = {}
-        for i in group:
-            branches.setdefault(int(offsets[i, k]), []).append(i)
-        for n, sub in enumerate(branches.values()):
-            stack.append((acc if n == 0 else acc.copy(), k, sub))
-    return out  # type: ignore[return-value]
+                branches.setdefault(moves[i][k], []).append(i)
+            parts = list(branches.items())
+            for n, (o, sub) in enumerate(parts):
+                last = n == len(parts) - 1
+                child = acc if last and owned else take()
+                for c, a, s in zip(child, acc, shifted(k, o)):
+                    np.add(a, s, out=c, dtype=np.float64)  # float32 values are widened, then added
+                if not last:
+                    walk(child, True, k + 1, sub)
+            acc, owned, k, group = child, True, k + 1, parts[-1][1]
+        leaf(group[0], acc)
+
+    walk(shifted(0, 0), False, 1, list(range(len(offsets))))
 
 
-def _trajectories(enhanced: np.ndarray, low: float, ds: int, offsets: np.ndarray,
-                  values: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Sequence scores S of E = ``enhanced`` − ``low``, the best velocity's index, and ``values`` summed
-    along that trajectory (step 4).
+@dataclass(frozen=True, eq=False)
+class _Trajectories:
+    """What ``_trajectories`` was asked for, ``(n_queries, n_database)`` unless said; ``None`` if not asked."""
 
-    Returns ``(scores, velocity_index, value_sums)``, each ``(n_queries, n_database)``: ``inf``,
-    ``-1`` and NaN where image j has no trajectory or the query is unmatched.
+    scores: np.ndarray | None      # S, inf where no trajectory
+    velocity: np.ndarray | None    # index of the first velocity attaining S, -1 where S is inf
+    mean: np.ndarray | None        # mean of the values along that trajectory, -inf where S is inf
+    match: np.ndarray | None       # (n_queries,) ``uniqueness`` of S's rows
+    score: np.ndarray | None
+    ratio: np.ndarray | None
+
+
+def _trajectories(enhanced: np.ndarray, low: float, ds: int, offsets: np.ndarray, *, scores: bool = True,
+                  velocity: bool = False, values: np.ndarray | None = None,
+                  ratio_window: int | None = None) -> _Trajectories:
+    """Sequence scores S of E = ``enhanced`` − ``low`` (step 4), and what else is asked for, block by block.
+
+    ``velocity``: the index of the first velocity attaining S; ``values``: their mean along that
+    trajectory; ``ratio_window``: ``uniqueness`` of S's rows (needs ``scores``). Blocks of centre
+    queries run on threads, each writing its own rows.
     """
     nq, nd = enhanced.shape
-    pad = int(offsets.max()) + 1
-    scores = np.full((nq, nd), np.inf, dtype=np.float64)
-    best_v = np.full((nq, nd), -1, dtype=np.int8 if len(offsets) < 128 else np.int64)
-    sums = None if values is None else np.full((nq, nd), np.nan, dtype=np.float64)
+    h = ds // 2
     n_centres = nq - ds
-    rows = _rows_per_block((nd + pad) * (1 if values is None else 2), ds)
-    out = (scores, best_v, sums)
-    starts = range(0, n_centres, rows)
-    # blocks of centres write disjoint rows; numpy's adds and comparisons release the GIL
-    with ThreadPoolExecutor(max_workers=max(1, min(default_workers(), len(starts)))) as pool:
-        list(pool.map(lambda c0: _trajectory_block(enhanced, low, values, ds, offsets, c0, min(n_centres, c0 + rows),
-                                                   out), starts))
-    return scores, best_v, sums
+    rows = _rows_per_block(nd + int(offsets.max()) + 1, ds)
+    index = np.int8 if len(offsets) < 128 else np.int64
+    out = {
+        "scores": np.empty((nq, nd)) if scores else None,
+        "velocity": np.empty((nq, nd), dtype=index) if velocity else None,
+        "mean": np.empty((nq, nd)) if values is not None else None,
+    }
+    for name, a in out.items():
+        if a is not None:  # the queries at either end
+            a[:h] = a[nq - h:] = _BLANK[name]
+    unique = None
+    if ratio_window is not None:
+        unique = (np.full(nq, -1, dtype=np.int64), np.full(nq, np.nan), np.full(nq, np.nan))
+    order: list[int] = []
+    _walk_paths((), 0, 0, ds, offsets, tuple, lambda i, _: order.append(i))
+    # with the trajectories in list order, the first velocity attaining S is the last one strictly
+    # below all before it; in any other order the index decides ties, and is kept
+    track = index if velocity or (values is not None and order != sorted(order)) else None
+    _each_block(range(0, n_centres, rows), lambda c0, scratch: _trajectory_block(
+        enhanced, low, values, ds, offsets, c0, min(n_centres, c0 + rows), out, unique, ratio_window, track,
+        scratch))
+    return _Trajectories(out["scores"], out["velocity"], out["mean"], *(unique or (None, None, None)))
+
+
+#: What ``_trajectories`` writes where image j has no trajectory.
+_BLANK = {"scores": np.inf, "velocity": -1, "mean": -np.inf}
 
 
 def _trajectory_block(enhanced: np.ndarray, low: float, values: np.ndarray | None, ds: int, offsets: np.ndarray,
-                      c0: int, c1: int, out: tuple[np.ndarray, np.ndarray, np.ndarray | None]) -> None:
-    """``_trajectories`` for the centre queries ``c0 + ds/2 … c1 − 1 + ds/2``, written into ``out``'s rows of them."""
-    scores, best_v, sums = out
+                      c0: int, c1: int, out: dict, unique: tuple | None, ratio_window: int | None,
+                      track: type | None, scratch: dict) -> None:
+    """``_trajectories`` for the centre queries ``c0 + ds/2 … c1 − 1 + ds/2``, into ``out``'s rows of them."""
     nd = enhanced.shape[1]
     h = ds // 2
-    width = nd + int(offsets.max()) + 1
     b = c1 - c0
-    e = np.full((b + ds, width), np.inf, dtype=np.float64)
-    # the trajectory of centre c + h runs over rows c … c + ds
-    np.subtract(enhanced[c0:c1 + ds], low, out=e[:, :nd])
-    acc = _path_sums(e, b, nd, ds, offsets)
-    acc_x = None
-    if values is not None:
-        x = np.zeros((b + ds, width), dtype=np.float64)
-        x[:, :nd] = values[c0:c1 + ds]
-        acc_x = _path_sums(x, b, nd, ds, offsets)
-    best, vel = acc[0], np.zeros((b, nd), dtype=best_v.dtype)
-    best_x = acc_x[0] if acc_x is not None else None
-    for i in range(1, len(offsets)):
-        better = acc[i] < best
-        np.copyto(best, acc[i], where=better)
-        np.copyto(vel, i, where=better)
-        if acc_x is not None:
-            np.copyto(best_x, acc_x[i], where=better)
-    # start s is reported as image s + ds/2; starts past n_db - ds/2 run out (velocities ≥ 0.5)
-    scores[c0 + h:c1 + h, h:] = best[:, :nd - h]
-    best_v[c0 + h:c1 + h, h:] = np.where(np.isfinite(best[:, :nd - h]), vel[:, :nd - h], -1)
-    if sums is not None:
-        sums[c0 + h:c1 + h, h:] = np.where(np.isfinite(best[:, :nd - h]), best_x[:, :nd - h], np.nan)
+    ns = nd - h  # start s is reported as image s + ds/2; starts past n_db - ds/2 run out (velocities ≥ 0.5)
+    rows = slice(c0 + h, c1 + h)
+    for name, a in out.items():
+        if a is not None:  # images j < ds/2 have no trajectory
+            a[rows, :h] = _BLANK[name]
+    if ns > 0:
+        # the trajectory of centre c + h runs over rows c … c + ds; past the database it costs ∞
+        width = nd + int(offsets.max()) + 1
+        e = _buffer(scratch, "e", (b + ds, width), fill=np.inf)
+        np.subtract(enhanced[c0:c1 + ds], low, out=e[:, :nd])
+        sources = (e,)
+        if values is not None:
+            x = _buffer(scratch, "x", (b + ds, width), values.dtype, fill=0)
+            x[:, :nd] = values[c0:c1 + ds]
+            sources = (e, x)
+        _fold_block(sources, b, ns, ds, offsets, track, scratch,
+                    {name: None if a is None else a[rows, h:h + ns] for name, a in out.items()})
+    if unique is not None:
+        match, score, ratio = unique
+        match[rows], score[rows], ratio[rows] = _best_and_ratio(out["scores"][rows], ratio_window)
+
+
+def _fold_block(sources: tuple[np.ndarray, ...], b: int, ns: int, ds: int, offsets: np.ndarray,
+                track: type | None, scratch: dict, out: dict) -> None:
+    """Every trajectory's sums of one block, folded into S (the minimum over velocities) as each is done.
+
+    ``out`` holds the block's ``(b, ns)`` windows of the outputs. The values' sums (``sources[1]``)
+    follow the first velocity attaining S: a trajectory replaces the best so far where its S is
+    lower, or, with ``track`` (the velocity index's dtype), equal and from an earlier velocity.
+    """
+    shape = (b, ns)
+    pool: list[tuple[np.ndarray, ...]] = scratch.setdefault("pool", [])
+
+    def take() -> tuple[np.ndarray, ...]:
+        bases = pool.pop() if pool else tuple(np.empty(shape) for _ in sources)
+        return tuple(a[:b, :ns] for a in bases)
+
+    def give(acc: tuple[np.ndarray, ...]) -> None:
+        pool.append(tuple(a.base for a in acc))
+
+    vel = None if track is None else _buffer(scratch, "vel", shape, track)
+    state: dict = {}
+
+    def leaf(i: int, acc: tuple[np.ndarray, ...]) -> None:
+        if "best" not in state:
+            state["best"], state["last"] = acc, i
+            if vel is not None:
+                vel[...] = i
+            return
+        best = state["best"]
+        if vel is not None or len(acc) > 1:
+            better = np.less(acc[0], best[0], out=_buffer(scratch, "better", shape, bool))
+            if vel is not None:
+                if i < state["last"]:  # a later velocity is in: an exact tie goes to the earlier
+                    tie = np.equal(acc[0], best[0], out=_buffer(scratch, "tie", shape, bool))
+                    tie &= np.greater(vel, i, out=_buffer(scratch, "later", shape, bool))
+                    better |= tie
+                state["last"] = max(state["last"], i)
+                step = np.subtract(vel, i, out=_buffer(scratch, "step", shape, track))
+                step *= better
+                np.subtract(vel, step, out=vel)  # i where better
+            # best ← acc where better, on the bits (exact, without branches): the values' sums, and S
+            # itself where a tie may go to the trajectory folded later
+            mask = np.negative(better, out=_buffer(scratch, "mask", shape, np.int64), dtype=np.int64)
+            diff = _buffer(scratch, "diff", shape, np.int64)
+            for n in range(0 if vel is not None else 1, len(acc)):
+                kept, new = best[n].view(np.int64), acc[n].view(np.int64)
+                np.bitwise_xor(kept, new, out=diff)
+                diff &= mask
+                kept ^= diff
+        if vel is None:  # on a tie np.minimum returns its second argument: the earlier trajectory's bits
+            np.minimum(acc[0], best[0], out=best[0])
+        give(acc)
+
+    _walk_paths(sources, b, ns, ds, offsets, take, leaf)
+    best = state["best"]
+    if out["scores"] is not None:
+        out["scores"][...] = best[0]
+    if out["velocity"] is not None or out["mean"] is not None:
+        none = np.isfinite(best[0], out=_buffer(scratch, "better", shape, bool))
+        np.logical_not(none, out=none)
+        if out["velocity"] is not None:
+            out["velocity"][...] = vel
+            np.copyto(out["velocity"], -1, where=none)
+        if out["mean"] is not None:
+            np.divide(best[1], ds + 1, out=out["mean"])
+            np.copyto(out["mean"], -np.inf, where=none)
+    give(best)
+
+
+def _best_and_ratio(s: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``uniqueness`` of the rows of ``s``, which it marks and restores (the window's entries are set to ∞ for
+    the second best and put back)."""
+    nq, nd = s.shape
+    best = s.min(axis=1)
+    has = np.isfinite(best)
+    match = np.argmax(s <= best[:, None] + TIE_TOLERANCE, axis=1)
+    rows = np.arange(nq)[:, None]
+    # the window's columns, clipped to the matrix: a clipped column repeats one inside the window
+    cols = np.clip(match[:, None] + np.arange(-(w // 2), w // 2 + 1), 0, nd - 1)
+    kept = s[rows, cols]
+    s[rows, cols] = np.inf
+    second = s.min(axis=1)
+    s[rows, cols] = kept
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.where(second == 0.0, 1.0, best / second)
+    match = np.where(has, match, -1).astype(np.int64)
+    return match, np.where(has, best, np.nan), np.where(has, ratio, np.nan)
+
+
+def _velocity_at(enhanced: np.ndarray, low: float, ds: int, offsets: np.ndarray, match: np.ndarray,
+                 score: np.ndarray) -> np.ndarray:
+    """Index of the first velocity whose trajectory to ``match`` sums to ``score`` (-1 where unmatched).
+
+    Each trajectory is summed again at the match alone, with the additions of ``_walk_paths`` in
+    the same order, so it equals the S it attains bit for bit.
+    """
+    nq, nd = enhanced.shape
+    h = ds // 2
+    first = np.full(nq, -1, dtype=np.int64)
+    q = np.flatnonzero(match >= 0)
+    rows = q[:, None] - h + np.arange(ds + 1)[None, :]
+    for i in range(len(offsets)):
+        cols = (match[q] - h)[:, None] + offsets[i][None, :]
+        inside = (cols < nd).all(axis=1)
+        terms = enhanced[rows, np.minimum(cols, nd - 1)] - low
+        total = terms[:, 0].copy()
+        for k in range(1, ds + 1):
+            total += terms[:, k]
+        total[~inside] = np.inf
+        hit = (total == score[q]) & (first[q] < 0)
+        first[q[hit]] = i
+    return first
 
 
 def _sequence_inputs(matrix, what: str, contrast_window: int, ds: int, velocities) -> tuple[np.ndarray, int, np.ndarray]:
@@ -449,8 +664,8 @@ def sequence_scores(difference: np.ndarray, *, contrast_window: int = CONTRAST_W
         VPRInputError: a bad parameter or matrix (see ``seqslam``).
     """
     d, r, offsets = _sequence_inputs(difference, "the difference matrix", contrast_window, ds, velocities)
-    scores, vel, _ = _trajectories(*_enhance(d, MatrixKind.DIFFERENCE, r), ds, offsets)
-    return scores, vel
+    t = _trajectories(*_enhance(d, MatrixKind.DIFFERENCE, r), ds, offsets, velocity=True)
+    return t.scores, t.velocity
 
 
 def uniqueness(scores: np.ndarray, ratio_window: int = RATIO_WINDOW) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -479,20 +694,7 @@ def uniqueness(scores: np.ndarray, ratio_window: int = RATIO_WINDOW) -> tuple[np
     nq, nd = s.shape
     if nd == 0:
         return np.full(nq, -1, dtype=np.int64), np.full(nq, np.nan), np.full(nq, np.nan)
-    best = s.min(axis=1)
-    has = np.isfinite(best)
-    match = np.argmax(s <= best[:, None] + TIE_TOLERANCE, axis=1)
-    rest = s.copy()
-    rows = np.arange(nq)
-    for o in range(-(w // 2), w // 2 + 1):
-        j = match + o
-        inside = (j >= 0) & (j < nd)
-        rest[rows[inside], j[inside]] = np.inf
-    second = rest.min(axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ratio = np.where(second == 0.0, 1.0, best / second)
-    match = np.where(has, match, -1).astype(np.int64)
-    return match, np.where(has, best, np.nan), np.where(has, ratio, np.nan)
+    return _best_and_ratio(s.copy(), w)
 
 
 def seqslam(matrix: np.ndarray, *, kind: MatrixKind | str = MatrixKind.DIFFERENCE,
@@ -523,12 +725,12 @@ def seqslam(matrix: np.ndarray, *, kind: MatrixKind | str = MatrixKind.DIFFERENC
     k = _kind(kind)
     d = _matrix(matrix, f"the {k.value} matrix")
     _check_sizes(d.shape[0], d.shape[1], ds, offsets, ratio_window)
-    scores, vel, _ = _trajectories(*_enhance(d, k, r), ds, offsets)
-    match, score, ratio = uniqueness(scores, ratio_window)
+    enhanced, low = _enhance(d, k, r)
+    t = _trajectories(enhanced, low, ds, offsets, ratio_window=ratio_window)
+    vel = _velocity_at(enhanced, low, ds, offsets, t.match, t.score)
     v = np.asarray(velocities, dtype=np.float64).reshape(-1)
-    rows = np.arange(len(match))
-    velocity = np.where(match >= 0, v[vel[rows, np.maximum(match, 0)]], np.nan)
-    return SeqSLAMResult(match=match, score=score, ratio=ratio, velocity=velocity, scores=scores)
+    velocity = np.where(t.match >= 0, v[np.maximum(vel, 0)], np.nan)
+    return SeqSLAMResult(match=t.match, score=t.score, ratio=t.ratio, velocity=velocity, scores=t.scores)
 
 
 def sequence_similarity(similarity: np.ndarray, *, contrast_window: int = CONTRAST_WINDOW, ds: int = DS,
@@ -551,10 +753,7 @@ def sequence_similarity(similarity: np.ndarray, *, contrast_window: int = CONTRA
         VPRInputError: a bad parameter or matrix (see ``seqslam``).
     """
     s, r, offsets = _sequence_inputs(similarity, "the similarity matrix", contrast_window, ds, velocities)
-    _, _, sums = _trajectories(*_enhance(s, MatrixKind.SIMILARITY, r), ds, offsets, values=s)
-    out = sums / (ds + 1)
-    out[np.isnan(out)] = -np.inf
-    return out
+    return _trajectories(*_enhance(s, MatrixKind.SIMILARITY, r), ds, offsets, scores=False, values=s).mean
 
 
 def sequence_place_scores(similarity: np.ndarray, db_places: np.ndarray, n_places: int, *,
