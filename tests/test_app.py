@@ -379,7 +379,7 @@ def test_thresholds_place_k_and_user_theta_move_the_lines(app, demo, demo_pixels
     assert_clean(at)
     f, _ = fitted_value(demo, demo_pixels, DEMO_SPEC)
     spec = figure(at, "mixture")
-    assert "Place 7" in spec["layout"]["title"]["text"]
+    assert spec["layout"]["title"]["text"].startswith("P7: ")
     assert trace(spec, "θ_p(k)")["x"][0] == pytest.approx(f.model.thresholds(1.5)["weighted"][7])
     assert trace(spec, "global θ, user value")["x"][0] == pytest.approx(0.42)
     assert at.query_params["place"] == "7" and at.query_params["k"] == "1.5"
@@ -678,7 +678,7 @@ def test_a_url_query_traversal_the_dataset_lacks_is_replaced_with_a_warning(app)
 
 
 @pytest.mark.parametrize("name, param, value, said", [
-    ("thresholds", "place", "999", "place=999 is not a place here (12 places, 0 to 11)"),
+    ("thresholds", "place", "999", "place=999 is not a place here (12 places, P0 to P11)"),
     ("inspector", "frame", "999", "frame=999 is not a query of 'demo' (0 to 59)"),
 ])
 def test_a_url_place_or_frame_out_of_range_says_what_is_shown_instead(app, name, param, value, said):

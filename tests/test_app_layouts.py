@@ -414,11 +414,11 @@ def test_the_thresholds_page_shows_the_librarys_place_detail(layouts, npz, dq, d
                          ("same-place scores < θ_p weighted", d.share_positives_below(d.theta["weighted"])),
                          ("own queries dropped at θ_p(k=0)", d.share_queries_below(d.theta["weighted"]))):
         assert metric(at, label) == ("—" if np.isnan(value) else f"{value:.0%}"), label
-    assert any(f"**Place 7**: {len(d.images)} database images and {len(d.query_images)} queries" in md.value
+    assert any(f"**P7**: {len(d.images)} database images and {len(d.query_images)} queries" in md.value
                for md in at.markdown)
-    captions = image_captions(at)
-    assert captions[:len(d.images)] == [f"{database_label(dq, i)} (database)" for i in d.images]
-    assert captions[len(d.images):] == [f"{query_label(dq, i - dq.n_database)} (query, raw_p {r:.3f})"
+    captions = image_captions(at)  # the file names ("@east@north@…@.jpg") would be cut off: the indices instead
+    assert captions[:len(d.images)] == [f"database image {i}" for i in d.images]
+    assert captions[len(d.images):] == [f"query {i - dq.n_database} (raw_p {r:.3f})"
                                         for i, r in zip(d.query_images, d.query_raw)]
 
 
@@ -432,7 +432,7 @@ def test_a_place_without_queries_shows_dashes(data_root, tmp_path):
     at.selectbox(key="w_place").set_value(lonely).run()
     assert_clean(at)
     assert metric(at, "own queries dropped at θ_p(k=0)") == "—"
-    assert any(f"**Place {lonely}**" in md.value and "and 0 queries" in md.value for md in at.markdown)
+    assert any(f"**P{lonely}**" in md.value and "and 0 queries" in md.value for md in at.markdown)
 
 
 # --------------------------------------------------------------------------- query inspector

@@ -172,7 +172,7 @@ def test_walk_gardens_point_in_a_real_browser(browser, data_root, gp_effnet):
         settle(page)
         assert_no_exception(page, "thresholds after a bar click")
         assert "place=12" in page.url
-        assert page.get_by_text("Place 12: negative mixture, scores and thresholds").count() >= 1
+        assert page.get_by_text("P12: negative mixture, scores and thresholds").count() >= 1
         shoot(page, "thresholds")
 
         # Evaluation: click elsewhere while the protocol runs, come back, run the open-set protocol.

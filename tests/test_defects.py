@@ -270,7 +270,7 @@ def test_the_nordland_overview_is_readable(nordland):
     assert theta.type == "scatter" and max(theta.marker.size) <= 10 and len(theta.x) == 358
     assert [t.meta for t in fig.data if t.type == "bar"] == ["pick"]
     assert "358 places" in fig.layout.title.text
-    assert all(h.startswith(f"place {p}:") for p, h in zip(theta.customdata, theta.text))
+    assert all(h.startswith(f"P{p}:") for p, h in zip(theta.customdata, theta.text))
 
 
 def test_the_similarity_colour_bar_is_named(demo_fit, demo_pixels):

@@ -9,6 +9,12 @@ over the training similarity scores S. With descriptors whose similarities sprea
 cosine similarity of two L2-normalised descriptors: the method then rejects every query,
 and a table showing its 0% recall must say so. ``auto_parts`` gives the pieces, and
 ``rejects_all_note`` the sentence the app shows beside the method.
+
+The paper and open-set protocols fit θ in every run on that run's training images, from one
+pooled sample (``thresholds.pooled_pair_sample``); ``runs_auto_parts`` gives the θ they report
+(the mean of the runs' θ, as the trade-off's and the precision–recall's automatic point) with
+the mean median and MAD it equals: θ is linear in them, so mean θ = mean median +
+Φ⁻¹(1 − 10⁻⁶)·mean MAD/0.675.
 """
 
 from __future__ import annotations
@@ -17,7 +23,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vpr_explorer.method.thresholds import AUTO_Z, MAD_PER_SIGMA, auto_global_threshold, training_pair_scores
+from vpr_explorer.method.thresholds import (
+    AUTO_Z,
+    MAD_PER_SIGMA,
+    auto_global_threshold,
+    pooled_pair_sample,
+    training_pair_scores,
+)
 
 #: The largest similarity two L2-normalised descriptors can have (cosine).
 MAX_SIMILARITY = 1.0
@@ -46,6 +58,30 @@ def auto_parts(descriptors: np.ndarray, *, seed: int = 0, rows: np.ndarray | Non
     med = float(np.median(s))
     mad = float(np.median(np.abs(s - med)))
     return AutoParts(auto_global_threshold(s), med, mad, int(s.size))
+
+
+def runs_auto_parts(descriptors: np.ndarray, trains, *, seed: int = 0) -> AutoParts:
+    """The automatic θ of a protocol run's splits as the protocols take it, and what it came from (module docstring).
+
+    Args:
+        descriptors: ``(n_images, D)``, the protocol's.
+        trains: per run, the indices of its training images (``evaluation.draw_splits``' ``train``).
+        seed: the protocol's seed (``pooled_pair_sample``'s).
+
+    Returns:
+        θ: the mean of the runs' θ (``PooledPairSample.theta``); median, MAD: their means over the
+        runs; n_scores: the runs' training similarities, on average.
+    """
+    sample = pooled_pair_sample(descriptors, trains, seed=seed)
+    thetas, medians, mads, counts = [], [], [], []
+    for r in range(len(sample.trains)):
+        s = np.asarray(sample.scores(r), dtype=np.float64)
+        med = float(np.median(s))
+        thetas.append(sample.theta(r))
+        medians.append(med)
+        mads.append(float(np.median(np.abs(s - med))))
+        counts.append(s.size)
+    return AutoParts(float(np.mean(thetas)), float(np.mean(medians)), float(np.mean(mads)), round(np.mean(counts)))
 
 
 def rejects_all_note(parts: AutoParts, *, over: str = "the training images") -> str | None:

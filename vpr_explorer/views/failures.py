@@ -46,6 +46,15 @@ and ``CAPTION_LINES`` lines of caption under it:
 
 A PNG is ``grid_size(n_tiles)`` pixels; tile ``i``'s frame is ``tile_box(i)``.
 
+**Which queries are decided.** Every query of the dataset value (``find_failures``'s
+default), or the ones a caller gives (``queries``): the app's pages decide
+``failure_queries``, every query up to ``numbers.PAIR_BUDGET`` query × database
+similarities and above it the overview's seeded sample (``numbers.overview_frames``), so
+that the failure table scores no more pairs than the page's overview; ``Failures.sampled``
+says when it is a sample. Each failing query is then explained on its own
+(``explained_queries``: ``numbers.explain_query``'s record, bit for bit, with the database
+images in places gathered once).
+
 **The table** (``failure_rows``, ``index_html``): one row per failure kept, ``COLUMNS``:
 query index and label, kind, answer (``place P``, or ``rejected``), the answer's image, the
 true place, its image and rank, the score and margin of the method's top candidate (its
@@ -54,12 +63,25 @@ and the PNG's file name. ``index_html`` is one self-contained page (inline style
 script, thumbnails as data URIs, links to the PNGs beside it): the settings and counts on
 top, the table below, sorted by clicking a header.
 
+**The app's failure table** (``table_rows``, ``sort_rows``, ``table_csv``): one row per
+failure, ``TABLE_COLUMNS``: the query (index and file), the kind, the method's label, its
+answer (``place P``; ``rejected, closest place P`` for a rejected query, P the place it came
+closest to accepting), the answer's database image (that closest place's best image when
+rejected), the true place, its best image and its rank, and the top candidate's score
+(raw_p; s(q, i) for the image-level baseline), θ (its place's θ_p(k), or the global θ; empty
+for a method without threshold) and margin = score − θ, and the reason sentence.
+``sort_rows`` orders them by ``SORT_KEYS``: the query, the margin or the score, an empty
+margin last either way and ties by query. ``table_csv`` writes the same columns, the
+numbers as ``failure_rows`` writes them. ``accepts_nothing`` is the sentence for a method
+whose every θ lies above 1, the largest similarity: it accepts no query.
+
 Pure: reads image files to draw them, writes nothing.
 """
 
 from __future__ import annotations
 
 import base64
+import csv
 import functools
 import html
 import io
@@ -73,7 +95,11 @@ from PIL import Image, ImageDraw, ImageFont, ImageOps
 
 from vpr_explorer.descriptors.base import open_image
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.method.retrieval import METHODS_BY_KEY, Rule, QueryDecision
+from vpr_explorer.method.auto_theta import MAX_SIMILARITY
+from vpr_explorer.method.database import database_rows
+from vpr_explorer.method.retrieval import METHODS_BY_KEY, QueryDecision, Rule, decide, similarity
+from vpr_explorer.method.stats import one_blas_thread
+from vpr_explorer.views import numbers
 from vpr_explorer.views.numbers import (
     BETWEEN,
     KNOWN,
@@ -81,8 +107,10 @@ from vpr_explorer.views.numbers import (
     RetrievalFitted,
     database_label,
     decide_queries,
+    dense,
     describe_answer,
     explain_query,
+    overview_frames,
     query_label,
 )
 
@@ -217,6 +245,8 @@ class Failure:
         true_rank: the method's rank of the true place (``Outcome.rank``: ``inf`` where dropped); NaN without one.
         true_score: raw_p of the true place; NaN without one.
         tiles: the query, the top candidates, the true match (module docstring).
+        theta: the top candidate's θ (its place's θ_p(k), or the global θ), NaN for a method without threshold:
+            ``margin`` is ``score − theta``.
     """
 
     query: int
@@ -234,6 +264,7 @@ class Failure:
     true_rank: float
     true_score: float
     tiles: tuple[Tile, ...]
+    theta: float = math.nan
 
     @property
     def title(self) -> str:
@@ -332,6 +363,7 @@ def explain_failure(fitted: RetrievalFitted, decision: QueryDecision, key: str, 
         answer_place=answer, answer_image=int(images[o.answer_image[0]]) if answer >= 0 else -1,
         top_place=top_place, top_image=top_image, score=score, margin=math.nan if th is None else score - th,
         true_place=tp, true_image=t_img, true_rank=t_rank, true_score=t_score, tiles=tuple(tiles),
+        theta=math.nan if th is None else th,
     )
 
 
@@ -345,14 +377,15 @@ class Failures:
     Attributes:
         key: the method.
         kinds: the kinds asked for.
-        counts: every kind -> its failing queries (whatever was asked for).
+        counts: every kind -> its failing queries among those decided (whatever was asked for).
         failing: ``(n,)`` ascending query indices of the kinds asked for.
         failures: the first ``limit`` of them explained (``Failure``), in query order.
         left_out: failing queries of the kinds asked for beyond ``limit``.
         n_queries: query images of the dataset.
-        n_known, n_unknown, n_between: queries with a right place, with no positive, with
+        n_known, n_unknown, n_between: queries decided with a right place, with no positive, with
             positives only between places (not scored).
         notes: what else the reader should know (a query the two passes disagree on).
+        decided: ``(m,)`` ascending query indices decided: every query, or the caller's (``queries``).
     """
 
     key: str
@@ -366,14 +399,57 @@ class Failures:
     n_unknown: int
     n_between: int
     notes: tuple[str, ...]
+    decided: np.ndarray
 
     def __post_init__(self) -> None:
         self.failing.setflags(write=False)
+        self.decided.setflags(write=False)
+
+    @property
+    def sampled(self) -> bool:
+        """Fewer queries decided than the dataset holds (``failure_queries``' sample)."""
+        return len(self.decided) < self.n_queries
+
+
+def failure_queries(fitted: RetrievalFitted, pair_budget: int | None = None) -> np.ndarray:
+    """``(m,)`` the queries the app's failure table decides: those of ``numbers.overview`` (every query up to
+    ``pair_budget`` query × database-image-in-a-place similarities, default ``numbers.PAIR_BUDGET`` read at call
+    time, above it its seeded sample)."""
+    budget = numbers.PAIR_BUDGET if pair_budget is None else pair_budget
+    return overview_frames(fitted.dataset.n_queries, len(fitted.model.images), budget)
+
+
+def explained_queries(fitted: RetrievalFitted, descriptors: np.ndarray, queries: np.ndarray, *, k: float = 0.0,
+                      user_theta: float | None = None):
+    """Yield ``(query, record)`` for each of ``queries``: ``numbers.explain_query``'s record, bit for bit.
+
+    On in-memory float32 descriptors the database images in places are gathered once and each
+    query scored against them by the same ``1 × D`` product as ``explain_query``'s, BLAS in one
+    thread (a product that small waits on its threads more than it computes: 0.1 ms against
+    several on a loaded machine; each score is one dot product whatever the thread count,
+    ``stats.one_blas_thread``); on a memory map or float16 each query is ``explain_query``
+    itself (it reads the database a block at a time).
+    """
+    queries = np.asarray(queries, dtype=np.int64)
+    if not dense(descriptors):
+        for q in queries:
+            yield int(q), explain_query(fitted, descriptors, int(q), k=k, user_theta=user_theta)
+        return
+    model = fitted.model
+    n_db = fitted.dataset.n_database
+    database = database_rows(descriptors, model.images)
+    thresholds = model.thresholds(k, user_theta)
+    truth = fitted.right_places(queries)
+    with one_blas_thread():
+        for q, right in zip(queries, truth):
+            sims = similarity(descriptors[np.asarray([n_db + q])], database)[0]
+            yield int(q), decide(sims, model.places, fitted.n_places, thresholds, np.flatnonzero(right))
 
 
 def find_failures(fitted: RetrievalFitted, descriptors: np.ndarray, key: str, *,
                   kinds: tuple[FailureKind | str, ...] | None = None, top: int = 5, limit: int | None = None,
-                  user_theta: float | None = None, progress=None) -> Failures:
+                  user_theta: float | None = None, k: float = 0.0, queries: np.ndarray | None = None,
+                  progress=None) -> Failures:
     """Every query method ``key`` fails, and the first ``limit`` of them explained (module docstring).
 
     Args:
@@ -384,47 +460,49 @@ def find_failures(fitted: RetrievalFitted, descriptors: np.ndarray, key: str, *,
         top: candidates drawn per failure, at least 1.
         limit: failures explained at most (default: all), in query order.
         user_theta: the global θ of ``global-user``.
+        k: the per-place family's θ_p(k) = θ_p + k·s_p (0: the paper's θ_p).
+        queries: the query indices to decide (default: every query; ``failure_queries``: the app's).
         progress: ``progress(done, total)`` while failures are explained.
 
     Raises:
         VPRInputError: an unknown method or one whose threshold is missing, an unknown kind,
-            ``top`` < 1, ``limit`` < 0.
+            ``top`` < 1, ``limit`` < 0, no query or one outside the dataset.
     """
     check_method(fitted, key, user_theta)
     try:
-        wanted = tuple(FailureKind) if kinds is None else tuple(dict.fromkeys(FailureKind(k) for k in kinds))
+        wanted = tuple(FailureKind) if kinds is None else tuple(dict.fromkeys(FailureKind(x) for x in kinds))
     except ValueError:
-        raise VPRInputError(f"kinds={kinds!r}: choose from {', '.join(k.value for k in FailureKind)}") from None
+        raise VPRInputError(f"kinds={kinds!r}: choose from {', '.join(x.value for x in FailureKind)}") from None
     if isinstance(top, bool) or not isinstance(top, (int, np.integer)) or top < 1:
         raise VPRInputError(f"top={top!r}: draw at least 1 candidate")
     if limit is not None and (isinstance(limit, bool) or not isinstance(limit, (int, np.integer)) or limit < 0):
         raise VPRInputError(f"limit={limit!r}: give a whole number of failures, 0 or more")
     ds = fitted.dataset
-    queries = np.arange(ds.n_queries)
-    truth, outcomes = decide_queries(fitted, descriptors, queries, user_theta=user_theta)
+    decided = np.arange(ds.n_queries) if queries is None else np.unique(np.asarray(queries, dtype=np.int64))
+    truth, outcomes = decide_queries(fitted, descriptors, decided, k=k, user_theta=user_theta)
     known = truth.any(axis=1)
-    unknown = ds.ground_truth.counts[queries] == 0
+    unknown = ds.ground_truth.counts[decided] == 0
     o = outcomes[key]
     kind = failure_kinds(known, unknown, o.accepted, o.right)
-    counts = {k: int((kind == k.value).sum()) for k in FailureKind}
-    failing = np.flatnonzero(np.isin(kind, [k.value for k in wanted]))
+    counts = {f: int((kind == f.value).sum()) for f in FailureKind}
+    failing = decided[np.isin(kind, [f.value for f in wanted])]
+    kind_of = dict(zip(decided.tolist(), kind.tolist()))
     chosen = failing if limit is None else failing[:limit]
     failures, notes = [], []
-    for i, q in enumerate(chosen):
-        decision = explain_query(fitted, descriptors, int(q), user_theta=user_theta)
-        again = decision_kind(decision, key, fitted.query_status(int(q)))
+    for i, (q, decision) in enumerate(explained_queries(fitted, descriptors, chosen, k=k, user_theta=user_theta)):
+        again = decision_kind(decision, key, fitted.query_status(q))
         if again is None or again not in wanted:
-            notes.append(f"query {int(q)}: {kind[q]} in the blocked pass, "
+            notes.append(f"query {q}: {kind_of[q]} in the blocked pass, "
                          f"{again.value if again else 'right'} explained alone (a score within float32 rounding "
                          "of a boundary): left out")
         else:
-            failures.append(explain_failure(fitted, decision, key, int(q), again, top))
+            failures.append(explain_failure(fitted, decision, key, q, again, top))
         if progress is not None:
             progress(i + 1, len(chosen))
     return Failures(
         key=key, kinds=wanted, counts=counts, failing=failing, failures=tuple(failures),
         left_out=len(failing) - len(chosen), n_queries=ds.n_queries, n_known=int(known.sum()),
-        n_unknown=int(unknown.sum()), n_between=int((~known & ~unknown).sum()), notes=tuple(notes),
+        n_unknown=int(unknown.sum()), n_between=int((~known & ~unknown).sum()), notes=tuple(notes), decided=decided,
     )
 
 
@@ -432,10 +510,13 @@ def summary_lines(result: Failures) -> list[str]:
     """The counts in words: failures of each kind against the queries that can fail that way."""
     c = result.counts
     m = METHODS_BY_KEY[result.key]
+    n = len(result.decided)
+    of = (f"{result.n_queries} queries" if not result.sampled else
+          f"the {n:,} queries decided (a seeded sample of the {result.n_queries:,})")
     lines = [
         f"{m.key} ({m.label}): {c[FailureKind.WRONG_ANSWER]} wrong answers and {c[FailureKind.WRONG_REJECT]} wrong "
         f"rejects of {result.n_known} queries with a right place; {c[FailureKind.ACCEPTED_UNKNOWN]} accepted of "
-        f"{result.n_unknown} unknown-place queries; {result.n_between} of {result.n_queries} queries not scored "
+        f"{result.n_unknown} unknown-place queries; {result.n_between} of {of} not scored "
         f"({BETWEEN}: {'their' if result.n_between != 1 else 'its'} right images all lie between places)",
     ]
     shown = len(result.failures)
@@ -443,6 +524,117 @@ def summary_lines(result: Failures) -> list[str]:
     lines.append(f"drawn: {shown} of {len(result.failing)} failures ({asked})"
                  + (f"; {result.left_out} left out by the limit" if result.left_out else ""))
     return lines + list(result.notes)
+
+
+def accepts_nothing(fitted: RetrievalFitted, key: str, *, k: float = 0.0, user_theta: float | None = None) -> str | None:
+    """The sentence for method ``key`` when every θ it has lies above 1 (it accepts no query); ``None`` otherwise.
+
+    1 is the largest cosine similarity two unit descriptors can have (``auto_theta.MAX_SIMILARITY``).
+    """
+    m = METHODS_BY_KEY[key]
+    if m.threshold is None:
+        return None
+    theta = np.asarray(fitted.model.thresholds(k, user_theta)[m.threshold], dtype=np.float64)
+    if not theta.size or theta.min() <= MAX_SIMILARITY:
+        return None
+    what = (f"{m.label} of this database = {float(theta.min()):.3f}" if theta.ndim == 0 else
+            f"every place's θ of {m.label} on this database (the lowest {float(theta.min()):.3f})")
+    return (f"{what} is above {MAX_SIMILARITY:g}, the largest similarity two descriptors can have, so it accepts no "
+            "query: every query with a right place is a wrong reject here, whatever its scores.")
+
+
+# --------------------------------------------------------------------------- the app's table
+
+
+#: The app's failure table's columns (``table_rows``), as its CSV writes them.
+TABLE_COLUMNS = ("query", "query image", "kind", "method", "answer", "answer image", "true place", "true image",
+                 "true rank", "score", "θ", "margin", "reason")
+#: What ``sort_rows`` orders by.
+SORT_KEYS = ("query", "margin", "score")
+
+
+def answer_text(failure: Failure) -> str:
+    """The method's answer in the table: ``place P``, or ``rejected, closest place P``."""
+    if failure.answer_place >= 0:
+        return f"place {failure.answer_place}"
+    return "rejected" + (f", closest place {failure.top_place}" if failure.top_place >= 0 else "")
+
+
+def table_rows(fitted: RetrievalFitted, result: Failures) -> list[dict[str, object]]:
+    """One row of ``TABLE_COLUMNS`` per explained failure, in query order (module docstring).
+
+    Numbers stay numbers (NaN where empty; ``true place`` −1 and ``true rank`` NaN without a
+    true match, ``inf`` where the method dropped it); ``answer image`` is the database image
+    behind the answer, or behind the closest place of a rejected query.
+    """
+    ds = fitted.dataset
+    label = METHODS_BY_KEY[result.key].label
+    rows = []
+    for f in result.failures:
+        shown = f.answer_image if f.answer_image >= 0 else f.top_image
+        rows.append({
+            "query": f.query, "query image": f.label, "kind": f.kind.value, "method": label,
+            "answer": answer_text(f), "answer image": database_label(ds, shown) if shown >= 0 else "",
+            "true place": f.true_place, "true image": database_label(ds, f.true_image) if f.true_image >= 0 else "",
+            "true rank": f.true_rank, "score": f.score, "θ": f.theta, "margin": f.margin, "reason": f.reason,
+        })
+    return rows
+
+
+def row_pictures(fitted: RetrievalFitted, failure: Failure) -> tuple[Path, Path | None, Path | None]:
+    """The image files of a row: the query, the answer (the closest place's best image when rejected; ``None``
+    when there is no candidate) and the true match (``None`` for an unknown-place query)."""
+    ds = fitted.dataset
+    shown = failure.answer_image if failure.answer_image >= 0 else failure.top_image
+    return (Path(ds.query_paths[failure.query]), Path(ds.database_paths[shown]) if shown >= 0 else None,
+            Path(ds.database_paths[failure.true_image]) if failure.true_image >= 0 else None)
+
+
+def sort_rows(rows: list[dict[str, object]], by: str = "query", *, descending: bool = False) -> list[dict[str, object]]:
+    """``rows`` ordered by ``by`` (``SORT_KEYS``); an empty (NaN) value last either way, ties by query.
+
+    Raises:
+        VPRInputError: ``by`` is not one of ``SORT_KEYS``.
+    """
+    if by not in SORT_KEYS:
+        raise VPRInputError(f"sort by {by!r}: choose one of {', '.join(SORT_KEYS)}")
+    sign = -1.0 if descending else 1.0
+
+    def order(row: dict[str, object]) -> tuple[bool, float, int]:
+        value = float(row[by])
+        return math.isnan(value), 0.0 if math.isnan(value) else sign * value, int(row["query"])
+
+    return sorted(rows, key=order)
+
+
+def rank_text(rank: float) -> str:
+    """A true place's rank in words: the number, ``dropped`` (below the method's threshold), empty without one."""
+    rank = float(rank)
+    return "" if math.isnan(rank) else "dropped" if math.isinf(rank) else str(int(rank))
+
+
+def _cell(column: str, value: object) -> str:
+    """A ``table_rows`` value as the CSV writes it (``failure_rows``' number formats)."""
+    if column == "true rank":
+        return rank_text(value)
+    if column in ("score", "θ", "margin"):
+        x = float(value)
+        if math.isnan(x):
+            return ""
+        return f"{x:+.4f}" if column == "margin" else f"{x:.4f}"
+    if column == "true place":
+        return "" if int(value) < 0 else str(int(value))
+    return str(value)
+
+
+def table_csv(rows: list[dict[str, object]]) -> str:
+    """``rows`` (``table_rows``, in the order given) as CSV, ``TABLE_COLUMNS`` for header."""
+    buffer = io.StringIO()
+    writer = csv.writer(buffer)
+    writer.writerow(TABLE_COLUMNS)
+    for row in rows:
+        writer.writerow([_cell(c, row[c]) for c in TABLE_COLUMNS])
+    return buffer.getvalue()
 
 
 # --------------------------------------------------------------------------- the picture

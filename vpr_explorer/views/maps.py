@@ -5,6 +5,11 @@ tiles: the explorer runs without internet). Positions are UTM or any metric plan
 axes count metres from a round origin below the lowest position (said in the axis titles),
 with one metre the same length on both axes.
 
+With a selected query the view opens on its neighbourhood (``neighbourhood``): the radius
+circle is then tens of pixels wide, not a dot under the star; zooming out shows the rest.
+``picked_query`` turns a click into a query: a click on a database dot that a query's cross
+lies on (plotly hands the click to the dot, drawn first) selects the query nearest it.
+
 Every trace carries a ``meta`` name, so that tests read it back from the figure's JSON:
 ``"database, between places"`` (grey), ``"database places"`` (coloured by place, ``text``
 = place id), ``"queries"`` (thin crosses over them, ``customdata`` = query index, for clicks), and for the selected
@@ -16,16 +21,21 @@ the places it was compared with first) and ``"answer"`` (the place a method answ
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import plotly.graph_objects as go
 
+from vpr_explorer.data.groundtruth import DEFAULT_RADIUS
 from vpr_explorer.views.plots import PALETTE, SKIPPED
 
 #: Above this many points a trace is drawn with WebGL (``Scattergl``): SVG slows down past a few thousand.
 WEBGL_POINTS = 5_000
 CIRCLE_POINTS = 73
+#: The view around a selected query reaches this many radii from it (and its farthest positive)…
+NEIGHBOURHOOD_RADII = 4.0
+#: …and at least this many metres.
+NEIGHBOURHOOD_MIN_M = 50.0
 _MARGIN = dict(l=10, r=10, t=40, b=10)
 
 
@@ -39,6 +49,52 @@ def circle(centre: Sequence[float], radius: float, n: int = CIRCLE_POINTS) -> tu
     """``n`` points on a circle (the first repeated last), for a closed line."""
     t = np.linspace(0.0, 2.0 * math.pi, n)
     return centre[0] + radius * np.cos(t), centre[1] + radius * np.sin(t)
+
+
+def neighbourhood(centre: Sequence[float], radius: float | None, positives: np.ndarray | None = None
+                  ) -> tuple[list[float], list[float]]:
+    """The x and y ranges of the view around a selected query: a square about ``centre``.
+
+    Its half side is ``NEIGHBOURHOOD_RADII`` radii, at least ``NEIGHBOURHOOD_MIN_M`` metres,
+    and wide enough for every positive (``(n, 2)``, same frame as ``centre``) with a radius
+    (at least a fifth of ``NEIGHBOURHOOD_MIN_M``) to spare. Plotly widens one of the ranges
+    to the plot's shape (one metre is the same length on both axes).
+    """
+    c = np.asarray(centre, dtype=np.float64)
+    r = float(radius) if radius is not None and np.isfinite(radius) and radius > 0 else 0.0
+    half = max(NEIGHBOURHOOD_RADII * r, NEIGHBOURHOOD_MIN_M)
+    pos = np.asarray(positives if positives is not None else np.zeros((0, 2)), dtype=np.float64).reshape(-1, 2)
+    if len(pos):
+        half = max(half, float(np.abs(pos - c).max()) + max(r, NEIGHBOURHOOD_MIN_M / 5))
+    return [c[0] - half, c[0] + half], [c[1] - half, c[1] + half]
+
+
+def picked_query(points: Sequence[Mapping], query_xy: np.ndarray, origin: Sequence[float],
+                 near: float | None = None) -> int | None:
+    """The query a click on ``layout_map`` selects, from Streamlit's selection ``points``.
+
+    A point of the queries (or the selected query) carries its index as ``customdata``; any
+    other point (a database dot, a ring) selects the query nearest its ``x``, ``y`` (metres
+    from ``origin``) within ``near`` metres (default the field's 25 m radius), or nothing.
+
+    Args:
+        query_xy: ``(n_queries, 2)`` positions, in the dataset's frame (not less ``origin``).
+    """
+    for p in points:
+        data = p.get("customdata")
+        if isinstance(data, (int, float, np.integer, np.floating)) and not isinstance(data, bool):
+            return int(data)
+    q = np.asarray(query_xy, dtype=np.float64).reshape(-1, 2)
+    limit = DEFAULT_RADIUS if near is None else float(near)
+    for p in points:
+        x, y = p.get("x"), p.get("y")
+        if not isinstance(x, (int, float)) or not isinstance(y, (int, float)) or not len(q):
+            continue
+        dist = np.hypot(q[:, 0] - origin[0] - x, q[:, 1] - origin[1] - y)
+        best = int(np.argmin(dist))  # the lowest index among equally near queries
+        if dist[best] <= limit:
+            return best
+    return None
 
 
 def _scatter(n: int):
@@ -69,6 +125,8 @@ def layout_map(
         answer: the place a method answered (outlined thicker), or ``None``.
         height: pixels; default from the positions' extent (a long thin route gets a low figure:
             one metre is the same length on both axes).
+
+    With ``selected``, the axes' ranges are its ``neighbourhood`` (radius and positives).
     """
     db = np.asarray(database_xy, dtype=np.float64).reshape(-1, 2)
     q = np.asarray(query_xy, dtype=np.float64).reshape(-1, 2)
@@ -128,10 +186,16 @@ def layout_map(
                                  name=f"query {selected}", meta="selected query", customdata=[selected],
                                  marker=dict(symbol="star", size=18, color="#ff7f0e", line=dict(color="#000", width=1)),
                                  hovertemplate="selected query %{customdata}<extra></extra>"))
+    view = {}
+    if selected is not None:
+        pos = np.asarray(positives, dtype=np.int64)
+        xr, yr = neighbourhood(q_m[selected], radius, db_m[pos] if len(pos) else None)
+        view = dict(x=dict(range=xr), y=dict(range=yr))
     fig.update_layout(
         title=title or "Database images by place, and the queries (metres)", height=height, margin=_MARGIN,
-        xaxis=dict(title=f"east (m from {origin[0]:,.0f})", zeroline=False),
-        yaxis=dict(title=f"north (m from {origin[1]:,.0f})", zeroline=False, scaleanchor="x", scaleratio=1),
+        xaxis=dict(title=f"east (m from {origin[0]:,.0f})", zeroline=False, **view.get("x", {})),
+        yaxis=dict(title=f"north (m from {origin[1]:,.0f})", zeroline=False, scaleanchor="x", scaleratio=1,
+                   **view.get("y", {})),
         legend=dict(orientation="v", x=1.01, y=1.0, yanchor="top"), clickmode="event+select", dragmode="pan",
     )
     return fig

@@ -53,6 +53,8 @@ _SIDE_MODEBAR = dict(modebar=dict(orientation="v"), margin={**_MARGIN, "r": 40})
 COINCIDENT = 1e-6
 #: Two threshold lines closer than this share of the x range fall on the same pixels: named "≈".
 NEAR_SHARE = 0.004
+#: Height of one "drawn on one another" note above a plot area, in pixels.
+NOTE_PX = 16
 
 
 def _missing(x: float, fmt: str = ".3f") -> str:
@@ -60,12 +62,17 @@ def _missing(x: float, fmt: str = ".3f") -> str:
     return f"{x:{fmt}}" if x is not None and np.isfinite(x) else "—"
 
 
-def _note_coincident(fig: go.Figure, lines: Sequence[go.Scatter], span: float = 0.0) -> None:
+def _note_coincident(fig: go.Figure, lines: Sequence[go.Scatter], span: float = 0.0) -> int:
     """Say which threshold lines are drawn on one another: in their legend names, hovers, and a note.
 
     Lines closer than ``NEAR_SHARE`` of the x ``span`` (or ``COINCIDENT``) fall on the same
     pixels whatever their dash, so each later one is named "(= θ …)" (equal) or "(≈ θ …)"
-    (closer than a pixel) and the figure gets one note per group, values included.
+    (closer than a pixel) and the figure gets one note per group, values included. The notes
+    stand above the plot area, one ``NOTE_PX`` row each, where no line reaches: the caller
+    gives its top margin ``note_margin(returned count)``.
+
+    Returns:
+        How many notes were added.
     """
     near = max(COINCIDENT, NEAR_SHARE * span)
     names = [t.meta if isinstance(t.meta, str) else t.name for t in lines]
@@ -87,8 +94,19 @@ def _note_coincident(fig: go.Figure, lines: Sequence[go.Scatter], span: float = 
             lines[i].hovertemplate = f"{text}<extra></extra>"
         notes.append(f"drawn on one another: {text}")
     for k, note in enumerate(notes):
-        fig.add_annotation(text=note, xref="paper", yref="paper", x=0, y=1 - 0.08 * k, xanchor="left",
-                           yanchor="top", showarrow=False, font=dict(size=11), bgcolor="rgba(255,255,255,0.85)")
+        fig.add_annotation(text=note, xref="paper", yref="paper", x=0, y=1, yshift=NOTE_PX * (len(notes) - 1 - k),
+                           xanchor="left", yanchor="bottom", showarrow=False, font=dict(size=11), name="coincident")
+    return len(notes)
+
+
+def note_margin(notes: int) -> dict:
+    """``_MARGIN`` with room above the plot area for ``notes`` rows of ``_note_coincident``."""
+    return {**_MARGIN, "t": _MARGIN["t"] + NOTE_PX * notes}
+
+
+def _title(text: str) -> dict:
+    """A figure title pinned to the top of the figure, so notes in a taller top margin stay below it."""
+    return dict(text=text, y=1, yref="container", yanchor="top", pad=dict(t=10))
 
 
 def _vline(name: str, x: float, y_top: float, *, dash: str = "solid", colour: str | None = None) -> go.Scatter:
@@ -122,6 +140,9 @@ def route_figure(
 ) -> go.Figure:
     """Each traversal as a strip of frames: place frames coloured by place, skipped frames grey.
 
+    No legend: the x axis title says what the squares and grey ticks are (a legend under the
+    strips would sit on that title).
+
     Args:
         frame_place: ``(n_frames,)`` place of each frame, ``-1`` where skipped.
         traversals: traversal names (one strip each; frame ``f`` is the same spot in all).
@@ -148,7 +169,7 @@ def route_figure(
     for t in traversals:
         fig.add_trace(go.Scatter(
             x=frames[~inside], y=[t] * int((~inside).sum()), mode="markers", name="skipped frames",
-            legendgroup="skipped", showlegend=t == traversals[0],
+            legendgroup="skipped", showlegend=False,
             marker=dict(symbol="line-ns-open", size=14, color=SKIPPED, line=dict(width=2, color=SKIPPED)),
             hovertemplate="frame %{x}: skipped<extra></extra>", meta=f"skipped {t}",
         ), row=1, col=1)
@@ -157,9 +178,10 @@ def route_figure(
             x=frames[inside], y=[t] * int(inside.sum()), mode="markers", name="place frames",
             legendgroup="places", showlegend=False, customdata=frame_place[inside],
             marker=dict(symbol="square", size=9, color=place_colours(frame_place[inside])),
-            hovertemplate="frame %{x}: place %{customdata}<extra></extra>", meta=f"places {t}",
+            hovertemplate="frame %{x}: P%{customdata}<extra></extra>", meta=f"places {t}",
         ), row=1, col=1)
-    fig.update_xaxes(title_text="frame (squares: place frames, one colour per place, colours repeat)", row=1, col=1)
+    fig.update_xaxes(title_text="frame · squares: place frames, one colour per place (colours repeat)<br>"
+                                "grey ticks: skipped frames", row=1, col=1)
     fig.update_yaxes(type="category", row=1, col=1)
     if has_map:
         xy = np.asarray(positions)
@@ -170,12 +192,12 @@ def route_figure(
             x=xy[on, 0], y=xy[on, 1], mode="markers", name="place frames (map)", showlegend=False,
             customdata=np.stack([map_frames[on], map_place[on]], axis=1),
             marker=dict(size=7, color=place_colours(map_place[on])),
-            hovertemplate="frame %{customdata[0]}: place %{customdata[1]}<extra></extra>", meta="map places",
+            hovertemplate="frame %{customdata[0]}: P%{customdata[1]}<extra></extra>", meta="map places",
         ), row=1, col=2)
         fig.update_xaxes(showticklabels=False, row=1, col=2)
         fig.update_yaxes(showticklabels=False, scaleanchor="x2", row=1, col=2)
-    fig.update_layout(title=title or None, height=max(140 + 45 * len(traversals), 340 if has_map else 0),
-                      legend=dict(orientation="h", y=-0.25), **_SIDE_MODEBAR)
+    fig.update_layout(title=title or None, height=max(160 + 45 * len(traversals), 340 if has_map else 0),
+                      showlegend=False, **_SIDE_MODEBAR)
     return fig
 
 
@@ -200,7 +222,7 @@ def theta_histogram(theta: Mapping[str, np.ndarray], auto: float, user_theta: fl
     fig.add_traces(lines)
     xs = np.r_[np.concatenate(values), auto, user_theta if user_theta is not None else auto]
     xs = xs[np.isfinite(xs)]
-    _note_coincident(fig, list(fig.data[-len(lines):]), float(np.ptp(xs)) if xs.size else 0.0)
+    notes = _note_coincident(fig, list(fig.data[-len(lines):]), float(np.ptp(xs)) if xs.size else 0.0)
     finite = [v[np.isfinite(v)] for v in values]
     if len(finite) == 2 and len(finite[0]) == len(finite[1]) and np.allclose(finite[0], finite[1], rtol=0,
                                                                              atol=COINCIDENT):
@@ -208,8 +230,9 @@ def theta_histogram(theta: Mapping[str, np.ndarray], auto: float, user_theta: fl
                                 "one histogram hides the other", xref="paper", yref="paper", x=0, y=1,
                            xanchor="left", yanchor="top", showarrow=False, font=dict(size=11),
                            bgcolor="rgba(255,255,255,0.8)")
-    fig.update_layout(barmode="overlay", title="θ_p of every place", xaxis_title="similarity",
-                      yaxis_title="places", height=320, margin=_MARGIN, legend=dict(orientation="h", y=-0.3))
+    fig.update_layout(barmode="overlay", title=_title("θ_p of every place"), xaxis_title="similarity",
+                      yaxis_title="places", height=320 + NOTE_PX * notes, margin=note_margin(notes),
+                      legend=dict(orientation="h", y=-0.3))
     return fig
 
 
@@ -236,6 +259,11 @@ def recall_bars(recall1: Mapping[str, float], *, rejected: Mapping[str, float] |
 #: Above this many places the overview drops its place labels and draws smaller dots: a
 #: sorted curve of θ_p is what stays readable (Nordland 64x32 has 358 places).
 OVERVIEW_LABELLED_PLACES = 60
+#: Above this many places the overview is drawn for the browser to redraw nothing on a pick:
+#: θ_p as WebGL dots (``Scattergl``), μ⁺ and μ⁻ as one line each, and no mark of the selected
+#: place (the page shows it beside the figure). Thousands of SVG points and columns take the
+#: browser seconds to redraw on every pick (Nordland 64x32 at group 1, step 1: 3,576 places).
+OVERVIEW_WEBGL_PLACES = 1000
 
 
 def places_overview(theta: np.ndarray, positive_mean: np.ndarray, negative_mean: np.ndarray,
@@ -247,7 +275,9 @@ def places_overview(theta: np.ndarray, positive_mean: np.ndarray, negative_mean:
     ``customdata`` = place id, in sorted order; behind them one column per place
     (``meta="pick"``, transparent but for the selected place's tint) spans the plot, so a
     click anywhere above a place picks it. Above ``OVERVIEW_LABELLED_PLACES`` places the
-    x axis is the rank by θ_p (hover names the place).
+    x axis is the rank by θ_p (hover names the place). Above ``OVERVIEW_WEBGL_PLACES``
+    (``overview_many``) the figure does not depend on ``selected``. Places are named
+    ``P<id>``, as everywhere in the app.
     """
     theta = np.asarray(theta, dtype=float)
     order = np.argsort(theta, kind="stable")
@@ -260,8 +290,10 @@ def places_overview(theta: np.ndarray, positive_mean: np.ndarray, negative_mean:
     lo = np.nanmin(np.r_[theta[order], neg]) if len(order) else 0.0
     hi = np.nanmax(np.r_[theta[order], pos]) if len(order) else 1.0
     pad = 0.05 * (hi - lo if hi > lo else 1.0)
-    hover = [f"place {p}: θ_p {_missing(t)}, μ⁺ {_missing(a)}, μ⁻ {_missing(b)}"
+    hover = [f"P{p}: θ_p {_missing(t)}, μ⁺ {_missing(a)}, μ⁻ {_missing(b)}"
              for p, t, a, b in zip(order, theta[order], pos, neg)]
+    if len(order) > OVERVIEW_WEBGL_PLACES:
+        return overview_many(theta[order], pos, neg, order, hover, (lo - pad, hi + pad))
     fig = go.Figure()
     fig.add_trace(go.Bar(
         x=x, y=np.full(len(order), hi - lo + 2 * pad), base=lo - pad, customdata=order.tolist(), meta="pick",
@@ -292,6 +324,35 @@ def places_overview(theta: np.ndarray, positive_mean: np.ndarray, negative_mean:
     fig.update_layout(title=f"All {len(order)} places, sorted by θ_p (click a place to pick it)", height=300,
                       yaxis=dict(range=[lo - pad, hi + pad], title="similarity"), xaxis=xaxis, bargap=0,
                       legend=dict(orientation="h", y=-0.35), hovermode="closest", **_SIDE_MODEBAR)
+    return fig
+
+
+def overview_many(theta: np.ndarray, positive_mean: np.ndarray, negative_mean: np.ndarray, order: np.ndarray,
+                  hover: Sequence[str], y_range: tuple[float, float]) -> go.Figure:
+    """``places_overview`` of more than ``OVERVIEW_WEBGL_PLACES`` places: the same figure whichever place is picked.
+
+    Args:
+        theta, positive_mean, negative_mean: ``(n,)`` in ascending θ_p order; order: ``(n,)``
+            the place ids in that order; hover: ``(n,)`` each place's hover text; y_range: the
+            similarity axis.
+    """
+    n = len(order)
+    x = np.arange(n)
+    fig = go.Figure()
+    # a click selects a dot: the selection must not restyle the dots either
+    fig.add_trace(go.Scattergl(
+        x=x, y=theta, customdata=order.tolist(), name="θ_p weighted", meta="theta", mode="markers",
+        marker=dict(size=5, color=LINE_COLOURS["θ_p weighted"]), selected=dict(marker=dict(opacity=1)),
+        unselected=dict(marker=dict(opacity=1)), text=list(hover), hovertemplate="%{text}<extra></extra>",
+    ))
+    fig.add_trace(go.Scatter(x=x, y=positive_mean, mode="lines", name="mean same-place score μ⁺",
+                             meta="positive_mean", line=dict(color=POSITIVE, width=1), opacity=0.6, hoverinfo="skip"))
+    fig.add_trace(go.Scatter(x=x, y=negative_mean, mode="lines", name="mixture mean μ⁻", meta="negative_mean",
+                             line=dict(color=NEGATIVE, width=2), hoverinfo="skip"))
+    fig.update_layout(title=f"All {n} places, sorted by θ_p (click a θ_p dot to pick its place)", height=300,
+                      xaxis=dict(title=f"the {n} places, ranked by θ_p (hover a dot for its place)", range=[-1, n]),
+                      yaxis=dict(range=list(y_range), title="similarity"), legend=dict(orientation="h", y=-0.35),
+                      hovermode="closest", **_SIDE_MODEBAR)
     return fig
 
 
@@ -410,13 +471,24 @@ def mixture_figure(
     if user_theta is not None:
         lines.append(_vline("global θ, user value", user_theta, top, dash="longdash"))
     fig.add_traces(lines)
-    _note_coincident(fig, list(fig.data[-len(lines):]), float(x[-1] - x[0]))
+    notes = _note_coincident(fig, list(fig.data[-len(lines):]), float(x[-1] - x[0]))
+    # the rugs lie below zero: ticks only where a density can be
     fig.update_layout(
-        title=f"Place {detail.place}: negative mixture, scores and thresholds", barmode="overlay",
-        xaxis_title="cosine similarity", yaxis=dict(title="density", range=[3 * rug_y, top]),
-        height=460, margin=_MARGIN, legend=dict(orientation="h", y=-0.2),
+        title=_title(f"P{detail.place}: negative mixture, scores and thresholds"), barmode="overlay",
+        xaxis_title="cosine similarity",
+        yaxis=dict(title="density", range=[3 * rug_y, top], tickmode="array", tickvals=density_ticks(top)),
+        height=460 + NOTE_PX * notes, margin=note_margin(notes), legend=dict(orientation="h", y=-0.2),
     )
     return fig
+
+
+def density_ticks(top: float, n: int = 5) -> np.ndarray:
+    """About ``n`` round tick values from 0 to ``top`` (steps of 1, 2 or 5 × 10ᵉ), never below 0."""
+    if not np.isfinite(top) or top <= 0:
+        return np.zeros(1)
+    e = 10.0 ** math.floor(math.log10(top / n))
+    step = next(m * e for m in (1, 2, 5, 10) if m * e >= top / n)
+    return np.arange(int(math.floor(top / step + 1e-9)) + 1) * step
 
 
 # --------------------------------------------------------------------------- query inspector
@@ -429,7 +501,9 @@ def candidate_bars(decision: QueryDecision, key: str, candidates: Sequence[int],
     would show lengths that mean nothing. The dots (``meta="raw_p"``) carry ``customdata`` =
     place id; the θ ticks (``meta="theta"``) sit at the method's threshold of each
     candidate; the answer has a black outline and right places are starred. Labels: the
-    margin raw_p − θ (raw_p without a threshold); "—" where there is no value.
+    margin raw_p − θ (raw_p without a threshold); "—" where there is no value. A label
+    stands on the side of its dot away from the θ tick (below where θ is above raw_p),
+    so no tick crosses it.
     """
     m = METHODS_BY_KEY[key]
     cands = np.asarray(candidates, dtype=np.int64)
@@ -441,24 +515,27 @@ def candidate_bars(decision: QueryDecision, key: str, candidates: Sequence[int],
     theta = decision.thresholds[m.threshold][cands] if m.threshold else None
     text = ([_missing(r - t, "+.3f") for r, t in zip(raw, theta)] if theta is not None else
             [_missing(r) for r in raw])
+    below = theta >= raw if theta is not None else np.zeros(len(cands), dtype=bool)  # NaN: above
     fig = go.Figure(go.Scatter(
         x=labels, y=raw, customdata=cands, name="raw_p", meta="raw_p", text=text, mode="markers+text",
-        textposition="top center", cliponaxis=False, textfont=dict(size=10),
+        textposition=["bottom center" if b else "top center" for b in below], cliponaxis=False,
+        textfont=dict(size=10),
         marker=dict(size=16, color=[KEPT if k else DROPPED for k in kept],
                     line=dict(color=["#000" if p == answer else "rgba(0,0,0,0)" for p in cands], width=3)),
-        hovertemplate="place %{customdata}: raw_p %{y:.3f}, label %{text}<extra></extra>",
+        hovertemplate="P%{customdata}: raw_p %{y:.3f}, label %{text}<extra></extra>",
     ))
     if theta is not None:
         fig.add_trace(go.Scatter(x=labels, y=theta, mode="markers", name=f"θ ({m.threshold})", meta="theta",
                                  customdata=cands, marker=dict(symbol="line-ew-open", size=26, color="#d62728",
                                                                line=dict(width=3)),
-                                 hovertemplate="place %{customdata}: θ %{y:.3f}<extra></extra>"))
+                                 hovertemplate="P%{customdata}: θ %{y:.3f}<extra></extra>"))
     finite = np.r_[raw, theta if theta is not None else []]
     finite = finite[np.isfinite(finite)]
     lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
     pad = 0.15 * (hi - lo if hi > lo else 0.1)
     fig.update_layout(title=title or m.label, height=300, margin=_MARGIN, showlegend=False,
-                      yaxis=dict(range=[lo - pad, hi + 2 * pad], title="raw_p (dots; red tick: θ)"),
+                      yaxis=dict(range=[lo - (2 if below.any() else 1) * pad, hi + 2 * pad],
+                                 title="raw_p (dots; red tick: θ)"),
                       xaxis=dict(type="category"))
     return fig
 
@@ -494,7 +571,8 @@ def tradeoff_figure(ev: Evaluation, rule: str = "margin") -> go.Figure:
 
     One line per θ_p(k) family (``rule``), k = 0 (the paper) marked with a large symbol,
     adaptive k as a diamond, the global θ sweep as a grey line, the automatic and oracle
-    global θ as stars.
+    global θ as stars, named with their θ (the mean of the runs' θ, three decimals; a θ above 1
+    says it accepts no query).
     """
     fig = go.Figure()
     colours = {"θ_p(k) simple": LINE_COLOURS["θ_p simple"], "θ_p(k) weighted": LINE_COLOURS["θ_p weighted"]}
@@ -525,12 +603,15 @@ def tradeoff_figure(ev: Evaluation, rule: str = "margin") -> go.Figure:
             name="global θ sweep", meta="global θ", line=dict(color="#999", dash="dot"),
             customdata=[t.param for t in sweep], hovertemplate="θ=%{customdata:.3f}: rejected %{x:.0%}, R@1 %{y:.0%}<extra></extra>",
         ))
+    runs = ev.settings.get("runs")
+    mean = f": the mean over {runs} runs" if isinstance(runs, int) and runs > 1 else ""
     for series, symbol in (("global θ, automatic", "star"), ("global θ, oracle", "star-triangle-up")):
         pts = [t for t in ev.tradeoff if t.series == series]
         if pts:
+            above = ", above 1: it accepts no query" if pts[0].param > 1 else ""  # 1: the largest similarity
             fig.add_trace(go.Scatter(x=[pts[0].unknown_rejection[0]], y=[pts[0].known_recall1[0]], mode="markers",
                                      marker=dict(size=14, symbol=symbol, color="#333"), meta=series,
-                                     name=f"{series} (θ={pts[0].param:.3f})"))
+                                     name=f"{series} (θ={pts[0].param:.3f}{mean}{above})"))
     fig.update_layout(title="Open set: unknown places rejected vs known-place Recall@1",
                       xaxis=dict(title="unknown-place queries rejected", tickformat=".0%", range=[-0.03, 1.03]),
                       yaxis=dict(title="known-place Recall@1", tickformat=".0%", range=[-0.03, 1.03]),
@@ -546,7 +627,8 @@ def pr_figure(curves: Mapping[str, PRCurve], operating_points: Mapping[str, PRPo
     point (``None`` at the start point, nothing accepted); their names give the AUC and the
     queries with no true match (unknown places: false positives when accepted). Operating points
     (``meta = "own <label>"``) take the colour of their curve when ``curve_of`` maps the
-    label to it.
+    label to it; a method that accepts no query has no precision, and its name says
+    "accepts no query (P —, …)" as the tables' "—" does (its marker stays at the curves' start, P = 1).
     """
     fig = go.Figure()
     colours = {}
@@ -563,11 +645,15 @@ def pr_figure(curves: Mapping[str, PRCurve], operating_points: Mapping[str, PRPo
         ))
     for label, p in operating_points.items():
         colour = colours.get((curve_of or {}).get(label), "#333")
+        # nothing accepted: no precision to give (the tables' "—"); the marker sits at the curves' start, P = 1
+        said = (f"{label}: accepts no query (P —, R {p.recall:.0%})" if not p.accepted else
+                f"{label}: P {p.precision:.0%}, R {p.recall:.0%}")
         fig.add_trace(go.Scatter(
-            x=[p.recall], y=[p.precision], mode="markers", meta=f"own {label}",
-            name=f"{label}: P {p.precision:.0%}, R {p.recall:.0%}",
+            x=[p.recall], y=[p.precision], mode="markers", meta=f"own {label}", name=said,
             marker=dict(size=11, symbol="circle-open", color=colour, line=dict(width=3)),
-            hovertemplate=f"{label}: recall %{{x:.1%}}, precision %{{y:.1%}}<extra></extra>",
+            hovertemplate=(f"{label}: accepts no query, recall %{{x:.1%}}, precision —<extra></extra>"
+                           if not p.accepted else
+                           f"{label}: recall %{{x:.1%}}, precision %{{y:.1%}}<extra></extra>"),
         ))
     fig.update_layout(title=title, xaxis=dict(title="recall (of known-place queries)", tickformat=".0%",
                                               range=[-0.02, 1.02]),

@@ -60,18 +60,30 @@ def _rate(x: float) -> str:
     return "—" if x is None or math.isnan(x) else f"{100 * x:5.1f}"
 
 
+def at_text(value: float, param: str) -> str:
+    """A point of a precision–recall curve by its parameter: ``θ=0.443`` (a global θ, three decimals), ``k=+0.27``
+    (the per-place family's k), ``none`` for a method that accepts every query (−inf), ``—`` when undefined."""
+    if math.isnan(value):
+        return "—"
+    if math.isinf(value) and value < 0:
+        return "none"
+    return f"k={value:+.2f}" if param == "k" else f"θ={value:.3f}"
+
+
 def pr_table(ev: Evaluation) -> str:
     """Precision–recall per method, pooled over runs: the curve it sits on, AUC, R@100P, R@99P, max F1, its own point.
 
-    AUC is the trapezoid ∫ P dR over the curve; rates in %; "at" is the θ or k of max F1.
+    AUC is the trapezoid ∫ P dR over the curve; rates in %; "at" is the θ or k of max F1 (``at_text``), "own at"
+    the method's own θ or k (k = 0 for the per-place θ_p; the automatic θ of pooled runs: their mean); "own P"
+    is "—" for a method that accepts no query.
     """
-    header = ["method", "curve", "AUC", "R@100P", "R@99P", "max F1", "at", "own P", "own R", "known", "unknown"]
+    header = ["method", "curve", "AUC", "R@100P", "R@99P", "max F1", "at", "own at", "own P", "own R", "known",
+              "unknown"]
     rows = []
     for r in ev.pr:
-        at = ("—" if math.isnan(r.max_f1_at)
-              else f"k={r.max_f1_at:+.2f}" if r.param == "k" else f"θ={r.max_f1_at:.3f}")
         rows.append([r.label, r.curve, "—" if math.isnan(r.auc) else f"{r.auc:.3f}", _rate(r.r_at_100p),
-                     _rate(r.r_at_99p), _rate(r.max_f1), at, _rate(r.own.precision if r.own.accepted else math.nan),
+                     _rate(r.r_at_99p), _rate(r.max_f1), at_text(r.max_f1_at, r.param),
+                     at_text(r.own.threshold, r.param), _rate(r.own.precision if r.own.accepted else math.nan),
                      _rate(r.own.recall), f"{r.n_known:,}", f"{r.n_unknown:,}"])
     return _grid(header, rows)
 

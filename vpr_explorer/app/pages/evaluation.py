@@ -18,6 +18,17 @@ looked up from them, so leaving the page and coming back can never show one prot
 controls above another's results. The page draws its controls first and computes after,
 with a progress bar.
 
+The failure table (``ui.failure_table``) lists every query a chosen method got wrong on the
+database/queries protocol's value (the traversals chosen above on aligned traversals), with
+the query, the method's answer and the true match as pictures; a selected row opens its query
+in the Query inspector.
+
+The automatic global θ is one number wherever the page shows it: the database/queries
+protocol's fit of the value, or for the paper and open-set protocols the mean of their runs' θ
+(``auto_theta.runs_auto_parts``: the trade-off's and the precision–recall's automatic point),
+always to three decimals. The precision–recall table tells the method's own threshold ("own
+at") from the point of its curve where F1 is largest ("max F1 at").
+
 The acceptance bench (``ui.bench``: every acceptance rule on one similarity matrix, the
 authors' table and precision–recall) has its own form, in its own expander, and runs only
 when its button is pressed.
@@ -33,16 +44,16 @@ import pandas as pd  # before plotly: plotly.py#2433
 import streamlit as st
 
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.method.auto_theta import auto_parts, rejects_all_note
+from vpr_explorer.method.auto_theta import auto_parts, rejects_all_note, runs_auto_parts
 from vpr_explorer.method.places import make_places, retrieval_places
 from vpr_explorer.protocols.cost import protocol_pairs
-from vpr_explorer.protocols.evaluation import PROTOCOL_LABELS, Protocol
+from vpr_explorer.protocols.evaluation import PROTOCOL_LABELS, Protocol, draw_splits
 from vpr_explorer.protocols.options import SEED, UNKNOWN_SHARE
 from vpr_explorer.views import plots
-from vpr_explorer.views.report import method_csv
+from vpr_explorer.views.report import at_text, method_csv
 from vpr_explorer.views.numbers import AUTO_RUN_PAIRS, evaluation_json, evaluation_rows
 
-from vpr_explorer.app.ui import bench as bench_ui, cache, runs as runs_ui, state
+from vpr_explorer.app.ui import bench as bench_ui, cache, failure_table, runs as runs_ui, state
 from vpr_explorer.app.ui.current import current
 from vpr_explorer.app.ui.feedback import PLACES_HINT, show_error, stop_on_input_error
 from vpr_explorer.app.ui.routing import ensure_routed, page_file
@@ -337,6 +348,7 @@ def value_to_run() -> cache.Loaded:
 
 
 results_box = st.container()  # filled last: the controls and the page show before anything is computed
+failures_box = st.container()
 runs_box = st.container()
 bench_box = st.container()
 st.subheader("Similarity matrix: click a cell to open that pair in the inspector")
@@ -389,10 +401,41 @@ def _column_config(table: pd.DataFrame, one_run: bool) -> dict:
     return config
 
 
+def theta_text(theta: float) -> str:
+    """A threshold as every part of the page writes it (the note, the tables, the legends): three decimals."""
+    return f"{theta:.3f}"
+
+
 # sampling up to 2·10⁶ training pairs: once per descriptors, places and seed, not on every rerun
 @st.cache_data(show_spinner=False, max_entries=8)
 def _auto_parts(key: str, places: tuple, seed: int, _descriptors: np.ndarray, _rows: np.ndarray):
     return auto_parts(_descriptors, seed=seed, rows=_rows)
+
+
+@st.cache_data(show_spinner=False, max_entries=8)
+def _runs_auto_parts(key: str, places: tuple, runs: int, seed: int, share: float | None, _descriptors: np.ndarray,
+                     _image_place: np.ndarray, n_places: int):
+    splits = draw_splits(_image_place, n_places, runs=runs, seed=seed, unknown_share=share)
+    return runs_auto_parts(_descriptors, [sp.train for sp in splits], seed=seed)
+
+
+def auto_theta_parts(ev, data: cache.Loaded | None):
+    """The automatic global θ the run ``ev`` used, and its median and MAD (``auto_theta.AutoParts``), and over what.
+
+    ``data``: the value the database/queries protocol ran on (its fit's θ); ``None`` for the paper
+    and open-set protocols (the mean of the runs' θ, ``auto_theta.runs_auto_parts``).
+    """
+    if data is not None:
+        place, _ = retrieval_places(data.dataset, cur.places.spec, cur.places.metric)
+        parts = _auto_parts(data.key, cache.places_key(cur.places), 0, data.descriptors, np.flatnonzero(place >= 0))
+        return parts, f"the database images in places ({' + '.join(sides(data)[0])})"
+    runs, seed = int(ev.settings.get("runs", settings.runs)), int(ev.settings.get("seed", settings.seed))
+    share = float(ev.settings.get("unknown_share", settings.share)) if ev.protocol is Protocol.OPEN_SET else None
+    parts = _runs_auto_parts(cur.source.key, cache.places_key(cur.places), runs, seed, share, cur.source.descriptors,
+                             places.image_place, places.n_places)
+    held = ", less the held-out places' images" if share is not None else ""
+    return parts, (f"each of the {runs} runs' training images (all place images but the run's queries{held}), "
+                   f"the mean of the runs' θ")
 
 
 def show_auto_note(ev, data: cache.Loaded | None) -> None:
@@ -403,18 +446,12 @@ def show_auto_note(ev, data: cache.Loaded | None) -> None:
     auto = next((r for r in ev.rows if r.key == "global-auto"), None)
     if auto is None or auto.accepted[0] > 0:
         return
-    if data is not None:
-        place, _ = retrieval_places(data.dataset, cur.places.spec, cur.places.metric)
-        descriptors, rows, seed = data, np.flatnonzero(place >= 0), 0
-        over = f"the database images in places ({' + '.join(sides(data)[0])})"
-    else:
-        descriptors, rows, seed = cur.source, np.flatnonzero(places.image_place >= 0), settings.seed
-        over = "all place images (each run's training images: all but its queries)"
-    parts = _auto_parts(descriptors.key, cache.places_key(cur.places), seed, descriptors.descriptors, rows)
+    parts, over = auto_theta_parts(ev, data)
     note = rejects_all_note(parts, over=over)
     if note is None:  # θ ≤ 1 but above every query's top score
-        note = (f"**global θ, automatic = {parts.theta:.3f}** (median {parts.median:.3f}, MAD {parts.mad:.3f} of "
-                f"the training similarities) is above every query's top score here, so it accepts no query.")
+        note = (f"**global θ, automatic = {theta_text(parts.theta)}** (median {parts.median:.3f}, MAD "
+                f"{parts.mad:.3f} of the training similarities) is above every query's top score here, so it "
+                "accepts no query.")
     st.warning(note, icon=":material/block:")
 
 
@@ -446,20 +483,30 @@ def show_pr(ev) -> None:
     rows = []
     for r in ev.pr:
         rows.append({"method": r.label, "curve": r.curve, "AUC": r.auc, "R@100P": 100 * r.r_at_100p,
-                     "R@99P": 100 * r.r_at_99p, "max F1": r.max_f1, "at θ or k": r.max_f1_at,
+                     "R@99P": 100 * r.r_at_99p, "max F1": r.max_f1, "max F1 at": at_text(r.max_f1_at, r.param),
+                     "own at": at_text(r.own.threshold, r.param),
                      "own P": 100 * r.own.precision if r.own.accepted else math.nan,
                      "own R": 100 * r.own.recall, "with a true match": r.n_known, "no true match": r.n_unknown})
     if not rows:
         st.caption("No curve: " + " ".join(n for n in ev.notes if "precision" in n))
         return
     table = pd.DataFrame(rows)
-    fmt = {"AUC": "{:.3f}", "max F1": "{:.3f}", "at θ or k": "{:+.3f}", "R@100P": "{:.1f}", "R@99P": "{:.1f}",
+    fmt = {"AUC": "{:.3f}", "max F1": "{:.3f}", "R@100P": "{:.1f}", "R@99P": "{:.1f}",
            "own P": "{:.1f}", "own R": "{:.1f}", "with a true match": "{:,}", "no true match": "{:,}"}
     st.dataframe(table.style.format(fmt, na_rep=MISSING), hide_index=True, key="pr_table", placeholder=MISSING,
                  column_config={
         "R@100P": st.column_config.NumberColumn("R@100P", help="recall at 100% precision, %"),
         "R@99P": st.column_config.NumberColumn("R@99P", help="recall at precision ≥ 99%, %"),
-        "own P": st.column_config.NumberColumn("own P", help="precision at the method's own θ, %"),
+        "max F1 at": st.column_config.TextColumn(
+            "max F1 at", help="Where on its curve the method's best F1 lies: the global θ (θ=…) on the global-θ and "
+                              "image-level curves, the k of θ_p(k) = θ_p + k·s_p (k=…) on the per-place curves. A "
+                              "point of the sweep, not the method's own threshold (that is 'own at')."),
+        "own at": st.column_config.TextColumn(
+            "own at", help="The method's own threshold, where 'own P' and 'own R' are counted: its global θ (the "
+                           "automatic θ of several runs: the mean of theirs), k=+0.00 for the per-place θ_p, "
+                           "'none' for a method that accepts every query."),
+        "own P": st.column_config.NumberColumn("own P", help="precision at the method's own θ, %; '—': it accepts "
+                                                             "no query, so there is no precision"),
         "own R": st.column_config.NumberColumn("own R", help="recall at the method's own θ, %"),
         "no true match": st.column_config.NumberColumn("no true match", help="queries of an unknown place, "
                                                        "summed over runs: each accepted one is a false positive"),
@@ -553,6 +600,53 @@ with results_box:
             if data is not None:
                 extra.update(zip(("database", "query"), sides(data)))
             runs_ui.keep(ev, extra=extra, pressed=submitted)
+
+# --------------------------------------------------------------------------- failures
+
+
+def _goto_inspector() -> None:
+    """A failure table's row was opened: the next run goes to the inspector (the top of the page)."""
+    st.session_state["goto_inspector"] = True
+
+
+def failures_caption(data: cache.Loaded) -> str:
+    """What the failure table decides, and where the inspector's value differs from it."""
+    d = data.dataset
+    db, q = sides(data)
+    text = (f"Each query of the database/queries value decided once, as the "
+            f"{PROTOCOL_LABELS[Protocol(VALUE_PROTOCOL)].split(':')[0]} protocol decides it: queries {q} "
+            f"({d.n_queries:,}) against {' + '.join(db)} ({d.n_database:,} images), thresholds fitted on its "
+            "database images in places.")
+    if protocol != VALUE_PROTOCOL:
+        text += (f" (The {PROTOCOL_LABELS[Protocol(protocol)].split(':')[0]} protocol above draws its queries at "
+                 "random in every run, so its failures are not one per query.)")
+    others = [t for t in TRAVERSALS if t != q]
+    if aligned is not None and (db != others or settings.tolerance):
+        text += (f" The Query inspector decides a query against every other traversal ({' + '.join(others)}), its "
+                 "own frame alone right: its answer there can differ from this table's.")
+    return text
+
+
+with failures_box:
+    st.subheader("Failures: every query a method got wrong")
+    try:
+        failed_on = value_to_run()
+    except VPRInputError as exc:
+        show_error(exc, hint="Change the traversals or the tolerance above.")
+    else:
+        st.caption(failures_caption(failed_on))
+        pairs = failed_on.dataset.n_queries * failed_on.dataset.n_database
+        started = st.session_state.get("eval_failures_started") == failed_on.key
+        if pairs > AUTO_RUN_PAIRS and not started:
+            st.info(f"Deciding every query scores {pairs:.1e} image pairs, so the failure table does not start by "
+                    "itself.", icon=":material/timer:")
+            if st.button("Find the failures", key="w_failures_start"):
+                st.session_state["eval_failures_started"] = failed_on.key
+                st.rerun()
+        else:
+            failure_table.show(failed_on, cur.places, key="eval_failures", user_theta=v.theta,
+                               query_traversal=sides(failed_on)[1] if aligned is not None else None,
+                               navigate=_goto_inspector)
 
 with runs_box:
     runs_ui.render()

@@ -246,7 +246,8 @@ def show_retrieval(ds: RetrievalDataset) -> None:
         shown = np.unique(np.linspace(0, len(paths) - 1, min(STRIP, len(paths))).round().astype(int))
         st.caption(f"**{label}**: images {', '.join(map(str, shown))} of {len(paths):,}")
         for col, i in zip(st.columns(len(shown)), shown):
-            col.image(cache.thumbnail(paths[i]), caption=Path(paths[i]).name[:28], width="stretch")
+            name = Path(paths[i]).name  # "@east@north@…@.jpg" names do not fit: the index, as the caption above
+            col.image(cache.thumbnail(paths[i]), caption=name if len(name) <= 28 else f"image {i}", width="stretch")
 
 
 def show_descriptors() -> None:

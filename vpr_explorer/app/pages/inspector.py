@@ -12,7 +12,9 @@ a query with none in a place lies between places (not scored), and one with no r
 at all is an unknown-place query (rejecting it is right, accepting it a false positive).
 The field's image-level answer (its most similar database image, over every one) is shown
 beside the place-level methods. The section "Every acceptance rule" runs the acceptance bench
-on demand and gives each of its rules' own reasons for the query (``ui.reasons``).
+on demand and gives each of its rules' own reasons for the query (``ui.reasons``). The section
+"Failures" lists every query a chosen method got wrong (``ui.failure_table``), at the page's k
+and global θ; a selected row opens its query here.
 """
 
 from pathlib import Path
@@ -38,7 +40,7 @@ from vpr_explorer.views.numbers import (
     walked,
 )
 
-from vpr_explorer.app.ui import cache, state
+from vpr_explorer.app.ui import cache, failure_table, state
 from vpr_explorer.app.ui.candidates import show_candidates
 from vpr_explorer.app.ui.controls import threshold_controls
 from vpr_explorer.app.ui.current import current
@@ -264,3 +266,8 @@ show_candidates(dec, methods, cands, describe, query_image=ds.query_paths[query]
                                           database_label(ds, int(model.images[i]))[:40]))
 
 show_reasons(cur, query)
+
+failures_box = st.expander("Failures: every query a method got wrong", key=failure_table.OPEN, on_change="rerun")
+with failures_box:
+    if failures_box.open:  # nothing of it runs while it is closed
+        failure_table.show(cur.data, cur.places, key="inspector_failures", k=k, user_theta=user_theta, opens="here")

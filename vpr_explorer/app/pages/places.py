@@ -12,7 +12,7 @@ import numpy as np
 import streamlit as st
 
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.method.places import READING_LABELS, PlaceSpec, Reading, frame_places, retrieval_places
+from vpr_explorer.method.places import PlaceSpec, Reading, frame_places, retrieval_places
 from vpr_explorer.views import plots
 from vpr_explorer.views.numbers import LIVE_METHODS
 
@@ -47,7 +47,7 @@ if cur.spec is not None:
     for col, reading in zip(st.columns(2), Reading):
         with col:
             in_use = reading is spec.reading
-            st.markdown(f"{READING_LABELS[reading]}{' — **in use**' if in_use else ''}")
+            st.markdown(f"{group_step.reading_label(reading, unit)}{' — **in use**' if in_use else ''}")
             try:
                 alt = PlaceSpec(spec.group, spec.step, reading)
                 n_places = retrieval_places(ds, alt)[1]

@@ -3,7 +3,9 @@
 ``place_controls`` draws what the dataset offers: a geometry radio where there are several,
 group/step sliders counting frames (aligned traversals) or database images in listed order,
 or group/step boxes in metres; nothing but a note where the layout fixes the places.
-Every change is checked (``retrieval_places``) before it replaces the view's.
+The readings of step are told in the unit group/step count (``reading_label``): frames,
+database images or metres. Every change is checked (``retrieval_places``) before it
+replaces the view's.
 
 In the stride reading places overlap when ``step < group``, so raising group above step is
 refused (the view keeps its places). Refusing alone leaves the user to guess that step must
@@ -20,7 +22,7 @@ import streamlit as st
 
 from vpr_explorer.data.layouts import RetrievalDataset
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.method.places import READING_LABELS, PlaceGeometry, Reading, retrieval_places
+from vpr_explorer.method.places import PlaceGeometry, Reading, retrieval_places
 from vpr_explorer.views.numbers import RetrievalPlaces, geometries, geometry_label
 
 from vpr_explorer.app.ui import state
@@ -105,6 +107,13 @@ def frame_unit(dataset: RetrievalDataset) -> str:
     return "frames" if dataset.n_frames else "database images"
 
 
+def reading_label(reading: Reading, unit: str) -> str:
+    """The reading of step in the unit group/step count (frames, database images or metres)."""
+    if reading is Reading.STRIDE:
+        return f"stride: a place starts every `step` {unit} (authors' code, paper's numbers)"
+    return f"skip: take `group` {unit}, skip the next `step` (paper's text)"
+
+
 def place_controls(dataset: RetrievalDataset, places: RetrievalPlaces) -> None:
     """Geometry, group/step (frames or metres) and reading, each checked before it replaces the view's."""
     ds = dataset
@@ -121,6 +130,7 @@ def place_controls(dataset: RetrievalDataset, places: RetrievalPlaces) -> None:
                  **state.bind("w_geometry", "geometry", places.geometry.value,
                               validate=lambda g: check(ds, places, geometry=g)))
     c1, c2, c3 = st.columns([2, 2, 3])
+    unit = frame_unit(ds) if places.spec is not None else "metres"
     if places.spec is not None:
         spec, n, what = places.spec, ds.n_frames or ds.n_database, frame_unit(ds)
 
@@ -148,5 +158,5 @@ def place_controls(dataset: RetrievalDataset, places: RetrievalPlaces) -> None:
                         **state.bind("w_step_m", "step_m", float(metric.step),
                                      validate=lambda x: check(ds, places, step_m=x)))
         reading = metric.reading
-    c3.radio("reading of step", [r.value for r in Reading], format_func=lambda r: READING_LABELS[Reading(r)],
+    c3.radio("reading of step", [r.value for r in Reading], format_func=lambda r: reading_label(Reading(r), unit),
              **state.bind("w_reading", "reading", reading.value, validate=lambda r: check(ds, places, reading=r)))

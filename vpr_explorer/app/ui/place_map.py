@@ -2,7 +2,9 @@
 
 Database images are drawn coloured by place (grey between places), the queries as markers,
 and one query (``view.frame``) with its positive radius, its positives and its candidate
-places; a click on a query selects it (the Query inspector then opens on it). For aligned
+places; the view opens on that query's neighbourhood (``maps.neighbourhood``). A click on a
+query selects it (the Query inspector then opens on it), and so does a click on a database
+dot that a query's cross lies on (``maps.picked_query``). For aligned
 traversals with positions the database images are the frames of the database traversals
 (one dot per traversal at each frame's position).
 """
@@ -43,7 +45,7 @@ def map_window(ds, fitted: RetrievalFitted, query: int, places: np.ndarray) -> n
 # every query is built once per (places, query, candidates), not on every rerun of the page
 @st.cache_resource(show_spinner=False, max_entries=4)
 def _map_figure(key: str, places: tuple, q: int, candidates: tuple, answer: int, _ds, _fitted):
-    """The map's figure and the database positions it draws (``map_window``; ``None``: all)."""
+    """The map's figure, the database positions it draws (``map_window``; ``None``: all) and its origin."""
     ds, fitted = _ds, _fitted
     positives = ds.ground_truth.positives(q)
     shown = map_window(ds, fitted, q, np.r_[candidates, [answer] if answer >= 0 else []].astype(np.int64))
@@ -55,7 +57,7 @@ def _map_figure(key: str, places: tuple, q: int, candidates: tuple, answer: int,
                           candidates=list(candidates), answer=answer,
                           title=f"{fitted.n_places} places; query {q}{' with its radius' if radius else ''} and its "
                                 f"{len(candidates)} best candidate places (outlined)")
-    return fig, shown
+    return fig, shown, maps.map_origin(db_xy, ds.query_xy)
 
 
 def render(cur: Current, fitted: RetrievalFitted) -> None:
@@ -77,20 +79,22 @@ def render(cur: Current, fitted: RetrievalFitted) -> None:
                 f"({ds.ground_truth.description}); right place(s): {right} ({fitted.query_status(q)}); the paper's "
                 f"method ({MAP_METHOD}) answers {'P' + str(answer) if answer >= 0 else 'nothing (rejected)'}.")
 
-    def pick() -> None:
-        points = st.session_state["layout_map"].selection.points
-        picked = [p.get("customdata") for p in points if isinstance(p.get("customdata"), (int, float))]
-        if picked:
-            state.update(frame=int(picked[0]))
+    fig, shown, origin = _map_figure(cur.data.key, cache.places_key(cur.places), q,
+                                     tuple(int(c) for c in candidates), int(answer), ds, fitted)
 
-    fig, shown = _map_figure(cur.data.key, cache.places_key(cur.places), q, tuple(int(c) for c in candidates),
-                             int(answer), ds, fitted)
+    def pick() -> None:
+        picked = maps.picked_query(st.session_state["layout_map"].selection.points, ds.query_xy, origin,
+                                   near=radius_of(ds))
+        if picked is not None and 0 <= picked < ds.n_queries:
+            state.update(frame=picked)
+
     st.plotly_chart(fig, key="layout_map", on_select=pick, selection_mode="points", width="stretch")
     st.caption("Coloured dots: database images, one colour per place (colours repeat); grey: database images "
                "between places (skipped by group/step); ×: queries; ★: the selected query, the dashed circle its "
                "radius, green rings its positives (for aligned traversals: the database frames at its frame); black outlines: its "
                "best candidate places by raw_p; red outline: the place the paper's method answered. Plain metres, no "
-               "map tiles."
+               "map tiles. The view opens on the selected query's neighbourhood: zoom out, or double-click the map, "
+               "for all of it. A click on a ×, or on a dot under one, selects that query."
                + ("" if shown is None else f" Of the {ds.n_database:,} database images the map draws the "
                   f"{MAP_DATABASE:,} nearest the selected query and its candidate places' ({len(shown):,} in all); "
                   "choose another query to move the window."))
