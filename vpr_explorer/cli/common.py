@@ -332,6 +332,27 @@ def retrieval_dataset(args: argparse.Namespace) -> RetrievalDataset | None:
     return dataset
 
 
+def value_descriptors(args: argparse.Namespace, value, descriptor: str):
+    """The value's descriptors (database rows first): extracted through the cache, or read from ``--descriptors``.
+
+    Returns:
+        ``(descriptors, name, source, notes)``: the ``(n_images, D)`` matrix, the descriptor's
+        name, the file's path and sha256 (empty for an extractor) and what reading the file noted.
+    """
+    from vpr_explorer.data.aligned import value_rows
+    from vpr_explorer.pipeline import dataset_descriptors, imported_descriptors
+
+    if args.descriptors is None:
+        desc = dataset_descriptors(value, descriptor, cache_root=args.cache_dir, progress=bar("descriptors"),
+                                   dtype=args.dtype)
+        return desc, descriptor, {}, ()
+    # a file lists the dataset's images ('vpr-explorer list'): aligned traversals' rows move to the value's order
+    owner = value if value.aligned is None else value.aligned
+    imp = imported_descriptors(owner, args.descriptors, names_file=args.names, dtype=args.dtype)
+    rows = value_rows(value) if value.aligned is not None else None
+    desc = imp.descriptors if rows is None else imp.descriptors[rows]
+    return desc, imp.name, imp.settings(), tuple(f"{args.descriptors.name}: {note}" for note in imp.notes)
+
 def write_text(path: Path | None, text: str, option: str) -> None:
     """Write ``text`` to ``path`` (nothing when None) and say so.
 
