@@ -99,7 +99,7 @@ def test_a_database_queries_layout_with_a_descriptor_file_in_a_real_browser(brow
         assert "ground truth: within 25 m" in body(page) and "0 with no right database image" in body(page)
         go(page, "Thresholds")  # one place's mixture, its database images and the queries right in it
         assert_no_exception(page, "thresholds")
-        assert "negative mixture, scores and thresholds" in body(page) and "(query, raw_p " in body(page)
+        assert "negative mixture, scores and thresholds" in body(page) and "(raw_p " in body(page)
 
         # Bad input: one message naming it, the app still usable.
         page.goto(f"{url}/?source={quote(str(dq_root))}&descriptors={quote(str(tmp_path / 'nope.npz'))}")

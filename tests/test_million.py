@@ -387,7 +387,9 @@ def test_the_app_walks_a_memory_mapped_database(tmp_path, monkeypatch):
     at.selectbox(key="w_place").set_value(7).run()
     assert_clean(at)
     detail = rv.place_detail(f, mm, 7)
-    assert any(f"**Place 7**: {len(detail.images)} database images and {len(detail.query_images)} queries" in m.value
+    n_db, n_q = len(detail.images), len(detail.query_images)
+    assert any(f"**P7**: {n_db:,} database image{'s' * (n_db != 1)} and {n_q:,} quer{'ies' if n_q != 1 else 'y'}"
+               in m.value
                for m in at.markdown)
     above = detail.share_negatives_above(detail.theta["weighted"])
     assert metric(at, "negative scores ≥ θ_p weighted") == f"{above:.0%}"
