@@ -485,7 +485,14 @@ def run_bench(similarity: np.ndarray, database: np.ndarray, hard: np.ndarray, *,
     wanted = [r for r in RULES if options.rules is None or r.key in options.rules]
     left_out: dict[str, str] = {}
     rows = np.arange(nq)
-    image_rank = pessimistic_rank(s.astype(np.float64), hard)
+    ranks: dict[str, np.ndarray] = {}
+
+    def image_rank() -> np.ndarray:
+        """The image ranking's pessimistic rank, computed once, for the rules that read it."""
+        if "image" not in ranks:
+            ranks["image"] = pessimistic_rank(s.astype(np.float64), hard)
+        return ranks["image"]
+
     out: dict[str, RuleDecisions] = {}
 
     fit = None
@@ -525,7 +532,7 @@ def run_bench(similarity: np.ndarray, database: np.ndarray, hard: np.ndarray, *,
             continue
         key = rule.key
         if key == "baseline":
-            out[key] = _own(rule, top, np.ones(nq, dtype=bool), image_rank, top_sim,
+            out[key] = _own(rule, top, np.ones(nq, dtype=bool), image_rank(), top_sim,
                             _curve(top_sim, hard[rows, top], counted, genuine), {"score": top_sim})
         elif key in ("per-place", "per-place-k"):
             in_place = np.flatnonzero(fit.labels >= 0)
@@ -584,7 +591,7 @@ def run_bench(similarity: np.ndarray, database: np.ndarray, hard: np.ndarray, *,
             ms = {"top1-distance": lambda: top1_distance(s), "pa-ratio": lambda: pa_ratio(s),
                   "sue": lambda: sue(s, database_xy, k=options.sue_k)}[key]()
             conf = np.where(np.isfinite(ms.score), -ms.score, -np.inf)
-            out[key] = _gated(rule, ms.top1, conf, image_rank, hard, genuine, counted, options.taus,
+            out[key] = _gated(rule, ms.top1, conf, image_rank(), hard, genuine, counted, options.taus,
                               {"score": ms.score}, ms)
     counts = {k: authors_counts(d.answer, d.accepted, hard, genuine, counted) for k, d in out.items()}
     recall = {k: {kk: d.recall_at(kk, genuine & counted) for kk in options.ks} for k, d in out.items()}

@@ -50,7 +50,6 @@ when it is one route in order, and otherwise the reason.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 from dataclasses import asdict, dataclass, replace
@@ -472,11 +471,6 @@ def parse_values(parameter: Parameter, text: str, places: PlaceSpec | MetricPlac
     return tuple(out)
 
 
-def _options_key(options: BenchOptions) -> tuple:
-    """``options`` as plain values (what Streamlit hashes), as ``cache.bench`` keys them."""
-    return tuple((f.name, repr(getattr(options, f.name))) for f in dataclasses.fields(options))
-
-
 # the rules that read the parameter once per value, the others once (Nordland: 14 s for ds=4,6,10,20)
 @st.cache_resource(show_spinner=False, max_entries=8)
 def _sweep(key: str, places: tuple, options: tuple, parameter: str, values: tuple, _data: cache.Loaded,
@@ -498,7 +492,7 @@ def bench_sweep(value: cache.Loaded, places: RetrievalPlaces, options: BenchOpti
     p = Parameter(parameter)
     with st.spinner(f"Varying {p} over {len(values)} value{'s' * (len(values) != 1)}: the rules that read it run "
                     "once per value (Nordland: 4–8 s a value)…"):
-        return _sweep(value.key, cache.places_key(places), _options_key(options), p.value, tuple(values), value,
+        return _sweep(value.key, cache.places_key(places), cache.options_key(options), p.value, tuple(values), value,
                       places, options)
 
 

@@ -619,5 +619,9 @@ def bench(data: Loaded, places: RetrievalPlaces, options: BenchOptions) -> Accep
         places: the group/step places of the per-place rules (unless ``options.places`` is discovered).
         options: the bench's choices.
     """
-    key = tuple((f.name, repr(getattr(options, f.name))) for f in dataclasses.fields(options))
-    return _bench(data.key, places_key(places), key, data, options)
+    return _bench(data.key, places_key(places), options_key(options), data, options)
+
+
+def options_key(options: BenchOptions) -> tuple:
+    """The bench's options as plain values, what Streamlit hashes for a cache key (``taus`` is a mapping)."""
+    return tuple((f.name, repr(getattr(options, f.name))) for f in dataclasses.fields(options))
