@@ -152,9 +152,11 @@ def loop_protocol(d, labels, trav, n_places, splits, *, cross_condition=False, k
                 "rejection": np.mean(~acc[~known]) if (~known).any() else np.nan,
             })
 
-    def stat(values):
+    def stat(values):  # the sample std (ddof 1) over the splits; one split has none
         a = np.array([v for v in values if not np.isnan(v)])
-        return (a.mean(), a.std()) if a.size else (np.nan, np.nan)
+        if not a.size:
+            return (np.nan, np.nan)
+        return (a.mean(), a.std(ddof=1) if a.size > 1 else np.nan)
 
     return {
         key: {

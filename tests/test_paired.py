@@ -252,8 +252,9 @@ def test_per_split_values_are_what_the_means_summarise(gp_runs):
                 s = r.summary(metric, row.key)
                 assert s.mean == r.value(metric, row.key)  # exactly the mean the row reports
                 assert s.std == pytest.approx(np.std(values[np.isfinite(values)], ddof=1), abs=1e-15)
-            # the row's own std is the population one (ddof 0): the comparison restates it with ddof 1
-            assert row.recall[1][1] == pytest.approx(np.std(row.per_split["recall@1"], ddof=0), abs=1e-15)
+            # one convention: the row's own std is the sample std (ddof 1), as the comparison's
+            assert row.recall[1][1] == pytest.approx(np.std(row.per_split["recall@1"], ddof=1), abs=1e-15)
+            assert row.recall[1][1] == pytest.approx(r.summary("R@1", row.key).std, abs=1e-15)
 
 
 @pytest.mark.realdata

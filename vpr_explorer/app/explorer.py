@@ -34,14 +34,15 @@ def run() -> None:
     goto = routing.pending_page()
     if goto in pages:
         st.switch_page(pages[goto], query_params={k: st.query_params[k] for k in st.query_params})
+    name = next((n for n, p in pages.items() if p is page), None)
     sidebar.render()
-    state.sync_url()
+    state.sync_url(name)
     st.session_state[routing.ROUTED] = True
     try:
         page.run()
     finally:
         st.session_state[routing.ROUTED] = False
-        state.sync_url()  # the page may have changed the view (a click, a slider)
+        state.sync_url(name)  # the page may have changed the view (a click, a slider)
 
 
 if __name__ == "__main__":  # Streamlit runs the entry script as __main__, on every rerun

@@ -53,6 +53,7 @@ import math
 import re
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -213,6 +214,79 @@ def record(ev: Evaluation, *, run_id: str, name: str | None = None,
 
 
 # --------------------------------------------------------------------------- the list
+
+
+#: The largest runs file read (a bench of many datasets × descriptors writes a few MB).
+MAX_RUN_FILE_BYTES = 64 * 2**20
+
+
+def read_run_file(path: Path) -> tuple[list[RunRecord], list[str]]:
+    """The runs of a file, to keep beside the session's: a runs export (``runs_json``, the Evaluation page's
+    **Download runs (JSON)**) or the ``results.json`` of ``vpr-explorer bench`` (one run per cell that ran).
+
+    Each record keeps the file's name and settings (a bench cell: ``dataset · descriptor · protocol``, its
+    evaluation's settings with the descriptor); its id is empty: ``add_runs`` gives each one. A bench cell that
+    failed has no numbers: it is left out and said in the notes, as are cells and runs already in the file twice.
+    JSON only, nothing in it is executed.
+
+    Raises:
+        VPRInputError: the file cannot be read, is too large, is not JSON, or is neither kind of file (naming it).
+    """
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        if size > MAX_RUN_FILE_BYTES:
+            raise VPRInputError(f"{path}: {size / 2**20:.0f} MiB, more than a runs file holds "
+                                f"({MAX_RUN_FILE_BYTES // 2**20} MiB): open a runs .json or a bench's results.json")
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise VPRInputError(f"{path}: cannot be read ({exc}); give a runs .json or a bench's results.json") from None
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise VPRInputError(f"{path}: not JSON ({exc}); give a runs .json or a bench's results.json") from None
+    notes: list[str] = []
+    found: list[RunRecord] = []
+    try:
+        if isinstance(data, dict) and isinstance(data.get("runs"), list):
+            for r in data["runs"]:
+                found.append(RunRecord("", str(r["name"]), dict(r["settings"]), Evaluation.from_dict(r["evaluation"]),
+                                       bool(r.get("pinned", False))))
+        elif isinstance(data, dict) and isinstance(data.get("cells"), list) and "settings" in data:
+            for c in data["cells"]:
+                where = f"{c['dataset']} · {c['descriptor']} · {c.get('protocol') or '—'}"
+                if c.get("evaluation") is None:
+                    notes.append(f"{where}: failed in the bench ({c.get('error')}), no numbers to show")
+                    continue
+                ev = Evaluation.from_dict(c["evaluation"])
+                found.append(RunRecord("", where, run_settings(ev, {"descriptor": c["descriptor"]}), ev))
+        else:
+            raise VPRInputError(f"{path}: neither a runs export (a 'runs' list) nor a bench's results.json "
+                                "(a 'cells' list): give the file the Evaluation page's Download runs (JSON) or "
+                                "vpr-explorer bench --out writes")
+    except (KeyError, TypeError, AttributeError) as exc:
+        raise VPRInputError(f"{path}: a run in it lacks {exc} or holds the wrong kind of value; give the file as "
+                            "vpr-explorer wrote it") from None
+    except VPRInputError as exc:
+        if str(exc).startswith(str(path)):
+            raise
+        raise VPRInputError(f"{path}: {exc}") from None
+    return found, notes
+
+
+def add_runs(runs: Sequence[RunRecord], new: Iterable[RunRecord], issued: int) -> tuple[tuple[RunRecord, ...], int]:
+    """``runs`` with each of ``new`` added by ``add_run`` under a fresh id (``next_id``), and the last number issued.
+
+    A run whose settings a kept run has is not added again.
+    """
+    out = tuple(runs)
+    for r in new:
+        if find_run(out, r.settings) is not None:
+            continue
+        run_id = next_id(out, issued)
+        issued = int(run_id.split()[-1])
+        out = add_run(out, dataclasses.replace(r, id=run_id))
+    return out, issued
 
 
 def _find(runs: Sequence[RunRecord], run_id: str) -> int:

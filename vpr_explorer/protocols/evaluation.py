@@ -90,15 +90,16 @@ PROTOCOL_LABELS = {
     Protocol.DATABASE: "database/queries: a benchmark's database against its queries, ground truth as given",
 }
 
-Stat = tuple[float, float]  # (mean, std) over runs
+Stat = tuple[float, float]  # (mean, sample std with ddof 1) over runs; std NaN for one run
 
 
 def _mean_std(values: Sequence[float]) -> Stat:
+    """Mean and sample std (ddof 1, ``paired.summary``'s convention) of the finite values; one value has no std (NaN)."""
     a = np.asarray(values, dtype=np.float64)
     a = a[np.isfinite(a)]
     if a.size == 0:
         return (float("nan"), float("nan"))
-    return (float(a.mean()), float(a.std()))
+    return (float(a.mean()), float(a.std(ddof=1)) if a.size > 1 else float("nan"))
 
 
 @dataclass(frozen=True)
@@ -193,18 +194,68 @@ class Evaluation:
                     "recall": {str(k): stat(v) for k, v in r.recall.items()},
                     "accepted": stat(r.accepted), "precision": stat(r.precision),
                     "own_traversal_top1": stat(r.own_traversal), "unknown_rejection": stat(r.unknown_rejection),
+                    "per_split": {name: [num(x) for x in values] for name, values in r.per_split.items()},
                 }
                 for r in self.rows
             ],
             "tradeoff": [
                 {"series": t.series, "rule": t.rule, "param": num(t.param),
-                 **{f: stat(getattr(t, f)) for f in ("known_recall1", "unknown_rejection", "precision", "accepted")}}
+                 **{f: stat(getattr(t, f)) for f in ("known_recall1", "unknown_rejection", "precision", "accepted")},
+                 "per_split": {name: [num(x) for x in values] for name, values in t.per_split.items()}}
                 for t in self.tradeoff
             ],
             "notes": list(self.notes),
             **({"pr": [r.to_dict() for r in self.pr],
                 "pr_curves": {name: c.to_dict() for name, c in self.pr_curves.items()}} if self.pr else {}),
         }
+
+    @classmethod
+    def from_dict(cls, data: Mapping) -> Evaluation:
+        """``to_dict`` back: every number as written (``None`` as NaN); the curves where ``data`` holds them.
+
+        Raises:
+            VPRInputError: ``data`` is not an evaluation written by ``to_dict`` (naming the first field that is
+                missing or of the wrong kind).
+        """
+        try:
+            return _evaluation_from_dict(data)
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise VPRInputError(f"not an evaluation written by vpr-explorer ({type(exc).__name__}: {exc})") from None
+
+
+def _from_num(x) -> float:
+    return math.nan if x is None else float(x)
+
+
+def _from_stat(s) -> Stat | None:
+    return None if s is None else (_from_num(s["mean"]), _from_num(s["std"]))
+
+
+def _from_splits(d: Mapping) -> dict[str, tuple[float, ...]]:
+    return {str(name): tuple(_from_num(x) for x in values) for name, values in d.items()}
+
+
+def _evaluation_from_dict(data: Mapping) -> Evaluation:
+    rows = tuple(
+        MethodRow(key=str(m["key"]), label=str(m["label"]), source=str(m["source"]),
+                  recall={int(k): _from_stat(v) for k, v in m["recall"].items()},
+                  accepted=_from_stat(m["accepted"]), precision=_from_stat(m["precision"]),
+                  own_traversal=_from_stat(m.get("own_traversal_top1")),
+                  unknown_rejection=_from_stat(m.get("unknown_rejection")),
+                  per_split=_from_splits(m.get("per_split", {})))
+        for m in data["methods"])
+    tradeoff = tuple(
+        TradeoffRow(series=str(t["series"]), rule=str(t["rule"]), param=_from_num(t["param"]),
+                    **{f: _from_stat(t[f]) for f in ("known_recall1", "unknown_rejection", "precision", "accepted")},
+                    per_split=_from_splits(t.get("per_split", {})))
+        for t in data.get("tradeoff", ()))
+    return Evaluation(
+        protocol=Protocol(data["protocol"]), settings=dict(data["settings"]), ks=tuple(int(k) for k in data["ks"]),
+        rows=rows, tradeoff=tradeoff, notes=tuple(str(n) for n in data.get("notes", ())),
+        seconds=float(data.get("seconds") or 0.0),
+        pr=tuple(PRRow.from_dict(r) for r in data.get("pr", ())),
+        pr_curves={str(name): PRCurve.from_dict(c) for name, c in (data.get("pr_curves") or {}).items()},
+    )
 
 
 def strict(x):

@@ -121,6 +121,12 @@ class PRPoint:
         return {"threshold": _num(self.threshold), "precision": _num(self.precision), "recall": _num(self.recall),
                 "tp": self.tp, "accepted": self.accepted, "n_known": self.n_known, "n_unknown": self.n_unknown}
 
+    @classmethod
+    def from_dict(cls, d: Mapping) -> PRPoint:
+        """``to_dict`` back (a ``None`` threshold, written for ±inf or NaN, as NaN)."""
+        return cls(_from_num(d["threshold"]), int(d["tp"]), int(d["accepted"]), int(d["n_known"]),
+                   int(d["n_unknown"]))
+
 
 @dataclass(frozen=True, eq=False)
 class PRCurve:
@@ -192,11 +198,29 @@ class PRCurve:
             "threshold": [_num(x) for x in self.threshold[idx]],
             "precision": [_num(x) for x in self.precision[idx]],
             "recall": [_num(x) for x in self.recall[idx]],
+            "tp": [int(x) for x in self.tp[idx]], "accepted": [int(x) for x in self.accepted[idx]],
         }
+
+    @classmethod
+    def from_dict(cls, d: Mapping) -> PRCurve:
+        """``to_dict`` back: its points (every point, or the thinned ones it kept) and its summaries as written.
+
+        The start point's threshold (``None`` in JSON) is +inf again; another ``None`` threshold is NaN.
+        """
+        threshold = np.array([_from_num(x) for x in d["threshold"]], dtype=np.float64)
+        if len(threshold) and np.isnan(threshold[0]):
+            threshold[0] = np.inf
+        return cls(str(d["param"]), threshold, np.asarray(d["tp"], dtype=np.int64),
+                   np.asarray(d["accepted"], dtype=np.int64), int(d["n_known"]), int(d["n_unknown"]),
+                   *(_from_num(d[k]) for k in ("auc", "r_at_100p", "r_at_99p", "max_f1", "max_f1_threshold")))
 
 
 def _num(x) -> float | None:
     return float(x) if x is not None and np.isfinite(x) else None
+
+
+def _from_num(x) -> float:
+    return math.nan if x is None else float(x)
 
 
 def _thin(n: int, max_points: int, keep: Sequence[int] = ()) -> np.ndarray:
@@ -599,6 +623,13 @@ class PRRow:
                 "auc": _num(self.auc), "r_at_100p": _num(self.r_at_100p), "r_at_99p": _num(self.r_at_99p),
                 "max_f1": _num(self.max_f1), "max_f1_at": _num(self.max_f1_at), "own": self.own.to_dict(),
                 "n_known": self.n_known, "n_unknown": self.n_unknown}
+
+    @classmethod
+    def from_dict(cls, d: Mapping) -> PRRow:
+        """``to_dict`` back (``None`` as NaN)."""
+        return cls(str(d["key"]), str(d["label"]), str(d["curve"]), str(d["param"]),
+                   *(_from_num(d[k]) for k in ("auc", "r_at_100p", "r_at_99p", "max_f1", "max_f1_at")),
+                   PRPoint.from_dict(d["own"]), int(d["n_known"]), int(d["n_unknown"]))
 
 
 IMAGE_CURVE = "image-level top score"

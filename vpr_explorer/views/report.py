@@ -13,7 +13,9 @@ def _pct(stat, with_std: bool = True) -> str:
     if stat is None or math.isnan(stat[0]):
         return "—"
     mean, std = stat
-    return f"{100 * mean:5.1f} ± {100 * std:4.1f}" if with_std else f"{100 * mean:5.1f}"
+    if not with_std:
+        return f"{100 * mean:5.1f}"
+    return f"{100 * mean:5.1f} ± " + (f"{100 * std:4.1f}" if math.isfinite(std) else "   —")
 
 
 def _grid(header: list[str], rows: list[list[str]]) -> str:

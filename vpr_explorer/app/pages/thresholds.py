@@ -15,7 +15,7 @@ from vpr_explorer.data.layouts import RetrievalDataset
 from vpr_explorer.method.stats import SIGMA_FLOOR
 from vpr_explorer.method.thresholds import THRESHOLD_LABELS, ThresholdMethod
 from vpr_explorer.views import plots
-from vpr_explorer.views.numbers import database_label, query_label
+from vpr_explorer.views.numbers import thumbnail_label
 
 from vpr_explorer.app.ui import cache, state
 from vpr_explorer.app.ui.controls import threshold_controls
@@ -28,7 +28,6 @@ ensure_routed(__file__)
 # images shown per row (one row per database traversal, one for the queries); a bigger place says how many more
 THUMBNAILS = 8
 # a word longer than this cannot wrap under a thumbnail and is cut off (e.g. "@east@north@…@.jpg"): the index instead
-NAME_CHARS = 24
 
 
 def share(x: float) -> str:
@@ -49,20 +48,16 @@ def count(n: int, one: str, many: str) -> str:
 def image_caption(dataset: RetrievalDataset, image: int, raw: float = float("nan")) -> str:
     """A thumbnail's caption for dataset image ``image`` (database positions first, then ``n_database`` + query).
 
-    "<traversal> · frame N (database)" or "<file name> (database)", as the other pages name
-    images, and "… (query, raw_p R)" for a query; a name with a word longer than
-    ``NAME_CHARS`` (it would be cut off under the thumbnail) gives way to "database image N" /
-    "query N (raw_p R)", the indices the map and the inspector use.
+    ``thumbnail_label`` with "(database)", or "(query, raw_p R)" for a query: "<traversal> ·
+    frame N (database)", "<file name> (database)", or "database image N" / "query N (raw_p R)"
+    where the name would be cut off under the thumbnail.
     """
-    def fits(label: str) -> bool:
-        return max(map(len, label.split()), default=0) <= NAME_CHARS
-
     if image < dataset.n_database:
-        label = database_label(dataset, image)
-        return f"{label} (database)" if fits(label) else f"database image {image}"
+        label = thumbnail_label(dataset, image)
+        return label if label.startswith("database image") else f"{label} (database)"
     q = image - dataset.n_database
-    label = query_label(dataset, q)
-    return f"{label} (query, raw_p {number(raw)})" if fits(label) else f"query {q} (raw_p {number(raw)})"
+    label = thumbnail_label(dataset, q, query=True)
+    return f"{label} (raw_p {number(raw)})" if label == f"query {q}" else f"{label} (query, raw_p {number(raw)})"
 
 
 # the figure bins the place's negative scores (millions on a large database): built once per setting
@@ -101,6 +96,31 @@ def pick_from_overview() -> None:
         state.update(place=int(points[0]["customdata"]))
 
 
+METHOD_CHOICES = [m.value for m in ThresholdMethod]
+#: "θ_p(k) built on" in the URL (the page's own parameter), left out at its default
+METHOD_PARAM, METHOD_DEFAULT = "thresholds_method", ThresholdMethod.WEIGHTED.value
+
+
+def method_from_url() -> str:
+    """The link's ``thresholds_method`` on a session's first look at the page; a refused one is said and dropped."""
+    given = state.page_params().get(METHOD_PARAM, METHOD_DEFAULT)
+    if given not in METHOD_CHOICES:
+        st.warning(f"{METHOD_PARAM}={given!r}: choose {' or '.join(METHOD_CHOICES)}; using {METHOD_DEFAULT}.",
+                   icon=":material/warning:")
+        state.set_page_params(**{METHOD_PARAM: None})
+        return METHOD_DEFAULT
+    return given
+
+
+def keep_method() -> None:
+    value = st.session_state["w_method"]
+    state.set_page_params(**{METHOD_PARAM: None if value == METHOD_DEFAULT else value})
+
+
+if "w_method" not in st.session_state:
+    st.session_state["w_method"] = method_from_url()
+
+
 def pick_by_rank() -> None:
     state.update(place=int(order[st.session_state["w_place_rank"] - 1]))
 
@@ -114,7 +134,7 @@ with controls:
                       "place's weighted θ_p. Type a place's number to find it, walk the places in θ_p order with "
                       "the rank slider under the overview, or click a place in the overview.",
                  **state.bind("w_place", "place", place))
-    st.radio("θ_p(k) built on", [m.value for m in ThresholdMethod], index=1, horizontal=True, key="w_method",
+    st.radio("θ_p(k) built on", METHOD_CHOICES, horizontal=True, key="w_method", on_change=keep_method,
              format_func=lambda m: f"θ_p {m}",
              help="Which θ_p the family θ_p(k) = θ_p + k·s_p starts from: **simple** is the plain mean of the "
                   "place's negative means μᵢ; **weighted** (the paper's eq. 4, normalised) weights each μᵢ by "
@@ -134,7 +154,7 @@ with overview:
 
 with stop_on_input_error(hint=PLACES_HINT):
     d = cache.detail(cur.data, cur.places, place)
-method = st.session_state.get("w_method", ThresholdMethod.WEIGHTED.value)
+method = st.session_state["w_method"]
 theta_k = d.theta_k(k, method)
 
 fig_col, img_col = st.columns([5, 3])

@@ -1,7 +1,13 @@
 """Runs side by side on the Evaluation page: every run kept while the app is open, pinned, renamed, compared.
 
 The list lives in ``st.session_state`` (one browser session's runs; a reload starts a new
-list) as ``compare.RunRecord`` s; everything numeric is ``vpr_explorer.protocols.compare``
+list) as ``compare.RunRecord`` s. Runs from a file join it: a runs export (**Download runs
+(JSON)**) or a ``vpr-explorer bench`` folder's ``bench.json``, under the app's data root
+(``compare.read_run_file``). The link keeps the file (``eval_runs_file``) and the comparison's
+choices (``eval_compare``, ``eval_compare_ref``, ``eval_compare_metrics``,
+``eval_compare_methods``): a session opened from it reads the file again and compares the
+same runs. Runs computed in a session are not in its link (their results are not in a URL);
+a link naming one says so. everything numeric is ``vpr_explorer.protocols.compare``
 (means, mean ± std and 95% intervals over splits, paired or Welch differences:
 ``protocols.paired``) and ``compare_plots``: this module only draws widgets around them.
 A table's cells hold the numbers (means, differences of means) and show their text
@@ -16,6 +22,7 @@ import numpy as np
 import pandas as pd  # before plotly: plotly.py#2433
 import streamlit as st
 
+from vpr_explorer.app.ui import state
 from vpr_explorer.protocols import compare
 from vpr_explorer.protocols import paired
 from vpr_explorer.views import compare_plots
@@ -78,6 +85,80 @@ def _act(action: str) -> None:
     except (VPRInputError, StopIteration) as exc:
         ss["runs_rejected"] = str(exc) or f"no run {run_id!r}"
     ss.pop("w_run_name_for", None)  # the name field shows the run's (new) name again
+
+
+#: The runs file in the link (the page's own parameter).
+FILE_PARAM = "eval_runs_file"
+#: The comparison's widgets and their parameters in the link (values joined by ``,``).
+SELECTION_PARAMS = {"w_compare_runs": "eval_compare", "w_compare_ref": "eval_compare_ref",
+                    "w_compare_metrics": "eval_compare_metrics", "w_compare_methods": "eval_compare_methods"}
+_FROM_URL = "eval_compare_from_url"  # the link's choices are applied once per session
+_FILE_READ = "eval_runs_file_read"  # the file the session has read (a link reads its file once)
+_SEP = ","
+
+
+def open_file(text: str) -> bool:
+    """Read a runs file typed or linked (under the data root) into the session's runs; keep it in the link.
+
+    A refusal (outside the data root, unreadable, not a runs file) is kept for ``render`` to show.
+    """
+    from vpr_explorer.app import OutsideDataRoot, under_data_root
+
+    ss = st.session_state
+    try:
+        path = under_data_root(text.strip(), what="runs file")
+        found, notes = compare.read_run_file(path)
+    except (OutsideDataRoot, VPRInputError) as exc:
+        ss["runs_rejected"] = str(exc)
+        return False
+    ss[_KEY], ss[_ISSUED] = compare.add_runs(kept(), found, ss.get(_ISSUED, 0))
+    ss[_FILE_READ] = str(path)
+    ss["runs_file_notes"] = [f"{len(found)} run{'s' * (len(found) != 1)} read from {path}", *notes]
+    state.set_page_params(**{FILE_PARAM: str(path)})
+    return True
+
+
+def _open_typed() -> None:
+    text = st.session_state.get("w_runs_file", "").strip()
+    if text:
+        open_file(text)
+
+
+def _from_link() -> None:
+    """On a session's first look: read the link's runs file, then its comparison choices (seeded once)."""
+    ss = st.session_state
+    params = state.page_params()
+    linked = params.get(FILE_PARAM)
+    if linked and _FILE_READ not in ss:
+        ss[_FILE_READ] = linked
+        if not open_file(linked):
+            state.set_page_params(**{FILE_PARAM: None})
+    if _FROM_URL in ss:
+        return
+    ss[_FROM_URL] = True
+    ids = {r.id for r in kept()}
+    for widget, param in SELECTION_PARAMS.items():
+        if param not in params:
+            continue
+        values = [v for v in params[param].split(_SEP) if v]
+        if widget in ("w_compare_runs", "w_compare_ref"):
+            unknown = [v for v in values if v not in ids]
+            if unknown:
+                ss.setdefault("runs_link_notes", []).append(
+                    f"{param}={params[param]!r}: {', '.join(unknown)} {'is' if len(unknown) == 1 else 'are'} not "
+                    "among this session's runs. Runs computed in a session are not in its link: download them "
+                    "(JSON), put the file under the data root and open it below; its link then reopens them.")
+            values = [v for v in values if v in ids]
+        ss[widget] = values[0] if widget == "w_compare_ref" and values else values
+        if widget == "w_compare_ref" and not values:
+            ss.pop(widget, None)
+
+
+def _to_link() -> None:
+    """The comparison's choices into the link (``state.sync_url`` writes it)."""
+    ss = st.session_state
+    state.set_page_params(**{param: (_SEP.join(ss[w]) if isinstance(ss[w], list) else ss[w]) if ss.get(w) else None
+                             for w, param in SELECTION_PARAMS.items()})
 
 
 #: What a cell with nothing to count shows (Streamlit's default is "None").
@@ -146,16 +227,28 @@ def _method_difference(compared: list[compare.RunRecord], metrics: list[str], me
 def render() -> None:
     """The section: the kept runs with their settings, a manager, a comparison table, overlaid curves, exports."""
     st.subheader("Runs side by side")
+    _from_link()
+    c = st.columns([5, 1], vertical_alignment="bottom")
+    c[0].text_input("Open runs from a file", key="w_runs_file", on_change=_open_typed,
+                    placeholder="runs.json or a bench folder's bench.json, under the data root",
+                    help="A runs export (Download runs (JSON) below) or the bench.json that vpr-explorer bench "
+                         "writes: its runs join this list, and the link keeps the file.")
+    c[1].button("Open", key="w_runs_file_open", on_click=_open_typed)
+    message = st.session_state.pop("runs_rejected", None)
+    if message:
+        st.error(message, icon=":material/error:")
+    for note in st.session_state.pop("runs_file_notes", []):
+        st.caption(note)
+    for note in st.session_state.pop("runs_link_notes", []):
+        st.warning(note, icon=":material/link_off:")
     runs = kept()
     if not runs:
         st.caption("Every run shown above is kept here while the app is open, to compare descriptors, readings, "
                    "cross-condition on/off or tolerance on the same data.")
         return
-    st.caption(f"Every run made while the app is open, settings and results ({len(runs)} kept; the oldest unpinned "
-               f"ones go beyond {compare.MAX_RUNS}, pinned ones stay). The settings that differ come first.")
-    message = st.session_state.pop("runs_rejected", None)
-    if message:
-        st.error(message, icon=":material/error:")
+    st.caption(f"Every run made while the app is open or read from a file, settings and results ({len(runs)} kept; "
+               f"the oldest unpinned ones go beyond {compare.MAX_RUNS}, pinned ones stay). The settings that differ "
+               "come first.")
     rows = [{k: x if k == "pinned" else (None if x is None else str(x)) for k, x in row.items()}
             for row in compare.settings_rows(runs)]  # as given: 20 stays "20" beside a run without runs
     st.dataframe(pd.DataFrame(rows), hide_index=True, key="runs_table", width="stretch", placeholder=MISSING,
@@ -184,6 +277,7 @@ def render() -> None:
     chosen = c[0].multiselect("compare runs", ids, format_func=lambda i: names[i], key="w_compare_runs")
     compared = [r for r in runs if r.id in chosen]
     if not compared:
+        _to_link()
         st.caption("Choose runs to compare.")
         return
     if ss.get("w_compare_ref") not in chosen:
@@ -198,6 +292,7 @@ def render() -> None:
     default_methods = [m for m in ("place-baseline", "margin-weighted", "raw-weighted", "global-auto") if m in methods]
     ss["w_compare_methods"] = [m for m in ss.get("w_compare_methods", default_methods) if m in methods]
     keys = c[1].multiselect("methods", methods, key="w_compare_methods", format_func=lambda k: METHODS_BY_KEY[k].label)
+    _to_link()
     if metrics and keys:
         rows = compare.metric_table(compared, metrics, methods=keys, reference=ref)
         texts = [_texts(row) for row in compare.metric_stats(compared, metrics, methods=keys, reference=ref)]

@@ -31,7 +31,7 @@ def render() -> None:
         descriptor = f"`{v.descriptor}`" + ("" if v.descriptors is None else f" (file `{v.descriptors}`)")
         st.caption(f"dataset: `{source}`{layout}{radius}  \ndescriptor: {descriptor}  \nplaces: {_places(v)}  \n"
                    f"queries: `{v.query or 'default'}`")
-        st.caption("The address bar holds this view: copy it to share it.")
+        st.caption("The address bar holds this page's view: copy it to share it.")
         ignored = st.session_state.pop("url_ignored", None)
         if ignored:
             st.warning("Ignored in the link:\n\n" + "\n".join(f"- {why}" for why in ignored), icon=":material/warning:")

@@ -269,10 +269,42 @@ def set_page_params(**values: object) -> None:
     st.session_state[_PAGE_KEY] = current
 
 
-def sync_url() -> None:
-    """Write the view and the pages' own settings into ``st.query_params`` (only when they changed,
+_DATASET_FIELDS = ("source", "layout", "radius", "descriptor", "descriptors")
+_PLACE_FIELDS = ("group", "step", "reading", "geometry", "group_m", "step_m", "query")
+PAGE_FIELDS: dict[str, tuple[str, ...]] = {
+    "home": _DATASET_FIELDS,
+    "places": (*_DATASET_FIELDS, *_PLACE_FIELDS, "frame"),
+    "thresholds": (*_DATASET_FIELDS, *_PLACE_FIELDS, "place", "k", "theta"),
+    "inspector": (*_DATASET_FIELDS, *_PLACE_FIELDS, "place", "frame", "k", "theta"),
+    "evaluation": (*_DATASET_FIELDS, *_PLACE_FIELDS, "theta"),
+    "playback": (*_DATASET_FIELDS, *_PLACE_FIELDS, "frame", "k"),
+    "sweep": (*_DATASET_FIELDS, *_PLACE_FIELDS, "k", "theta"),
+}
+"""The view's fields each page reads (by page name): its link carries these and no others."""
+PAGE_PREFIXES: dict[str, str] = {"evaluation": "eval_", "inspector": "inspector_", "sweep": "sweep_",
+                                 "thresholds": "thresholds_"}
+"""The prefix of each page's own settings (``set_page_params``); a page's link carries only its own."""
+
+
+def url_params(page: str | None) -> dict[str, str]:
+    """The query parameters of page ``page``'s link: the view fields it reads and its own settings.
+
+    Every page's settings stay in the session (going back to a page restores them); only its
+    own are in its link. ``None`` (a page of no name known here): the whole view and every setting.
+    """
+    params = view().to_params()
+    own = st.session_state.get(_PAGE_KEY, {})
+    if page not in PAGE_FIELDS:
+        return {**own, **params}
+    prefix = PAGE_PREFIXES.get(page)
+    return {**{k: v for k, v in own.items() if prefix is not None and k.startswith(prefix)},
+            **{k: v for k, v in params.items() if k in PAGE_FIELDS[page]}}
+
+
+def sync_url(page: str | None = None) -> None:
+    """Write page ``page``'s link (``url_params``) into ``st.query_params`` (only when it changed,
     to avoid needless history entries)."""
-    wanted = {**st.session_state.get(_PAGE_KEY, {}), **view().to_params()}
+    wanted = url_params(page)
     current = {k: st.query_params[k] for k in st.query_params}
     if current != wanted:
         st.query_params.from_dict(wanted)
