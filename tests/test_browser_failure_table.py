@@ -17,7 +17,7 @@ from urllib.parse import parse_qs, quote, urlparse
 import pytest
 
 from streamlit_server import streamlit_server
-from test_browser import SCREENSHOTS, WIDTH, assert_no_exception, browser, settle  # noqa: F401  (browser: the fixture)
+from test_browser import ROOT, SCREENSHOTS, WIDTH, assert_no_exception, browser, settle  # noqa: F401  (browser: the fixture)
 from test_failures import fitted_gp
 from vpr_explorer.app.ui import failure_table as ft
 from vpr_explorer.views import failures as vf
@@ -95,3 +95,46 @@ def test_the_failure_table_downloads_and_opens_a_row_in_the_inspector(browser, d
         _, heads = table_box(page, "true match")
         assert "answered" in heads
         assert not errors, errors
+
+
+#: The README's failure pictures: ``vpr-explorer failures`` on GardensPoint, night_right against day_right, pixels,
+#: raw-weighted, three candidates (the command the README shows beside them; ``test_failures.gp_out`` runs it).
+README_FAILURES = ("071-wrong-answer.png", "000-wrong-answer.png")
+
+
+def test_the_failure_pictures_and_their_index_in_a_browser(browser, gardens_point, tmp_path):
+    """The command's index.html in Chromium: every picture loads, each row links its PNG; the README shows two of the
+    PNGs and the index as the command draws them (saved to ``docs/screenshots/failures/`` with
+    ``VPR_EXPLORER_SCREENSHOTS=docs``)."""
+    import shutil
+
+    from PIL import Image
+
+    from test_failures import GP_PAIR
+    from vpr_explorer.cli import main
+
+    out = tmp_path / "failures"
+    assert main(["failures", "--dataset", str(gardens_point.root), *GP_PAIR, "--method", "raw-weighted", "--top", "3",
+                 "--out", str(out)]) == 0
+    pngs = sorted(p.name for p in out.glob("*.png"))
+    page = browser.new_page(viewport={"width": WIDTH, "height": 900})
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.goto((out / "index.html").as_uri())
+    page.wait_for_load_state("load")
+    loaded = page.evaluate("() => Array.from(document.images).map(i => i.complete && i.naturalWidth > 0)")
+    assert len(loaded) == len(pngs) and all(loaded)
+    hrefs = page.evaluate("() => Array.from(document.querySelectorAll('a[href$=\".png\"]')).map(a => a.getAttribute('href'))")
+    assert sorted(set(hrefs)) == pngs and not errors
+    shots = SCREENSHOTS / "failures"
+    shots.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=str(shots / "index.png"), clip={"x": 0, "y": 0, "width": WIDTH, "height": 900})
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    for name in README_FAILURES:
+        assert name in pngs
+        assert f"docs/screenshots/failures/{name}" in readme
+        shutil.copyfile(out / name, shots / name)
+        committed = ROOT / "docs" / "screenshots" / "failures" / name
+        with Image.open(out / name) as drawn, Image.open(committed) as shown:
+            assert shown.size == drawn.size  # the README's picture is this command's, at its size
+    assert "docs/screenshots/failures/index.png" in readme

@@ -38,10 +38,12 @@ from vpr_explorer.views.numbers import (
     DEFAULT_GROUP_M,
     DEFAULT_STEP_M,
     LIVE_METHODS,
+    THUMBNAIL_CHARS,
     RetrievalPlaces,
     explain_query,
     fit_retrieval,
     place_detail,
+    thumbnail_label,
     top_candidates,
 )
 
@@ -325,6 +327,22 @@ def test_thumbnails_of_utm_named_images_are_not_cut_off_names(dq):
     assert captions(at) == ([f"database image {i}" for i in detail.images] +
                             [f"query {i - ds.n_database} (raw_p {r:.3f})"
                              for i, r in zip(detail.query_images, detail.query_raw)])
+
+
+def test_the_inspector_and_its_reasons_name_utm_images_by_index(dq):
+    """The candidates' thumbnails and the bench's reason pictures: "database image N", never a name cut short."""
+    path, ds, _ = dq
+    at = page(opened(source=path, frame=5), "inspector")
+    assert_clean(at)
+    shown = captions(at)
+    assert "query: query 5" in shown
+    names = {Path(p).name for p in (*ds.database_paths, *ds.query_paths)}
+    for caption in shown:
+        if any(name in caption for name in names):
+            continue  # the query's own picture, full width, names its file whole
+        assert "@" not in caption and all(len(word) <= THUMBNAIL_CHARS for word in caption.split()), caption
+    assert any(re.search(r"database image \d+", c) for c in shown)
+    assert thumbnail_label(ds, 3) == "database image 3" and thumbnail_label(ds, 4, query=True) == "query 4"
 
 
 def test_the_dataset_page_strips_are_not_captioned_with_cut_off_names(dq):

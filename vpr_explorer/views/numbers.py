@@ -893,6 +893,20 @@ def database_label(dataset: RetrievalDataset, image: int) -> str:
     return Path(dataset.database_paths[image]).name
 
 
+#: The longest word a thumbnail's caption shows whole (a longer one is cut off under the picture).
+THUMBNAIL_CHARS = 24
+
+
+def thumbnail_label(dataset: RetrievalDataset, image: int, *, query: bool = False) -> str:
+    """How a thumbnail's caption names an image: ``query_label`` / ``database_label`` when every word of it fits
+    under the picture (``THUMBNAIL_CHARS``), else ``"query N"`` / ``"database image N"`` (the indices the map,
+    the finder and the tables use); a long ``@UTM@`` file name is never shown cut off."""
+    label = query_label(dataset, image) if query else database_label(dataset, image)
+    if max(map(len, label.split()), default=0) <= THUMBNAIL_CHARS:
+        return label
+    return f"query {image}" if query else f"database image {image}"
+
+
 def find_query_by_name(dataset: RetrievalDataset, text: str) -> int:
     """The query whose file name (or path below the dataset folder, or label) is ``text``; ``VPRInputError`` if none."""
     text = text.strip().replace("\\", "/")

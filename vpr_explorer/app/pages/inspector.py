@@ -36,6 +36,7 @@ from vpr_explorer.views.numbers import (
     find_query_by_name,
     query_label,
     search_order,
+    thumbnail_label,
     top_candidates,
     walked,
 )
@@ -261,9 +262,10 @@ with right:
     lines += [f"- {mark(key)} **{METHODS_BY_KEY[key].label}**: {describe(key)}" for key in methods]
     st.markdown("\n".join(lines))
 
-show_candidates(dec, methods, cands, describe, query_image=ds.query_paths[query], query_caption=f"query: {name[:40]}",
+show_candidates(dec, methods, cands, describe, query_image=ds.query_paths[query],
+                query_caption=f"query: {thumbnail_label(ds, query, query=True)}",
                 database_image=lambda i: (ds.database_paths[int(model.images[i])],
-                                          database_label(ds, int(model.images[i]))[:40]))
+                                          thumbnail_label(ds, int(model.images[i]))))
 
 show_reasons(cur, query)
 

@@ -20,7 +20,7 @@ import streamlit as st
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.protocols.acceptance import AcceptanceReport, BenchOptions, metres_positions
 from vpr_explorer.views import reasons as why
-from vpr_explorer.views.numbers import database_label
+from vpr_explorer.views.numbers import thumbnail_label
 
 from vpr_explorer.app.ui import cache
 from vpr_explorer.app.ui.current import Current
@@ -106,7 +106,7 @@ def _show(report: AcceptanceReport, data: cache.Loaded, query: int) -> None:
         picture, words = st.columns([1, 6], vertical_alignment="center")
         if r.image >= 0:
             picture.image(cache.thumbnail(ds.database_paths[r.image], THUMBNAIL), width="stretch",
-                          caption=f"{database_label(ds, r.image)[:32]} ({'right' if r.right else 'wrong'})")
+                          caption=f"{thumbnail_label(ds, r.image)} ({'right' if r.right else 'wrong'})")
         words.markdown(f"{_MARK[r.status]} **{r.label}**: {r.sentence}")
     tabs = st.tabs([label for _, label in _FIGURES])
     for (key, label), tab in zip(_FIGURES, tabs):
@@ -151,7 +151,7 @@ def _pa_ratio(report: AcceptanceReport, data: cache.Loaded, nb: why.Neighbourhoo
     for col, name, image, s, d in zip(cols[1:], ("d₁", "d₂"), two.images, two.similarities, two.distances):
         right = "right" if int(image) in set(positives.tolist()) else "wrong"
         col.image(cache.thumbnail(ds.database_paths[int(image)], 160), width="stretch",
-                  caption=f"{name} = {d:.4f} (s = {s:.4f}): image {int(image)}, {database_label(ds, int(image))[:32]} "
+                  caption=f"{name} = {d:.4f} (s = {s:.4f}): {thumbnail_label(ds, int(image))} "
                           f"({right})")
     st.caption(f"PA-ratio u = d₁/d₂ = {u:.4f}" + (" (the two tie: u = 1)" if two.tie else "") + ".")
 
