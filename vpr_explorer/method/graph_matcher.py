@@ -66,7 +66,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vpr_explorer.errors import VPRInputError
+from vpr_explorer.errors import VPRInputError, finite_number
 from vpr_explorer.method.query_threshold import QueryThresholdSpec, query_thresholds
 from vpr_explorer.method.retrieval import TIE_TOLERANCE
 
@@ -117,7 +117,7 @@ def sequence_match(similarity: np.ndarray, *, non_matching_cost: float, fanout: 
             fanout below 1 or not a whole number, a non-matching cost that is not a finite number.
     """
     s = _matrix(similarity)
-    nmc = _finite_number(non_matching_cost, "non_matching_cost")
+    nmc = finite_number(non_matching_cost, "non_matching_cost")
     f = _fanout(fanout)
     nq, nd = s.shape
     reach = min(f, nd)  # a fanout of n_database already reaches every image
@@ -192,18 +192,6 @@ def _matrix(matrix: object) -> np.ndarray:
         raise VPRInputError("similarity holds NaN or infinite values: the path needs every pair's cost; "
                             "recompute it from finite descriptors")
     return m
-
-
-def _finite_number(value: object, name: str) -> float:
-    if isinstance(value, bool):
-        raise VPRInputError(f"{name} must be a number, got {value!r}")
-    try:
-        x = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        raise VPRInputError(f"{name} must be a number, got {value!r}") from None
-    if not np.isfinite(x):
-        raise VPRInputError(f"{name} must be finite, got {value!r}")
-    return x
 
 
 def _fanout(value: object) -> int:

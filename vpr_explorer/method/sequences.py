@@ -96,7 +96,7 @@ from enum import StrEnum
 import numpy as np
 
 from vpr_explorer.data.layouts import RetrievalDataset
-from vpr_explorer.errors import VPRInputError
+from vpr_explorer.errors import VPRInputError, finite_number
 from vpr_explorer.method.retrieval import TIE_TOLERANCE, place_scores
 from vpr_explorer.settings import default_workers
 
@@ -155,22 +155,12 @@ class SeqSLAMResult:
         Raises:
             VPRInputError: ``threshold`` is not a finite number.
         """
-        t = _finite_number(threshold, "threshold")
+        t = finite_number(threshold, "threshold")
         with np.errstate(invalid="ignore"):
             return self.ratio <= t  # NaN (unmatched) compares False
 
 
 # --------------------------------------------------------------------------- checks
-
-
-def _finite_number(value: object, name: str) -> float:
-    try:
-        x = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        raise VPRInputError(f"{name} must be a number, got {value!r}") from None
-    if not np.isfinite(x):
-        raise VPRInputError(f"{name} must be finite, got {value!r}")
-    return x
 
 
 def _even_window(value: object, name: str) -> int:
@@ -238,36 +228,43 @@ def _check_sizes(n_queries: int, n_database: int, ds: int, offsets: np.ndarray, 
         )
 
 
-def check_sequence(dataset: RetrievalDataset) -> None:
-    """Refuse a dataset value whose order along the route means nothing to a sequence method.
+def sequence_fault(dataset: RetrievalDataset, reader: str = "SeqSLAM") -> str | None:
+    """``None`` when ``dataset``'s database and queries are each one traversal in route order, else why not.
 
     Args:
         dataset: the dataset value the similarity matrix comes from.
+        reader: what reads the sequences, as the reason names it (``"SeqSLAM"``, or the acceptance bench's
+            sequence rules).
 
-    Raises:
-        VPRInputError: naming the dataset, when its database is not one route in order
-            (``ordered`` false: a database-queries or manifest layout, several database
-            traversals), or its queries are not one traversal in frame order.
+    The database is not one route in order when ``ordered`` is false (a database-queries or
+    manifest layout, several database traversals); either side fails when it comes from several
+    traversals or is not in frame order.
     """
     name = f"{dataset.name!r} ({dataset.layout.value})"
     if not dataset.ordered:
-        raise VPRInputError(
-            f"dataset {name} is not one ordered route: SeqSLAM matches runs of consecutive images and needs the "
-            "database as one traversal in route order; use aligned traversals with one database traversal, "
-            "a traversal-positions layout with one, or VPR-Bench, or a single-image method"
-        )
+        return (f"dataset {name} is not one ordered route and has no database route in order, and {reader} reads "
+                "runs of consecutive images along one: use aligned traversals with one database traversal, a "
+                "traversal-positions layout with one, or VPR-Bench, or a single-image method")
     for side, traversal, frame in (("database", dataset.database_traversal, dataset.database_frame),
                                    ("queries", dataset.query_traversal, dataset.query_frame)):
-        if len(np.unique(traversal)) > 1:
-            raise VPRInputError(
-                f"the {side} of dataset {name} come from {len(np.unique(traversal))} traversals: SeqSLAM needs "
-                f"one traversal in order on each side; choose one {'database' if side == 'database' else 'query'} "
-                "traversal"
-            )
+        n = len(np.unique(traversal))
+        if n > 1:
+            return (f"the {side} of dataset {name} come from {n} traversals, and {reader} reads one traversal in "
+                    f"order on each side: choose one {'database' if side == 'database' else 'query'} traversal")
         if frame is not None and np.any(np.diff(frame) <= 0):
-            raise VPRInputError(
-                f"the {side} of dataset {name} are not in frame order: SeqSLAM needs each side in route order"
-            )
+            return f"the {side} of dataset {name} are not in frame order, and {reader} reads each side in route order"
+    return None
+
+
+def check_sequence(dataset: RetrievalDataset) -> None:
+    """Refuse a dataset value whose order along the route means nothing to a sequence method.
+
+    Raises:
+        VPRInputError: ``sequence_fault``'s reason, naming the dataset.
+    """
+    fault = sequence_fault(dataset)
+    if fault is not None:
+        raise VPRInputError(fault)
 
 
 # --------------------------------------------------------------------------- steps

@@ -81,7 +81,7 @@ from vpr_explorer.method.retrieval import (
     ranking_scores,
     top_answer,
 )
-from vpr_explorer.method.sequences import DS, seqslam, sequence_place_scores
+from vpr_explorer.method.sequences import DS, seqslam, sequence_fault, sequence_place_scores
 from vpr_explorer.method.stats import mixture_moments, stats_rows
 from vpr_explorer.method.thresholds import adaptive_k, place_thresholds
 from vpr_explorer.protocols.options import KS, check_finite
@@ -685,20 +685,10 @@ def sequence_reason(dataset) -> str | None:
     """``None`` when the value's queries and database are each one route in order, else why not.
 
     The per-query threshold, the graph matcher, SeqSLAM and the sequence place scores read
-    runs of consecutive images on both sides (``sequences.check_sequence`` checks the same).
+    runs of consecutive images on both sides: ``sequences.sequence_fault`` says why not.
     """
-    rules = "the sequence rules (per-query threshold, graph matcher, SeqSLAM, sequence place scores)"
-    if not dataset.ordered:
-        return (f"{dataset.name!r} ({dataset.layout.value}) has no database route in order, and {rules} read the "
-                "database along one: choose one database traversal of aligned traversals or a layout with a route")
-    for side, traversal, frame in (("database", dataset.database_traversal, dataset.database_frame),
-                                   ("queries", dataset.query_traversal, dataset.query_frame)):
-        n = len(np.unique(traversal))
-        if n > 1:
-            return f"the {side} come from {n} traversals, and {rules} read one traversal in order: choose one"
-        if frame is not None and np.any(np.diff(frame) <= 0):
-            return f"the {side} are not in frame order, and {rules} read them along the route"
-    return None
+    return sequence_fault(dataset, "the sequence rules (per-query threshold, graph matcher, SeqSLAM, sequence "
+                                   "place scores)")
 
 
 def metres_positions(dataset) -> tuple[np.ndarray | None, str]:
