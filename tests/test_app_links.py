@@ -89,3 +89,17 @@ def test_a_bad_threshold_method_in_a_link_is_said_and_dropped(app):
     at = page(app.run(), "thresholds")
     assert any("thresholds_method='median'" in w.value for w in at.warning)
     assert at.radio(key="w_method").value == "weighted" and "thresholds_method" not in at.query_params
+
+
+def test_a_link_never_names_a_hub_repository(app, tmp_path):
+    """A hub:DIR descriptor runs the repository's hubconf.py: a link naming one is refused before anything is read."""
+    repo = tmp_path / "gmberton_MegaLoc_main"
+    repo.mkdir()
+    marker = tmp_path / "ran"
+    (repo / "hubconf.py").write_text(f"open({str(marker)!r}, 'w').close()\ndef get_trained_model():\n    pass\n")
+    app.query_params.update({"descriptor": f"hub:{repo}"})
+    at = app.run()
+    assert any("descriptor='hub:" in w.value and "a link never does" in w.value for w in at.warning)
+    at = page(at, "places")
+    assert_clean(at)
+    assert not marker.exists() and "descriptor" not in at.query_params

@@ -7,7 +7,7 @@ What the command line, the app and the recorder call, so that each of them is
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -50,10 +50,14 @@ def dataset_descriptors(
     dtype: str = "float32",
     storage: str | None = None,
     mmap: bool | str = False,
+    options: Mapping[str, object] | None = None,
 ) -> np.ndarray:
     """``(n_images, D)`` L2-normalised descriptors of every image, through the on-disk cache.
 
     Args:
+        options: the extractor's options, ``get_extractor(descriptor, **options)`` (a
+            ``hub:DIR[:ENTRY]`` model's ``hub_args``, ``input_size``...: they are part of its
+            cache key, so the same options find what ``vpr-explorer extract`` cached).
         cache_root: cache folder; default ``settings.cache_root() / "descriptors"``.
         dtype: ``"float32"`` or ``"float16"``, the in-memory dtype of the result; float16
             halves it (563 -> 282 MB at 110,000 x 1,280), at ~1e-3 relative error.
@@ -81,7 +85,7 @@ def dataset_descriptors(
     dtype = check_dtype(dtype, "dtype")
     storage = dtype if storage is None else check_dtype(storage, "storage", "cache storage type")
     mmap = check_mmap(mmap)
-    extractor = get_extractor(descriptor)
+    extractor = get_extractor(descriptor, **dict(options or {}))
     cache = DescriptorCache(cache_root, dtype=storage)
     paths = list(dataset.image_paths)
     if mmap == "off" or not wants_mmap(mmap, len(paths), extractor.dim):
@@ -290,11 +294,12 @@ def evaluate_dataset(
     layout: str = "auto",
     descriptors_file: Path | None = None,
     names_file: Path | None = None,
+    descriptor_options: Mapping[str, object] | None = None,
     **fields,
 ) -> Evaluation:
     """Everything from a dataset path (or ``"demo"``) to an ``Evaluation``.
 
-    ``dtype`` and ``storage`` go to :func:`dataset_descriptors`; ``options`` (or ``fields``,
+    ``dtype``, ``storage`` and ``descriptor_options`` (the extractor's) go to :func:`dataset_descriptors`; ``options`` (or ``fields``,
     its field names as keywords) and ``progress`` to :func:`run_protocol`. With
     ``descriptors_file``, descriptors computed elsewhere are read
     from it (:func:`imported_descriptors`) instead of ``descriptor``'s extraction, the
@@ -315,7 +320,8 @@ def evaluate_dataset(
         desc, descriptor, source = imp.descriptors, imp.name, imp.settings()
     else:
         desc = dataset_descriptors(
-            dataset, descriptor, cache_root=cache_root, progress=extract_progress, dtype=dtype, storage=storage
+            dataset, descriptor, cache_root=cache_root, progress=extract_progress, dtype=dtype, storage=storage,
+            options=descriptor_options,
         )
     return run_protocol(protocol, dataset, places, desc, options, progress=progress,
                         settings={"descriptor": descriptor, **source, "dtype": str(desc.dtype)})
@@ -334,12 +340,16 @@ def imported_descriptors(dataset, path: Path, *, names_file: Path | None = None,
     ``"auto"`` (default), the dataset is a database/queries one (``layouts.RetrievalDataset``,
     whose views and protocol read a map in blocks) and the file's float32 copy would reach
     ``store.mmap_min_bytes()`` (1 GiB): a million-image database is never copied into memory.
-    Any other file is read into memory in ``dtype`` (``load_descriptor_file``).
+    Any other file is read into memory in ``dtype`` (``load_descriptor_file``). A folder is a
+    VPR-methods-evaluation run (``descriptors.vme_run``): its two ``.npy`` files, read into memory.
     """
     from vpr_explorer.descriptors.imported import load_descriptor_file, npy_header
     from vpr_explorer.descriptors.store import check_mmap, open_npy, wants_mmap
+    from vpr_explorer.descriptors.vme_run import is_run_folder, load_vme_run
     from vpr_explorer.data.layouts import RetrievalDataset
 
+    if is_run_folder(path):
+        return load_vme_run(path, dataset, names_file=names_file, dtype=dtype)
     mode = check_mmap(mmap)
     if mode == "auto" and not isinstance(dataset, RetrievalDataset):
         mode = "off"

@@ -71,7 +71,7 @@ import tempfile
 import threading
 import urllib.parse
 import uuid
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -1069,6 +1069,7 @@ def record_dataset(
     descriptors_file: Path | None = None,
     names_file: Path | None = None,
     bench: BenchOptions | None = None,
+    descriptor_options: Mapping[str, object] | None = None,
 ) -> Playback:
     """Everything from an opened dataset (``pipeline.open_dataset``, ``load_traversals``) to a recorded ``.rrd``.
 
@@ -1076,11 +1077,11 @@ def record_dataset(
     database, tolerance)`` (default query: ``Dataset.default_roles``); any other layout is the
     value already. Its places are the layout's own, or group/step in ``geometry`` (frames, or
     metres along the route or over a lattice; default the value's). Options and places are
-    checked before any descriptor is computed. ``dtype`` is the descriptors' precision
-    (``pipeline.dataset_descriptors``). With ``descriptors_file``, descriptors computed
-    elsewhere (for the whole dataset) are read from it instead. With ``bench`` (its choices),
-    the acceptance bench runs on the same value and places (``bench_report``) and is recorded
-    with the queries.
+    checked before any descriptor is computed. ``dtype`` is the descriptors' precision and
+    ``descriptor_options`` the extractor's options (``pipeline.dataset_descriptors``). With
+    ``descriptors_file``, descriptors computed elsewhere (for the whole dataset) are read from
+    it instead. With ``bench`` (its choices), the acceptance bench runs on the same value and
+    places (``bench_report``) and is recorded with the queries.
 
     Raises:
         VPRInputError: naming the option at fault: a non-finite ``k``, a bad tolerance, traversals
@@ -1115,7 +1116,7 @@ def record_dataset(
     else:
         check_cache_root(cache_root)
         descriptors = dataset_descriptors(dataset, descriptor, cache_root=cache_root, progress=extract_progress,
-                                          dtype=dtype)
+                                          dtype=dtype, options=descriptor_options)
     rows = value_rows(value)
     if rows is not None:
         descriptors = descriptors[rows]

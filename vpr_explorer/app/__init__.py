@@ -50,8 +50,8 @@ RADIUS_ENV = "VPR_EXPLORER_RADIUS"
 """The positive radius in metres of a position-tagged layout (``vpr-explorer app --radius``)."""
 DESCRIPTORS_ENV = "VPR_EXPLORER_DESCRIPTORS"
 """Descriptor files the app offers beside its extractors, separated by ``os.pathsep``; each is
-named by its file's stem, and the first is the descriptor a session opens when its link names
-none (``vpr-explorer app --descriptors``)."""
+named by its file's stem (a VPR-methods-evaluation run folder by its folder's), and the first is
+the descriptor a session opens when its link names none (``vpr-explorer app --descriptors``)."""
 DATA_ROOT_ENV = "VPR_EXPLORER_DATA_ROOT"
 """The app's data root (``vpr-explorer app --data-root``): a session opens only folders and files under it.
 Unset: ``VPR_EXPLORER_DATA``, else the current directory (``data_root``)."""
@@ -59,7 +59,8 @@ DATA_ROOT_HINT = "start the app with `vpr-explorer app --data-root DIR` to serve
 
 
 def descriptor_files(environ: Mapping[str, str] = os.environ) -> dict[str, Path]:
-    """The files ``DESCRIPTORS_ENV`` names, by descriptor name (the file's stem), in its order."""
+    """The files (or VPR-methods-evaluation run folders) ``DESCRIPTORS_ENV`` names, by descriptor name (the
+    file's stem), in its order."""
     files = [Path(p).expanduser() for p in environ.get(DESCRIPTORS_ENV, "").split(os.pathsep) if p.strip()]
     return {p.stem: p for p in files}
 

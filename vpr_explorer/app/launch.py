@@ -91,8 +91,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="position-tagged layouts: a database image within this many metres is right"
                         + default_note(DEFAULT_RADIUS))
     p.add_argument("--descriptors", type=Path, default=None, metavar="FILE",
-                   help="descriptors computed elsewhere (.npz, .npy, hloc .h5), offered beside the extractors and "
-                        "opened first; named by the file's stem")
+                   help="descriptors computed elsewhere (.npz, .npy, hloc .h5, or a VPR-methods-evaluation log "
+                        "folder for a database-queries dataset), offered beside the extractors and opened first; "
+                        "named by the file's (folder's) stem")
     p.add_argument("--data-root", type=Path, default=None, metavar="DIR",
                    help="the only folder whose datasets and descriptor files a link or the Dataset page may open "
                         "(symbolic links and .. resolved; nothing outside it is read or listed); default: the folder "
@@ -119,10 +120,15 @@ def _dataset(text: str) -> str:
 def _descriptors(path: Path) -> Path:
     from vpr_explorer.descriptors.imported import descriptor_format
     from vpr_explorer.descriptors.registry import EXTRACTOR_NAMES
+    from vpr_explorer.descriptors.vme_run import check_run_folder
 
-    descriptor_format(path)  # an unknown extension is refused here, not in every session
-    if not path.expanduser().is_file():
-        raise VPRInputError(f"--descriptors {path}: no such file; give a .npz, .npy or hloc .h5 file")
+    if path.expanduser().is_dir():  # a VPR-methods-evaluation run folder: both its .npy files there
+        check_run_folder(path)
+    else:
+        descriptor_format(path)  # an unknown extension is refused here, not in every session
+        if not path.expanduser().is_file():
+            raise VPRInputError(f"--descriptors {path}: no such file; give a .npz, .npy or hloc .h5 file, or a "
+                                "VPR-methods-evaluation log folder")
     if path.stem in EXTRACTOR_NAMES:
         raise VPRInputError(f"--descriptors {path}: its stem {path.stem!r} names a built-in descriptor; rename the "
                             "file (its stem names the descriptor in the app)")

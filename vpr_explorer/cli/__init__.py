@@ -10,6 +10,8 @@ Commands (``vpr-explorer COMMAND --help`` for each one's options):
     sweep      one protocol over a grid of group × step: tables, CSV, JSON       (sweep.py)
     bench      every dataset × descriptor × protocol: table, CSV, JSON, HTML      (bench.py)
     extract    fill the descriptor cache, with local threads or on Ray           (extract.py)
+    datasets   the public datasets the explorer knows: home, licence, URLs       (datasets.py)
+    fetch      download one into $VPR_EXPLORER_DATA: resumed, checked, unpacked (fetch.py)
     app        serve the packaged explorer with Streamlit                        (vpr_explorer.app.launch)
 
 Each command's module has ``add_arguments(parser)`` and ``run(args) -> int``; ``common.py``

@@ -68,6 +68,7 @@ from pathlib import Path
 
 from vpr_explorer.cli.common import (
     add_dataset_args,
+    aligned_value,
     bar,
     default_note,
     descriptor_name,
@@ -331,26 +332,16 @@ def dataset_value(args: argparse.Namespace, choices: dict):
     dataset = retrieval_dataset(args)
     if dataset is not None:
         return _layout_value(args, dataset)
-    from vpr_explorer.data.aligned import database_queries
-    from vpr_explorer.pipeline import default_traversals, open_dataset, traversal_direction
-    from vpr_explorer.protocols.options import check_whole
-
     if args.database is not None and len(args.database) > 1:
         raise VPRInputError(f"--database {' '.join(args.database)}: give one database traversal; the sequence rules "
                             "read the database as one route in order")
-    aligned = open_dataset(args.dataset, args.layout)
-    tolerance = check_whole("--tolerance", choices["tolerance"], low=0, high=aligned.n_frames,
-                            why=f" (frames of slack; {aligned.name!r} has {aligned.n_frames:,} frames)")
-    db, q = default_traversals(aligned, args.database, args.queries)
-    names = [aligned.traversals[t] for t in db]
-    how = "as given" if args.database or args.queries else traversal_direction(aligned, db, q)
-    lines = [f"{aligned.name}: queries {aligned.traversals[q]} against database {names[0]} ({how}); right: database "
-             f"frames within ±{tolerance} frames of the query's"]
-    if len(db) > 1:
-        lines.append(f"database: {names[0]}, the first of the default database traversals {', '.join(names)}; the "
-                     "sequence rules read one route: pick another with --database")
-    value = database_queries(aligned, q, database=db[:1], tolerance=tolerance)
-    return value, lines, {"database": names[0], "queries": aligned.traversals[q], "tolerance": tolerance}
+    a = aligned_value(args, choices["tolerance"], first_database_only=True)
+    lines = [f"{a.value.name}: queries {a.query} against database {a.database[0]} ({a.how}); right: database "
+             f"frames within ±{a.tolerance} frames of the query's"]
+    if len(a.defaults) > 1:
+        lines.append(f"database: {a.database[0]}, the first of the default database traversals "
+                     f"{', '.join(a.defaults)}; the sequence rules read one route: pick another with --database")
+    return a.value, lines, {"database": a.database[0], "queries": a.query, "tolerance": a.tolerance}
 
 
 def _layout_value(args: argparse.Namespace, dataset):

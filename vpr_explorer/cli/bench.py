@@ -28,7 +28,17 @@ import json
 import shlex
 from pathlib import Path
 
-from vpr_explorer.cli.common import CACHE_HELP, add_split_args, bar, default_note, number, write_text
+from vpr_explorer.cli.common import (
+    CACHE_HELP,
+    HUB_FLAGS,
+    add_hub_args,
+    add_split_args,
+    bar,
+    default_note,
+    hub_options,
+    number,
+    write_text,
+)
 from vpr_explorer.data.groundtruth import DEFAULT_RADIUS
 from vpr_explorer.data.layouts import Layout
 from vpr_explorer.errors import VPRInputError
@@ -46,11 +56,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--datasets", nargs="+", required=True, metavar="DATASET",
                    help="dataset folders (or manifest .csv files), or 'demo' for the built-in route")
     p.add_argument("--descriptors", nargs="+", default=None, metavar="NAME",
-                   help="extractors, each run on every dataset (e.g. pixels efficientnet-lite0)")
+                   help="extractors, each run on every dataset (e.g. pixels efficientnet-lite0), or "
+                        "hub:DIR[:ENTRY] for a model of a local torch.hub repository")
+    add_hub_args(p)
     p.add_argument("--descriptors-file", action="append", default=None, metavar="DATASET=FILE",
                    help="descriptors computed elsewhere for one dataset of --datasets (.npz, .npy with rows in "
-                        "'vpr-explorer list' order or names in FILE.txt, or an hloc .h5), named by the file's stem; "
-                        "repeat for more")
+                        "'vpr-explorer list' order or names in FILE.txt, or an hloc .h5; or a VPR-methods-evaluation "
+                        "log folder for a database-queries dataset), named by the file's (folder's) stem; repeat for "
+                        "more")
     p.add_argument("--protocols", nargs="+", choices=[x.value for x in Protocol], default=None,
                    help="the protocols every dataset runs (default: each layout's: paper for aligned traversals, "
                         f"{Protocol.DATABASE.value} for a database/queries layout)")
@@ -135,7 +148,8 @@ def bench_spec(args: argparse.Namespace):
                                 f"({' '.join(args.datasets)})")
         files.append((owner, Path(item[len(owner) + 1:])))
     return BenchSpec(
-        datasets=tuple(args.datasets), descriptors=tuple(args.descriptors or ()), descriptor_files=tuple(files),
+        datasets=tuple(args.datasets), descriptors=tuple(args.descriptors or ()),
+        descriptor_options=tuple(hub_options(args, args.descriptors or []).items()), descriptor_files=tuple(files),
         protocols=None if args.protocols is None else tuple(args.protocols),
         methods=None if args.methods is None else tuple(args.methods), group=args.group, step=args.step,
         reading=args.reading, geometry=args.geometry, layout=args.layout, radius=args.radius, runs=args.runs,
@@ -175,6 +189,11 @@ def evaluate_argv(args: argparse.Namespace, spec, cell) -> list[str]:
     argv = ["vpr-explorer", "evaluate", "--dataset", cell.source]
     file = next((f for d, f in spec.descriptor_files if d == cell.source and f.stem == cell.descriptor), None)
     argv += ["--descriptors", str(file)] if file is not None else ["--descriptor", cell.descriptor]
+    for name, value in spec.extractor_options(cell.descriptor).items() if file is None else ():
+        if name == "hub_args":
+            argv += [part for item in value for part in (HUB_FLAGS[name], item)]
+        else:
+            argv += [HUB_FLAGS[name], *map(str, value if isinstance(value, tuple) else (value,))]
     if cell.protocol is not None:
         argv += ["--protocol", cell.protocol.value]
     if args.layout != Layout.AUTO.value:

@@ -1,14 +1,16 @@
 """What several commands share: the dataset options, progress bars, the protocol options' checks.
 
 Each command's module adds its options with the helpers here and reads them back with
-:func:`protocol_options`, :func:`descriptor_name` and the radius checks, so that an option
-means the same and is refused with the same words in every command that takes it.
+:func:`protocol_options`, :func:`descriptor_name` (with :func:`hub_options`, the ``--hub-*``
+flags of a ``hub:DIR[:ENTRY]`` descriptor) and the radius checks, so that an option means the
+same and is refused with the same words in every command that takes it.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 from vpr_explorer.data.groundtruth import DEFAULT_RADIUS, check_radius
@@ -171,16 +173,78 @@ def add_dataset_args(p: argparse.ArgumentParser, *, places: bool = True) -> None
         p.add_argument("--reading", choices=[r.value for r in Reading], default=Reading.STRIDE.value,
                        help="stride: a place starts every STEP frames (authors' code); skip: take GROUP, skip STEP "
                             "(paper text)")
-    p.add_argument("--descriptor", default=None, help="descriptor name" + default_note(DEFAULT_DESCRIPTOR))
+    p.add_argument("--descriptor", default=None,
+                   help="descriptor name, or hub:DIR[:ENTRY] for a model of a local torch.hub repository"
+                        + default_note(DEFAULT_DESCRIPTOR))
+    add_hub_args(p)
     p.add_argument("--descriptors", type=Path, default=None, metavar="FILE",
                    help="descriptors computed elsewhere: .npz (names, descriptors), .npy (rows in 'vpr-explorer list' "
-                        "order, or names in FILE.txt) or an hloc global-feature .h5; named by the file's stem")
+                        "order, or names in FILE.txt) or an hloc global-feature .h5; named by the file's stem; or a "
+                        "VPR-methods-evaluation log folder (database_descriptors.npy, queries_descriptors.npy) "
+                        "for a database-queries dataset, named by the folder's stem")
     p.add_argument("--names", type=Path, default=None, metavar="FILE",
                    help="with a .npy --descriptors: the file naming its rows (one image path per line)")
     p.add_argument("--cache-dir", type=Path, default=None, help=CACHE_HELP)
     p.add_argument("--dtype", choices=["float32", "float16"], default="float32",
                    help="descriptor precision in memory and in the cache: float16 halves the descriptor memory "
                         "and disk, at about 1e-3 relative error in scores")
+
+
+#: ``get_extractor``'s hub option of each ``--hub-*`` flag
+HUB_FLAGS = {"hub_args": "--hub-arg", "input_size": "--hub-size", "short_side": "--hub-short-side",
+             "normalisation": "--hub-normalisation"}
+
+
+def add_hub_args(p: argparse.ArgumentParser) -> None:
+    """The options of a ``hub:DIR[:ENTRY]`` descriptor (``descriptors.hub``), read back by :func:`hub_options`."""
+    from vpr_explorer.descriptors.preprocess import Normalisation
+
+    p.add_argument("--hub-arg", action="append", default=None, metavar="KEY=VALUE",
+                   help="with a hub:... descriptor: a keyword argument of the hub entry, repeatable; VALUE is read "
+                        "as None, true/false, an int, a float, a 'quoted' string, else the string as written")
+    p.add_argument("--hub-size", type=int, nargs=2, default=None, metavar=("W", "H"),
+                   help="with a hub:... descriptor: resize every image to W x H (aspect not kept); default: the "
+                        "known model's input (MegaLoc, SALAD, BoQ 322 x 322 or 384 x 384), needed for any other")
+    p.add_argument("--hub-short-side", type=int, default=None, metavar="N",
+                   help="with a hub:... descriptor: resize the shorter side to N, aspect kept (CosPlace and "
+                        "EigenPlaces: 480), instead of --hub-size")
+    p.add_argument("--hub-normalisation", choices=[n.value for n in Normalisation], default=None,
+                   help="with a hub:... descriptor: pixel normalisation (default: the known model's, else imagenet)")
+
+
+def hub_options(args: argparse.Namespace, descriptors: list[str] | None = None) -> dict:
+    """``get_extractor``'s options from the ``--hub-*`` flags given (hashable values: Ray keys its models by them).
+
+    Args:
+        args: the parsed command line.
+        descriptors: the descriptor names the flags go to; default ``[args.descriptor]``.
+
+    Returns:
+        Option name -> value, for the flags given (``{}`` for none).
+
+    Raises:
+        VPRInputError: a ``--hub-*`` flag where no descriptor is ``hub:...``, naming the flags.
+    """
+    from vpr_explorer.descriptors.hub import is_hub_name
+
+    given = {"hub_args": None if args.hub_arg is None else tuple(args.hub_arg),
+             "input_size": None if args.hub_size is None else tuple(args.hub_size),
+             "short_side": args.hub_short_side, "normalisation": args.hub_normalisation}
+    given = {k: v for k, v in given.items() if v is not None}
+    names = [args.descriptor] if descriptors is None else list(descriptors)
+    if given and not any(is_hub_name(name) for name in names):
+        if descriptors is not None:
+            this = f"--descriptors {' '.join(names)}" if names else "no --descriptors"
+        elif args.descriptor is not None:
+            this = f"--descriptor {args.descriptor}"
+        elif getattr(args, "descriptors", None) is not None:
+            this = f"--descriptors {args.descriptors}"
+        else:
+            this = f"the default --descriptor {DEFAULT_DESCRIPTOR}"
+        where = "hub:DIR[:ENTRY] descriptors" if descriptors is not None else "--descriptor hub:DIR[:ENTRY]"
+        raise VPRInputError(f"{', '.join(HUB_FLAGS[k] for k in given)} apply to {where} only, and this is {this}: "
+                            "drop them, or name a hub repository")
+    return given
 
 
 def add_split_args(p: argparse.ArgumentParser, splits: str = "random splits") -> None:
@@ -233,12 +297,17 @@ def protocol_options(args: argparse.Namespace, options: dict) -> dict:
 
 
 def descriptor_name(args: argparse.Namespace) -> str:
-    """The descriptor's name: ``--descriptors FILE``'s stem, else ``--descriptor``, else :data:`DEFAULT_DESCRIPTOR`.
+    """The descriptor's name: ``--descriptors FILE``'s stem (a run folder's too), else ``--descriptor``, else
+    :data:`DEFAULT_DESCRIPTOR`.
+
+    The ``--hub-*`` flags are checked here too (:func:`hub_options`), so that one beside a
+    descriptor that is not ``hub:...`` is refused before anything is read.
 
     Raises:
-        VPRInputError: both ``--descriptor`` and ``--descriptors`` were given, or ``--names``
-            without ``--descriptors``.
+        VPRInputError: both ``--descriptor`` and ``--descriptors`` were given, ``--names``
+            without ``--descriptors``, or a ``--hub-*`` flag without ``--descriptor hub:...``.
     """
+    hub_options(args)
     if args.descriptors is not None:
         if args.descriptor is not None:
             raise VPRInputError(f"--descriptor {args.descriptor} and --descriptors {args.descriptors}: give one "
@@ -344,7 +413,7 @@ def value_descriptors(args: argparse.Namespace, value, descriptor: str):
 
     if args.descriptors is None:
         desc = dataset_descriptors(value, descriptor, cache_root=args.cache_dir, progress=bar("descriptors"),
-                                   dtype=args.dtype)
+                                   dtype=args.dtype, options=hub_options(args))
         return desc, descriptor, {}, ()
     # a file lists the dataset's images ('vpr-explorer list'): aligned traversals' rows move to the value's order
     owner = value if value.aligned is None else value.aligned
@@ -352,6 +421,53 @@ def value_descriptors(args: argparse.Namespace, value, descriptor: str):
     rows = value_rows(value) if value.aligned is not None else None
     desc = imp.descriptors if rows is None else imp.descriptors[rows]
     return desc, imp.name, imp.settings(), tuple(f"{args.descriptors.name}: {note}" for note in imp.notes)
+
+@dataclass(frozen=True)
+class AlignedValue:
+    """Aligned traversals read as one database/queries value (``aligned_value``).
+
+    Attributes:
+        value: the ``RetrievalDataset``: the query traversal against the database traversals.
+        database: the database traversals' names; query: the query traversal's name.
+        tolerance: right within ± this many frames of the query's frame.
+        how: "as given", or how the default traversals were chosen (``pipeline.traversal_direction``).
+        defaults: the default database traversals (before ``first_database_only`` kept one).
+    """
+
+    value: RetrievalDataset
+    database: tuple[str, ...]
+    query: str
+    tolerance: int
+    how: str
+    defaults: tuple[str, ...]
+
+
+def aligned_value(args: argparse.Namespace, tolerance: int, *, first_database_only: bool = False) -> AlignedValue:
+    """``--dataset``'s aligned traversals as a database/queries value: ``--queries`` against ``--database``.
+
+    Args:
+        args: the parsed command line (``dataset``, ``layout``, ``database``, ``queries``).
+        tolerance: frames of slack (checked against the dataset's frames).
+        first_database_only: keep only the first database traversal (rules that read the
+            database as one route).
+
+    Raises:
+        VPRInputError: a tolerance outside 0 to the number of frames, or what opening the dataset raises.
+    """
+    from vpr_explorer.data.aligned import database_queries
+    from vpr_explorer.pipeline import default_traversals, open_dataset, traversal_direction
+    from vpr_explorer.protocols.options import check_whole
+
+    aligned = open_dataset(args.dataset, args.layout)
+    tolerance = check_whole("--tolerance", tolerance, low=0, high=aligned.n_frames,
+                            why=f" (frames of slack; {aligned.name!r} has {aligned.n_frames:,} frames)")
+    db, q = default_traversals(aligned, args.database, args.queries)
+    how = "as given" if args.database or args.queries else traversal_direction(aligned, db, q)
+    kept = db[:1] if first_database_only else db
+    value = database_queries(aligned, q, database=kept, tolerance=tolerance)
+    return AlignedValue(value, tuple(aligned.traversals[t] for t in kept), aligned.traversals[q], tolerance, how,
+                        tuple(aligned.traversals[t] for t in db))
+
 
 def write_text(path: Path | None, text: str, option: str) -> None:
     """Write ``text`` to ``path`` (nothing when None) and say so.

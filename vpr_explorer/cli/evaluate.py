@@ -3,6 +3,11 @@
 Aligned traversal folders run the paper's random-split protocol by default (or traversal,
 open-set); a database/queries layout runs the database-queries protocol on its given
 queries. ``--json`` writes the numbers and every setting that shaped them.
+
+A database/queries layout's image-level Recall@K counts the queries that have a positive;
+where some have none, one more line gives R@1/5/10 over every query, as
+VPR-methods-evaluation counts them (``protocols.evaluation.recall_over_every_query``), and ``--json``
+holds them under ``recall_over_every_query`` (for every database/queries evaluation).
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ from vpr_explorer.cli.common import (
     bar,
     default_note,
     descriptor_name,
+    hub_options,
     protocol_options,
     retrieval_dataset,
     write_text,
@@ -88,6 +94,7 @@ def run(args: argparse.Namespace) -> int:
         args.dataset, PlaceSpec(args.group, args.step, args.reading), descriptor_name(args), args.protocol, options,
         cache_root=args.cache_dir, extract_progress=bar("descriptors"), progress=bar(f"{args.protocol} protocol"),
         dtype=args.dtype, layout=args.layout, descriptors_file=args.descriptors, names_file=args.names,
+        descriptor_options=hub_options(args),
     )
     print(render(ev))
     _write_json(args, ev)
@@ -108,7 +115,8 @@ def _evaluate_retrieval(args: argparse.Namespace, dataset) -> int:
     """``run`` for a database/queries layout: the database-queries protocol on its given queries."""
     from vpr_explorer.pipeline import dataset_descriptors, evaluate_retrieval, imported_descriptors
     from vpr_explorer.settings import check_cache_root
-    from vpr_explorer.views.report import render
+    from vpr_explorer.protocols.evaluation import recall_over_every_query
+    from vpr_explorer.views.report import every_query_line, render
 
     protocol = Protocol(args.protocol or Protocol.DATABASE.value)
     if protocol is not Protocol.DATABASE:
@@ -131,21 +139,27 @@ def _evaluate_retrieval(args: argparse.Namespace, dataset) -> int:
     else:
         check_cache_root(args.cache_dir)
         desc = dataset_descriptors(dataset, descriptor, cache_root=args.cache_dir, progress=bar("descriptors"),
-                                   dtype=args.dtype)
+                                   dtype=args.dtype, options=hub_options(args))
     ev = evaluate_retrieval(dataset, desc, options, spec=spec, metric=metric,
                             settings={"descriptor": descriptor, **source, "dtype": args.dtype}, progress=bar("queries"))
     print(dataset.describe())
     for note in dataset.notes:
         print(note)
     print(render(ev))
-    _write_json(args, ev)
+    line = every_query_line(ev)
+    if line is not None:
+        print(line)
+    every = recall_over_every_query(ev)
+    _write_json(args, ev, {"recall_over_every_query": {str(k): v for k, v in every.items()}})
     return 0
 
 
-def _write_json(args: argparse.Namespace, ev) -> None:
-    """Write ``ev`` to ``--json`` when given (strict JSON: no NaN, nothing but plain values)."""
+def _write_json(args: argparse.Namespace, ev, extra: dict | None = None) -> None:
+    """Write ``ev`` (and ``extra``'s keys beside its own) to ``--json`` when given (strict JSON: no NaN, nothing but
+    plain values)."""
     if args.json is not None:
-        write_text(args.json, json.dumps(ev.to_dict(), indent=2, allow_nan=False, default=_not_json), "--json")
+        data = {**ev.to_dict(), **(extra or {})}
+        write_text(args.json, json.dumps(data, indent=2, allow_nan=False, default=_not_json), "--json")
 
 
 def _not_json(o):

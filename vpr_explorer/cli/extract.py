@@ -6,6 +6,11 @@ cluster (:mod:`vpr_explorer.descriptors.distributed`, which imports ray only whe
 starts). Either way the vectors land in the same content-keyed cache, so whichever runs
 next (the other kind, ``evaluate``, the app) finds them there. The last line gives
 images/s and how many were already cached.
+
+``--descriptor hub:DIR[:ENTRY]`` runs a torch.hub repository's model
+(:mod:`vpr_explorer.descriptors.hub`), with ``--hub-arg key=value`` (repeatable),
+``--hub-size W H`` or ``--hub-short-side N``, and ``--hub-normalisation``; these are refused
+with any other descriptor.
 """
 
 from __future__ import annotations
@@ -15,7 +20,7 @@ import sys
 import time
 from pathlib import Path
 
-from vpr_explorer.cli.common import CACHE_HELP, DEFAULT_DESCRIPTOR, default_note
+from vpr_explorer.cli.common import CACHE_HELP, DEFAULT_DESCRIPTOR, add_hub_args, default_note, hub_options
 from vpr_explorer.data.layouts import Layout
 from vpr_explorer.errors import VPRInputError
 
@@ -27,7 +32,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dataset", required=True, help="dataset folder (or a manifest .csv), or 'demo'")
     p.add_argument("--layout", choices=[x.value for x in Layout], default=Layout.AUTO.value,
                    help="how the dataset is laid out, as for evaluate; auto detects it")
-    p.add_argument("--descriptor", default=DEFAULT_DESCRIPTOR, help="descriptor name")
+    p.add_argument("--descriptor", default=DEFAULT_DESCRIPTOR,
+                   help="descriptor name, or hub:DIR[:ENTRY] for a model of a local torch.hub repository")
+    add_hub_args(p)
     p.add_argument("--cache-dir", type=Path, default=None, help=CACHE_HELP)
     p.add_argument("--dtype", choices=["float32", "float16"], default="float32",
                    help="storage dtype of the cached vectors; float16 halves the disk")
@@ -63,6 +70,7 @@ def run(args: argparse.Namespace) -> int:
     dataset = open_dataset(args.dataset, args.layout)
     paths = list(dataset.image_paths)
     options = {} if args.precision is None else {"precision": args.precision}
+    options.update(hub_options(args))
     line = _local(args, paths, options) if args.ray is None else _on_ray(args, paths, options)
     print(line, flush=True)
     return 0

@@ -42,6 +42,7 @@ from pathlib import Path
 
 from vpr_explorer.cli.common import (
     add_dataset_args,
+    aligned_value,
     bar,
     default_note,
     descriptor_name,
@@ -197,24 +198,12 @@ def dataset_value(args: argparse.Namespace):
     dataset = retrieval_dataset(args)
     if dataset is not None:
         return _layout_value(args, dataset)
-    from vpr_explorer.data.aligned import database_queries
-    from vpr_explorer.pipeline import default_traversals, open_dataset, traversal_direction
-    from vpr_explorer.protocols.options import check_whole
-
-    aligned = open_dataset(args.dataset, args.layout)
-    tolerance = check_whole("--tolerance", TOLERANCE if args.tolerance is None else args.tolerance, low=0,
-                            high=aligned.n_frames,
-                            why=f" (frames of slack; {aligned.name!r} has {aligned.n_frames:,} frames)")
-    db, q = default_traversals(aligned, args.database, args.queries)
-    names = [aligned.traversals[t] for t in db]
-    how = "as given" if args.database or args.queries else traversal_direction(aligned, db, q)
-    right = f"database frames within ±{tolerance} frames of the query's" if tolerance else "the same frame"
-    lines = [f"{aligned.name}: queries {aligned.traversals[q]} against database {', '.join(names)} ({how}); "
-             f"right: {right}"]
-    value = database_queries(aligned, q, database=db, tolerance=tolerance)
-    settings = {"queries": aligned.traversals[q], "database": ", ".join(names),
-                "tolerance": f"±{tolerance} frames" if tolerance else "0 frames (the same frame)"}
-    return value, lines, settings
+    a = aligned_value(args, TOLERANCE if args.tolerance is None else args.tolerance)
+    right = f"database frames within ±{a.tolerance} frames of the query's" if a.tolerance else "the same frame"
+    lines = [f"{a.value.name}: queries {a.query} against database {', '.join(a.database)} ({a.how}); right: {right}"]
+    settings = {"queries": a.query, "database": ", ".join(a.database),
+                "tolerance": f"±{a.tolerance} frames" if a.tolerance else "0 frames (the same frame)"}
+    return a.value, lines, settings
 
 
 def _layout_value(args: argparse.Namespace, dataset):

@@ -12,7 +12,7 @@ import sys
 
 import vpr_explorer
 from vpr_explorer.app import launch
-from vpr_explorer.cli import acceptance, bench, evaluate, extract, failures, listing, record, sweep
+from vpr_explorer.cli import acceptance, bench, datasets, evaluate, extract, failures, fetch, listing, record, sweep
 from vpr_explorer.cli.common import BARS, HelpFormatter
 from vpr_explorer.descriptors import ExtractionInterrupted
 from vpr_explorer.errors import VPRInputError
@@ -30,6 +30,8 @@ COMMANDS = (
     ("bench", bench, "every dataset × descriptor × protocol in one run: one table, CSV, JSON and an HTML report"),
     ("extract", extract, "fill the descriptor cache for a dataset: local threads, or a Ray cluster with "
                          "--ray ADDRESS|local"),
+    ("datasets", datasets, "the public datasets the explorer knows: home, licence, size, layout, URLs and sha256"),
+    ("fetch", fetch, "download a public dataset into $VPR_EXPLORER_DATA (resumable, checked, unpacked safely)"),
     ("app", launch, "open the explorer: Streamlit on the packaged app, from any directory"),
 )
 #: the line a Ctrl-C prints once the command runs

@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from vpr_explorer.cli.common import add_dataset_args, bar, descriptor_name
+from vpr_explorer.cli.common import add_dataset_args, bar, descriptor_name, hub_options
 from vpr_explorer.cli.common import retrieval_dataset
 
 
@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
         tolerance=args.tolerance, group=args.group, step=args.step, reading=args.reading, geometry=args.geometry,
         out=out, k=args.k, cache_root=args.cache_dir, extract_progress=bar("descriptors"), progress=bar("queries"),
         dtype=args.dtype, descriptors_file=args.descriptors, names_file=args.names,
-        bench=BenchOptions() if args.bench else None,
+        bench=BenchOptions() if args.bench else None, descriptor_options=hub_options(args),
     )
     print(playback.describe())
     print(f"wrote {playback.rrd}: watch it with `rerun {playback.rrd}` (or `rerun --web-viewer {playback.rrd}`)")

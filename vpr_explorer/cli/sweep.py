@@ -25,6 +25,7 @@ from vpr_explorer.cli.common import (
     bar,
     default_note,
     descriptor_name,
+    hub_options,
     number,
     protocol_options,
     retrieval_dataset,
@@ -139,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
         desc, descriptor, source = imp.descriptors, imp.name, imp.settings()
     else:
         desc = pipeline.dataset_descriptors(dataset, descriptor, cache_root=args.cache_dir,
-                                            progress=bar("descriptors"), dtype=args.dtype)
+                                            progress=bar("descriptors"), dtype=args.dtype, options=hub_options(args))
     result = sweep(dataset, desc, spec, pipeline, descriptor=descriptor, progress=bar("sweep cells"),
                    cell_progress=bar(f"{spec.protocol.value} protocol"), source=source)
     _print_result(result, spec, descriptor, [Metric(m) for m in (args.metric or [m.value for m in Metric])])

@@ -13,6 +13,24 @@ named by ``VPR_EXPLORER_MODELS`` (TOML, one table per model)::
     dim = 512                          # optional: checked against the model's output
     version = "v2"                     # optional: bump it when weights the model loads change
 
+A torch.hub model (:mod:`~vpr_explorer.descriptors.hub`) is named the same way, once, so that
+every command and the app's descriptor list offer it by that name::
+
+    [models.megaloc]
+    model = "hub:~/.cache/torch/hub/gmberton_MegaLoc_main:get_trained_model"  # hub:DIR[:ENTRY]
+    # hub_args = { backbone_name = "dinov2", output_dim = 12288 }  # the entry's keyword arguments
+    # input_size = [322, 322]        # or short_side = 480; default: the known model's input
+    # normalisation = "imagenet"     # default: the known model's, else imagenet
+
+``get_extractor("megaloc")`` is then ``get_extractor("hub:DIR:ENTRY", hub_args=..., input_size=...,
+short_side=..., normalisation=...)`` with the fields given: the same extractor, name and cache
+key as ``--descriptor hub:DIR:ENTRY`` with the same ``--hub-*`` flags, so each finds what the
+other cached. A relative ``DIR`` is read from the settings file's folder, ``~`` is the home
+folder; ``dim`` and ``version`` do not apply (the key holds the repository's code). The hub
+table's values are checked when the file is read; the repository only when the model is built
+(:func:`~vpr_explorer.descriptors.hub.hub_model`). The settings file is the operator's: naming
+a repository there is the choice to run its code, which no link or typed path of the app can make.
+
 The model receives a ``(B, 3, H, W)`` float32 batch on the extractor's device: RGB,
 resized bilinearly (aspect not kept) to ``input_size``, normalised as named
 (``imagenet``: ``(x / 255 - mean) / std`` with torchvision's ImageNet statistics). It
@@ -42,7 +60,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from vpr_explorer.descriptors.base import Extractor
-from vpr_explorer.descriptors.preprocess import Normalisation
+from vpr_explorer.descriptors.hub import PREFIX as HUB_PREFIX, hub_arguments, split_hub_name
+from vpr_explorer.descriptors.preprocess import INPUT_SIDE_RANGE, RECIPE_VERSION, Normalisation
 from vpr_explorer.errors import VPRInputError
 
 MODELS_ENV = "VPR_EXPLORER_MODELS"
@@ -51,10 +70,7 @@ _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
 _VERSION = re.compile(r"^[A-Za-z0-9._-]{0,32}$")
 _ENTRY_POINT = re.compile(r"^(?P<module>[A-Za-z_][\w.]*|.+\.py):(?P<function>[A-Za-z_]\w*)$")
 _SETTINGS_FIELDS = ("model", "input_size", "normalisation", "dim", "version")
-INPUT_SIDE_RANGE = (8, 4096)
-# Part of every user model's cache key, bumped when the shared preprocessing changes.
-# 2: 16-bit greyscale is scaled by its bit depth (1 clipped it to a white image).
-RECIPE_VERSION = "2"
+_HUB_FIELDS = ("model", "hub_args", "input_size", "short_side", "normalisation")
 
 
 @dataclass(frozen=True)
@@ -86,6 +102,23 @@ class CustomModel:
     @property
     def is_entry_point(self) -> bool:
         return self.function is not None
+
+
+@dataclass(frozen=True)
+class HubSetting:
+    """A torch.hub model named in the settings file; made by :func:`hub_setting`, which validates it.
+
+    Attributes:
+        name: its name in the settings file (letters, digits, ``. _ -``).
+        descriptor: ``hub:DIR[:ENTRY]``, ``DIR`` absolute.
+        options: ``(option, value)`` pairs of ``get_extractor(descriptor, ...)``, sorted: ``hub_args``
+            (sorted ``(key, value)`` pairs), ``input_size`` (``(width, height)``), ``short_side``,
+            ``normalisation``, those given.
+    """
+
+    name: str
+    descriptor: str
+    options: tuple[tuple[str, object], ...]
 
 
 def _input_size(value: object, where: str) -> tuple[int, int]:
@@ -126,6 +159,9 @@ def custom_model(
         )
     if not isinstance(model, (str, os.PathLike)) or not str(model).strip():
         raise VPRInputError(f"{where}model={model!r}: give a TorchScript file or an entry point module:function")
+    if isinstance(model, str) and model.strip().startswith(HUB_PREFIX):
+        raise VPRInputError(f"{where}model={model!r}: a torch.hub model is get_extractor({model.strip()!r}, ...) "
+                            f"itself, or a table of the {MODELS_ENV} settings file")
     source = str(model).strip()
     base = base if base is not None else Path.cwd()
     entry = _ENTRY_POINT.match(source) if isinstance(model, str) else None
@@ -176,7 +212,62 @@ def unavailable_reason(spec: CustomModel) -> str | None:
 # ------------------------------------------------------------------ settings file
 
 
-def read_settings(path: Path) -> dict[str, CustomModel]:
+def hub_setting(name: str, table: dict, *, base: Path, where: str = "") -> HubSetting:
+    """A settings file's table whose ``model`` is ``hub:DIR[:ENTRY]`` (format in the module docstring).
+
+    Nothing of the repository is read: its folder, ``hubconf.py`` and entry are checked when
+    the model is built.
+
+    Raises:
+        VPRInputError: a bad name, an unknown field, ``hub_args`` that is not a table of
+            None/bool/number/string values, a bad ``input_size``, ``short_side`` or
+            ``normalisation``, or both ``input_size`` and ``short_side``; prefixed by ``where``.
+    """
+    if not isinstance(name, str) or not _NAME.match(name):
+        raise VPRInputError(
+            f"{where}name={name!r}: use 1-64 letters, digits and . _ - (the descriptor's name in every command)"
+        )
+    extra = sorted(set(table) - set(_HUB_FIELDS))
+    if extra:
+        raise VPRInputError(f"{where}has field(s) {', '.join(extra)} that a hub: model does not take: use "
+                            f"{', '.join(_HUB_FIELDS)}")
+    rest = table["model"].strip()[len(HUB_PREFIX):]
+    if rest and not rest.startswith("~") and not Path(rest).is_absolute():
+        rest = str(base / rest)
+    try:
+        folder, entry = split_hub_name(HUB_PREFIX + rest)
+    except VPRInputError as exc:
+        raise VPRInputError(f"{where}{exc}") from None
+    options: dict[str, object] = {}
+    if "hub_args" in table:
+        if not isinstance(table["hub_args"], dict):
+            raise VPRInputError(f"{where}hub_args={table['hub_args']!r}: give a table, e.g. "
+                                "hub_args = { backbone_name = \"dinov2\" }")
+        try:
+            options["hub_args"] = hub_arguments(table["hub_args"])
+        except VPRInputError as exc:
+            raise VPRInputError(f"{where}{exc}") from None
+    if "input_size" in table and "short_side" in table:
+        raise VPRInputError(f"{where}gives input_size and short_side: give one of them")
+    if "input_size" in table:
+        options["input_size"] = _input_size(table["input_size"], where)
+    if "short_side" in table:
+        low, high = INPUT_SIDE_RANGE
+        side = table["short_side"]
+        if isinstance(side, bool) or not isinstance(side, int) or not low <= side <= high:
+            raise VPRInputError(f"{where}short_side={side!r}: must be a whole number of pixels from {low} to {high}")
+        options["short_side"] = side
+    if "normalisation" in table:
+        try:
+            options["normalisation"] = Normalisation(table["normalisation"]).value
+        except ValueError:
+            raise VPRInputError(f"{where}normalisation={table['normalisation']!r}: choose one of "
+                                f"{', '.join(n.value for n in Normalisation)}") from None
+    descriptor = HUB_PREFIX + str(folder) + (f":{entry}" if entry else "")
+    return HubSetting(name=name, descriptor=descriptor, options=tuple(sorted(options.items())))
+
+
+def read_settings(path: Path) -> dict[str, CustomModel | HubSetting]:
     """The models of a settings file (format in the module docstring).
 
     Raises:
@@ -198,6 +289,9 @@ def read_settings(path: Path) -> dict[str, CustomModel]:
         where = f"{path}: [models.{name}] "
         if not isinstance(table, dict):
             raise VPRInputError(f"{where}must be a table with model = ...")
+        if isinstance(table.get("model"), str) and table["model"].strip().startswith(HUB_PREFIX):
+            out[name] = hub_setting(name, table, base=path.parent, where=where)
+            continue
         extra = sorted(set(table) - set(_SETTINGS_FIELDS))
         if extra:
             raise VPRInputError(f"{where}has unknown field(s) {', '.join(extra)}: use {', '.join(_SETTINGS_FIELDS)}")
@@ -207,7 +301,7 @@ def read_settings(path: Path) -> dict[str, CustomModel]:
     return out
 
 
-def settings_models() -> dict[str, CustomModel]:
+def settings_models() -> dict[str, CustomModel | HubSetting]:
     """The models of the ``VPR_EXPLORER_MODELS`` file; none when the variable is unset."""
     value = os.environ.get(MODELS_ENV)
     return read_settings(Path(value).expanduser()) if value else {}

@@ -534,7 +534,9 @@ def _key_of(ray, described) -> str:
 
 def _holds_shards_of(cache: DescriptorCache, descriptor: str) -> bool:
     """Whether the cache holds a shard of any version or precision of ``descriptor`` (its keys are ``<name>-...``)."""
-    shards = (p for p in cache.folder.glob(f"{descriptor}-*/*.json") if not p.name.startswith("."))
+    from vpr_explorer.descriptors.registry import cache_name
+
+    shards = (p for p in cache.folder.glob(f"{cache_name(descriptor)}-*/*.json") if not p.name.startswith("."))
     return next(shards, None) is not None
 
 
@@ -575,7 +577,10 @@ def _held_now(cache: DescriptorCache, cache_key: str | None, descriptor: str, un
     Before an actor has told the key (``None``): for any key of ``descriptor``; the job
     found no shard of it when it started, so those it holds now are this job's.
     """
-    keys = [cache_key] if cache_key else sorted(f.name for f in cache.folder.glob(f"{descriptor}-*") if f.is_dir())
+    from vpr_explorer.descriptors.registry import cache_name
+
+    keys = [cache_key] if cache_key else sorted(f.name for f in cache.folder.glob(f"{cache_name(descriptor)}-*")
+                                                if f.is_dir())
     held = np.zeros(len(unique), dtype=bool)
     for key in keys:
         held |= cache.contains(key, unique)

@@ -94,11 +94,12 @@ ZIP_MAGIC = b"PK\x03\x04"
 
 
 class DescriptorFormat(StrEnum):
-    """The kind of descriptor file, from its extension."""
+    """The kind of descriptor file, from its extension (a folder: a VPR-methods-evaluation run, ``vme_run``)."""
 
     NPZ = "npz"
     NPY = "npy"
     HLOC = "hloc-h5"
+    VME_RUN = "vme-run"
 
 
 FORMATS: dict[str, DescriptorFormat] = {
@@ -258,7 +259,8 @@ def load_descriptor_file(
         raise VPRInputError("image_paths: no images given; choose a dataset that holds images")
     if not path.is_file():
         what = "is a folder, not a descriptor file" if path.is_dir() else "does not exist"
-        raise VPRInputError(f"{path}: {what}; give the descriptor file ({', '.join(FORMATS)})")
+        raise VPRInputError(f"{path}: {what}; give the descriptor file ({', '.join(FORMATS)}), or open a "
+                            "VPR-methods-evaluation run folder with its dataset (pipeline.imported_descriptors)")
     if names_file is not None and fmt is not DescriptorFormat.NPY:
         raise VPRInputError(
             f"names_file={str(names_file)!r}: only a .npy takes a names file; {path.name} carries its own names"
@@ -720,9 +722,10 @@ def _match_names(
 
 
 def _unit_rows(
-    rows: np.ndarray, order: np.ndarray, image_names: Sequence[str], path: Path, dtype: str
+    rows: np.ndarray, order: np.ndarray, image_names: Sequence[str], path: Path, dtype: str, *,
+    out: np.ndarray | None = None,
 ) -> tuple[np.ndarray, int]:
-    """``rows[order]`` as unit rows in ``dtype``, and how many were rescaled.
+    """``rows[order]`` as unit rows in ``dtype`` (written into ``out`` when given), and how many were rescaled.
 
     Norms are float64 (float32 squares overflow above ~1e19). Rows within
     ``UNIT_TOLERANCE`` of unit length are cast, not divided, so float32 unit rows come
@@ -735,7 +738,7 @@ def _unit_rows(
             below ``MIN_NORM``.
     """
     n, d = len(order), rows.shape[1]
-    out = np.empty((n, d), dtype=dtype)
+    out = np.empty((n, d), dtype=dtype) if out is None else out
     step = max(1, CHUNK_BYTES // (8 * d))
     not_finite: list[int] = []
     zero: list[int] = []
@@ -780,6 +783,38 @@ def _unit_rows(
             "recompute those images' descriptors, or remove the images from the dataset"
         )
     return out, rescaled
+
+
+def unit_rows_joined(
+    parts: Sequence[tuple[Path, np.ndarray, np.ndarray, Sequence[str]]], dtype: str, *, source: Path
+) -> tuple[np.ndarray, tuple[int, ...]]:
+    """Several files' rows, checked and L2-normalised as :func:`load_descriptor_file` does, into one array.
+
+    Args:
+        parts: ``(path, rows, order, image_names)`` per file, in output order: ``rows[order]``
+            (``order[i]`` the file's row of ``image_names[i]``) fill the next ``len(order)`` rows of
+            the result; every part's rows have the same length ``D``.
+        dtype: ``"float32"`` or ``"float16"``.
+        source: what the memory check names (e.g. the folder holding the files).
+
+    Returns:
+        The read-write ``(sum of len(order), D)`` array, allocated once after the memory check,
+        and per part how many of its rows were rescaled to unit length.
+
+    Raises:
+        VPRInputError: more than this machine's memory, or rows that are NaN, infinite, zero or
+            of a norm below ``MIN_NORM`` (naming the part's file and images).
+    """
+    n, d = sum(len(order) for _, _, order, _ in parts), parts[0][1].shape[1]
+    needed = _nbytes((n, d), np.dtype(dtype))
+    _check_memory(source, f"its {n:,} descriptors of length {d:,} take {_size_text(needed)} as {dtype}", needed,
+                  "read them as float16 (dtype), or on a machine with more memory")
+    out = np.empty((n, d), dtype=dtype)
+    rescaled, lo = [], 0
+    for path, rows, order, names in parts:
+        rescaled.append(_unit_rows(rows, order, names, path, dtype, out=out[lo : lo + len(order)])[1])
+        lo += len(order)
+    return out, tuple(rescaled)
 
 
 # --- claimed sizes, checked before anything is allocated ---------------------------------

@@ -16,6 +16,11 @@ from vpr_explorer.descriptors.base import open_image
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
+#: The sides, in pixels, a user's model (``custom``) or a torch.hub model (``hub``) may be fed.
+INPUT_SIDE_RANGE = (8, 4096)
+#: Part of every user and hub model's cache key, bumped when the shared preprocessing changes.
+#: 2: 16-bit greyscale is scaled by its bit depth (1 clipped it to a white image).
+RECIPE_VERSION = "2"
 
 
 class Normalisation(StrEnum):

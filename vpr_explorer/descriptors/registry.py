@@ -7,6 +7,10 @@ inside their factory, so listing the extractors (a selectbox) stays cheap.
 
 Users' own models join the built-ins by name: :func:`register_extractor` in code, or the
 settings file named by ``VPR_EXPLORER_MODELS`` (see :mod:`~vpr_explorer.descriptors.custom`).
+Any torch.hub repository is one by the name ``hub:DIR[:ENTRY]`` (see
+:mod:`~vpr_explorer.descriptors.hub`): accepted by :func:`get_extractor` and
+:func:`extractor_options`, never listed (there is one per folder); a settings file's table
+``model = "hub:DIR[:ENTRY]"`` lists it under that table's name, with its options fixed there.
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from vpr_explorer.descriptors import checkpoints, custom
+from vpr_explorer.descriptors import checkpoints, custom, hub
 from vpr_explorer.descriptors.base import Extractor
 from vpr_explorer.errors import VPRInputError
 
@@ -127,11 +131,37 @@ EXTRACTOR_NAMES: tuple[str, ...] = tuple(_REGISTRY)
 _USER_MODELS: dict[str, custom.CustomModel] = {}
 
 
-def _custom_entry(spec: custom.CustomModel) -> ExtractorEntry:
+def _custom_entry(spec: custom.CustomModel | custom.HubSetting) -> ExtractorEntry:
+    if isinstance(spec, custom.HubSetting):
+        return ExtractorEntry(
+            functools.partial(hub.build_extractor, spec.descriptor, **dict(spec.options)),
+            lambda **_runtime: hub.unavailable_reason(spec.descriptor),
+            RUNTIME_OPTIONS,
+        )
     return ExtractorEntry(
         functools.partial(custom.build_extractor, spec),
         lambda **_runtime: custom.unavailable_reason(spec),
         RUNTIME_OPTIONS,
+    )
+
+
+def _entry(name: str, entries: dict[str, ExtractorEntry]) -> ExtractorEntry:
+    """``name``'s entry: a listed one, or a ``hub:DIR[:ENTRY]`` model.
+
+    Raises:
+        VPRInputError: for an unknown name, listing the choices.
+    """
+    if name in entries:
+        return entries[name]
+    if hub.is_hub_name(name):
+        return ExtractorEntry(
+            functools.partial(hub.build_extractor, name),
+            functools.partial(hub.unavailable_reason, name),
+            hub.OPTIONS + RUNTIME_OPTIONS,
+        )
+    raise VPRInputError(
+        f"descriptor {name!r} is unknown: choose one of {', '.join(entries)}, or hub:DIR[:ENTRY] (a torch.hub "
+        "repository folder)"
     )
 
 
@@ -197,10 +227,19 @@ def extractor_options(name: str) -> tuple[str, ...]:
     Raises:
         VPRInputError: for an unknown name, listing the choices.
     """
-    entries = _entries()
-    if name not in entries:
-        raise VPRInputError(f"descriptor {name!r} is unknown: choose one of {', '.join(entries)}")
-    return entries[name].options
+    return _entry(name, _entries()).options
+
+
+def cache_name(name: str) -> str:
+    """The name of ``get_extractor(name)``'s extractor, which its cache keys begin with (``<name>-<version>``).
+
+    ``name`` itself, but for ``hub:DIR[:ENTRY]`` and a settings file's hub model:
+    ``hub.<folder>.<entry>``.
+    """
+    if hub.is_hub_name(name):
+        return hub.cache_name(name)
+    spec = custom.settings_models().get(name) if name not in _USER_MODELS else None
+    return hub.cache_name(spec.descriptor) if isinstance(spec, custom.HubSetting) else name
 
 
 def available_extractors() -> dict[str, str | None]:
@@ -219,10 +258,7 @@ def get_extractor(name: str, **options: object) -> Extractor:
         VPRInputError: for an unknown name or option (listing the choices), or when the
             extractor cannot run here (saying why).
     """
-    entries = _entries()
-    entry = entries.get(name)
-    if entry is None:
-        raise VPRInputError(f"descriptor {name!r} is unknown: choose one of {', '.join(entries)}")
+    entry = _entry(name, _entries())
     unknown = sorted(set(options) - set(entry.options))
     if unknown:
         accepted = ", ".join(entry.options) if entry.options else "none"

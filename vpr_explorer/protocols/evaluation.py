@@ -878,6 +878,37 @@ class RetrievalTally:
         return tuple(rows_), pr_rows_, pr_curves, notes, scored
 
 
+#: the K of VPR-methods-evaluation's recall line (its default ``--recall_values`` begin 1, 5, 10)
+EVERY_QUERY_KS = (1, 5, 10)
+
+
+def recall_over_every_query(ev: Evaluation) -> dict[int, float] | None:
+    """The image-level Recall@1/5/10 over every query, as VPR-methods-evaluation counts them.
+
+    VME divides the queries whose top K database images hold a positive by every query
+    (``recalls / eval_ds.queries_num``); the image-level row divides them by the queries with
+    a positive (a query with none is an unknown place and never a hit). With ``n`` queries of
+    which ``u`` have no positive, R_VME@K = hits@K / n, hits@K = R@K · (n − u) (an integer,
+    rounded off float error). The two agree when ``u = 0``.
+
+    Returns:
+        ``{K: rate in [0, 1]}`` for each K of :data:`EVERY_QUERY_KS` the evaluation counted, or
+        ``None`` for a protocol other than database-queries.
+    """
+    if ev.protocol is not Protocol.DATABASE:
+        return None
+    n = int(ev.settings["queries"])
+    known = n - int(ev.settings["queries_without_positive"])
+    image = next(r for r in ev.rows if r.key == "image-baseline")
+    out = {}
+    for k in EVERY_QUERY_KS:
+        if k in image.recall:
+            rate = image.recall[k][0]
+            hits = round(rate * known) if known and math.isfinite(rate) else 0
+            out[k] = hits / n if n else 0.0
+    return out
+
+
 def retrieval_protocol(
     database: np.ndarray,
     queries: np.ndarray,

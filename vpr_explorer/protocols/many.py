@@ -24,7 +24,9 @@ numbers are the same); one given that no cell's protocol reads is refused. The d
 options are given to every dataset, and a dataset that ``evaluate`` would refuse them for
 fails its cells: ``radius`` and ``geometry`` apply to database/queries layouts, a
 ``tolerance`` other than 0 to aligned traversals; ``theta`` goes to every protocol. Every
-cell computes precision–recall (``pr=True``).
+cell computes precision–recall (``pr=True``). ``descriptor_options`` (a torch.hub model's
+input size, arguments, normalisation) go to every ``hub:DIR[:ENTRY]`` descriptor, the others
+take none.
 
 What is shared: each dataset is read once; each dataset × descriptor's descriptors are
 extracted (through the descriptor cache: ``pipeline.dataset_descriptors``) or read from a
@@ -67,7 +69,7 @@ import math
 import sys
 import time
 import tracemalloc
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -79,7 +81,7 @@ from vpr_explorer.data.layouts import Layout, RetrievalDataset, radius_applies
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec, Reading, make_places
 from vpr_explorer.method.retrieval import METHODS_BY_KEY
-from vpr_explorer.protocols.evaluation import Evaluation, Progress, Protocol, strict
+from vpr_explorer.protocols.evaluation import Evaluation, Progress, Protocol, recall_over_every_query, strict
 from vpr_explorer.protocols.options import K_GRID, RUNS, SEED, UNKNOWN_SHARE, ProtocolOptions
 from vpr_explorer.protocols.shared_scores import SHARED_LIMIT, SharedScores
 
@@ -137,7 +139,12 @@ class BenchSpec:
 
     Attributes:
         datasets: dataset folders (or manifests), or ``"demo"``; each once.
-        descriptors: extractor names (``descriptors.extractor_names``), each run on every dataset.
+        descriptors: extractor names (``descriptors.extractor_names``, or ``hub:DIR[:ENTRY]``), each
+            run on every dataset.
+        descriptor_options: ``(option, value)`` pairs given to every ``hub:DIR[:ENTRY]`` descriptor of
+            ``descriptors`` (``descriptors.hub.OPTIONS``: ``hub_args``, ``input_size``, ``short_side``,
+            ``normalisation``), as ``get_extractor(name, **options)`` takes them; the other
+            descriptors get none.
         descriptor_files: ``(dataset, file)`` pairs: descriptors computed elsewhere for that
             dataset of ``datasets``, named by the file's stem (``pipeline.imported_descriptors``).
         protocols: the protocols every dataset runs, or None for each layout's default
@@ -162,6 +169,7 @@ class BenchSpec:
 
     datasets: tuple[str, ...]
     descriptors: tuple[str, ...] = ()
+    descriptor_options: tuple[tuple[str, object], ...] = ()
     descriptor_files: tuple[tuple[str, Path], ...] = ()
     protocols: tuple[Protocol, ...] | None = None
     methods: tuple[str, ...] | None = None
@@ -185,7 +193,7 @@ class BenchSpec:
 
     def __post_init__(self) -> None:
         from vpr_explorer.data.groundtruth import check_radius
-        from vpr_explorer.descriptors import extractor_names
+        from vpr_explorer.descriptors import extractor_names, hub
         from vpr_explorer.descriptors.cache import check_dtype
 
         put = lambda name, value: object.__setattr__(self, name, value)  # noqa: E731 (frozen: set once, here)
@@ -194,10 +202,21 @@ class BenchSpec:
             raise VPRInputError("datasets: give at least one dataset folder (or 'demo')")
         put("descriptors", _unique("descriptors", self.descriptors))
         names = extractor_names()
-        unknown = [d for d in self.descriptors if d not in names]
+        unknown = [d for d in self.descriptors if d not in names and not hub.is_hub_name(d)]
         if unknown:
             raise VPRInputError(f"descriptors: {', '.join(unknown)} unknown; choose among {', '.join(names)}, or "
-                                "bring a file of descriptors per dataset")
+                                "hub:DIR[:ENTRY] (a torch.hub repository folder), or bring a file of descriptors per "
+                                "dataset")
+        given = self.descriptor_options
+        pairs = list(given.items() if isinstance(given, Mapping) else given)
+        options = dict(pairs)
+        if len(options) != len(pairs) or set(options) - set(hub.OPTIONS):
+            raise VPRInputError(f"descriptor_options: {', '.join(str(k) for k, _ in pairs)}; give each of "
+                                f"{', '.join(hub.OPTIONS)} at most once")
+        if options and not any(hub.is_hub_name(d) for d in self.descriptors):
+            raise VPRInputError(f"descriptor_options ({', '.join(options)}) apply to hub:DIR[:ENTRY] descriptors only, "
+                                "and descriptors names none: drop them, or name a hub repository")
+        put("descriptor_options", tuple(sorted(options.items())))
         put("descriptor_files", tuple((str(d), Path(f).expanduser()) for d, f in self.descriptor_files))
         for d, f in self.descriptor_files:
             if d not in self.datasets:
@@ -259,6 +278,12 @@ class BenchSpec:
                   for name, (readers, default) in PROTOCOL_OPTIONS.items()}
         return ProtocolOptions(**fields, tolerance=self.tolerance or 0, user_theta=self.theta, pr=True)
 
+    def extractor_options(self, descriptor: str) -> dict[str, object]:
+        """``get_extractor``'s options for ``descriptor``: ``descriptor_options`` for a ``hub:`` name, else none."""
+        from vpr_explorer.descriptors.hub import is_hub_name
+
+        return dict(self.descriptor_options) if is_hub_name(descriptor) else {}
+
     def files(self, dataset: str) -> tuple[Path, ...]:
         return tuple(f for d, f in self.descriptor_files if d == dataset)
 
@@ -268,6 +293,7 @@ class BenchSpec:
 
         return {
             "datasets": list(self.datasets), "descriptors": list(self.descriptors),
+            "descriptor_options": {k: _plain(v) for k, v in self.descriptor_options} or None,
             "descriptor_files": [{"dataset": d, "file": str(f)} for d, f in self.descriptor_files],
             "protocols": None if self.protocols is None else [p.value for p in self.protocols],
             "methods": None if self.methods is None else list(self.methods),
@@ -370,10 +396,14 @@ class BenchCell:
         return self.error is not None
 
     def to_dict(self) -> dict:
-        """The cell's settings and numbers: ``Evaluation.to_dict`` without its curves (the report draws them)."""
+        """The cell's settings and numbers: ``Evaluation.to_dict`` without its curves (the report draws them),
+        with ``recall_over_every_query`` for a database-queries cell, as ``evaluate --json`` writes them."""
         ev = None
         if self.evaluation is not None:
             ev = {k: v for k, v in self.evaluation.to_dict().items() if k != "pr_curves"}
+            every = recall_over_every_query(self.evaluation)
+            if every is not None:
+                ev["recall_over_every_query"] = {str(k): v for k, v in every.items()}
         return {"dataset": self.dataset, "source": self.source, "descriptor": self.descriptor,
                 "protocol": None if self.protocol is None else self.protocol.value, "error": self.error,
                 "seconds": self.seconds, "evaluation": ev}
@@ -691,7 +721,7 @@ def _descriptors(spec: BenchSpec, stages: BenchStages, opened: _Opened, name: st
                 desc, source = imp.descriptors, imp.settings()
             else:
                 desc = stages.dataset_descriptors(dataset, name, cache_root=spec.cache_root, progress=counted,
-                                                  dtype=spec.dtype)
+                                                  dtype=spec.dtype, options=spec.extractor_options(name))
     except VPRInputError as exc:
         return None, source, DescriptorRun(opened.run.source, name, error=str(exc))
     run = DescriptorRun(opened.run.source, name, source, int(desc.shape[0]), int(desc.shape[1]), str(desc.dtype),

@@ -1,4 +1,10 @@
-"""Evaluations as text tables (the paper's Table 1 layout) and CSV rows."""
+"""Evaluations as text tables (the paper's Table 1 layout) and CSV rows.
+
+Beside them, :func:`every_query_line`: the database-queries protocol's image-level
+Recall@1/5/10 counted as VPR-methods-evaluation counts it (a hit rate over every query,
+``protocols.evaluation.recall_over_every_query``), where the table counts it over the queries
+that have a positive.
+"""
 
 from __future__ import annotations
 
@@ -6,7 +12,7 @@ import csv
 import io
 import math
 
-from vpr_explorer.protocols.evaluation import Evaluation, Protocol
+from vpr_explorer.protocols.evaluation import Evaluation, Protocol, recall_over_every_query
 
 
 def _pct(stat, with_std: bool = True) -> str:
@@ -43,6 +49,19 @@ def method_table(ev: Evaluation) -> str:
             cells.append(_pct(r.own_traversal, False))
         rows.append(cells)
     return _grid(header, rows)
+
+
+def every_query_line(ev: Evaluation) -> str | None:
+    """The line ``vpr-explorer evaluate`` prints under a database-queries table when some queries have no
+    positive (:func:`recall_over_every_query`), else ``None``."""
+    recall = recall_over_every_query(ev)
+    unknown = int(ev.settings.get("queries_without_positive", 0))
+    if not recall or not unknown:
+        return None
+    ks = "/".join(map(str, recall))
+    rates = " / ".join(f"{100 * x:.1f}" for x in recall.values())
+    return (f"R@{ks} over every query, as VPR-methods-evaluation counts them: {rates} % ({ev.settings['queries']:,} "
+            f"queries, {unknown:,} of them without a positive)")
 
 
 def tradeoff_table(ev: Evaluation, rule: str = "margin") -> str:

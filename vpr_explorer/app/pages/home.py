@@ -22,11 +22,12 @@ from vpr_explorer.errors import VPRInputError
 from vpr_explorer.data.groundtruth import DEFAULT_RADIUS
 from vpr_explorer.data.layouts import Layout, RetrievalDataset
 from vpr_explorer.pipeline import DEMO
-from vpr_explorer.views.numbers import radius_of
+from vpr_explorer.views.numbers import THUMBNAIL_CHARS, radius_of
 
 from vpr_explorer.app.ui import cache, state
 from vpr_explorer.app.ui.current import current
 from vpr_explorer.app.ui.feedback import show_error, show_rejected
+from vpr_explorer.app.ui.fetch_panel import fetch_panel
 from vpr_explorer.app.ui.routing import ensure_routed
 
 ensure_routed(__file__)
@@ -182,7 +183,7 @@ with col_desc:
                  else f"unavailable: {reason.split(':')[0].split(';')[0]}") for name, reason in status.items()]
     st.radio("Global image descriptor", [*status, FILE], key="w_descriptor", on_change=pick_descriptor,
              format_func=lambda name: "A descriptor file…" if name == FILE else name,
-             captions=[*captions, "computed elsewhere: .npz, .npy (+ names), hloc .h5"],
+             captions=[*captions, "computed elsewhere: .npz, .npy (+ names), hloc .h5, a VPR-methods-evaluation run"],
              help="pixels: a downsampled, normalised image (instant; fine on the demo route). "
                   "efficientnet-lite0: a learned descriptor (about a minute for 600 images on 2 CPU cores, then cached on disk). "
                   "Descriptors computed elsewhere (NetVLAD, CosPlace, MixVPR, …): type the file's path, or start the app "
@@ -201,13 +202,16 @@ with col_desc:
                       help="Press Enter to read it. .npz: arrays `names` (paths relative to the dataset folder) and "
                            "`descriptors`; .npy: rows in the order `vpr-explorer list --dataset PATH` prints (names "
                            "in <stem>.txt beside it, optional); .h5: hloc's `<image name>/global_descriptor`. Its "
-                           "images must be the dataset's: missing and extra ones are listed.")
+                           "images must be the dataset's: missing and extra ones are listed. A folder: a "
+                           "VPR-methods-evaluation log folder (`database_descriptors.npy`, `queries_descriptors.npy`, "
+                           "rows in VME's order) for a database-queries dataset, named by the folder's stem.")
     missing = {name: reason for name, reason in status.items() if reason is not None}
     if missing:
         with st.expander(f"Why {len(missing)} descriptor(s) cannot run here"):
             for name, reason in missing.items():
                 st.caption(f"**{name}**: {reason}")
 
+fetch_panel(root)
 st.divider()
 disk_problem = cache.disk_cache_problem()
 if disk_problem is not None:
@@ -247,7 +251,8 @@ def show_retrieval(ds: RetrievalDataset) -> None:
         st.caption(f"**{label}**: images {', '.join(map(str, shown))} of {len(paths):,}")
         for col, i in zip(st.columns(len(shown)), shown):
             name = Path(paths[i]).name  # "@east@north@…@.jpg" names do not fit: the index, as the caption above
-            col.image(cache.thumbnail(paths[i]), caption=name if len(name) <= 28 else f"image {i}", width="stretch")
+            col.image(cache.thumbnail(paths[i]), caption=name if len(name) <= THUMBNAIL_CHARS else f"image {i}",
+                      width="stretch")
 
 
 def show_descriptors() -> None:

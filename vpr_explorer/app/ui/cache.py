@@ -20,7 +20,10 @@ which must not happen to a progress bar.
 Every dataset and typed descriptor file is looked up under the app's data root
 (``app.under_data_root``) before anything of it is read: ``dataset``, ``layout_of`` and
 ``check_descriptor_file`` refuse a path outside it (the files the app was started with,
-``descriptor_files``, are the operator's and read where they are).
+``descriptor_files``, are the operator's and read where they are). A ``hub:DIR[:ENTRY]``
+descriptor name (whose ``hubconf.py`` would run in the server) is refused by ``load`` whatever
+names it: the app runs a torch.hub model only by the name the operator's models settings file
+gives it (``descriptors.custom``).
 
 When the cache folder cannot be written (``disk_cache_problem``), the explorer still
 runs: descriptors are kept in memory only and the demo route is drawn into the
@@ -281,21 +284,33 @@ def _names_key(ds: Dataset | RetrievalDataset) -> str:
 
 
 def _images_key(ds: Dataset | RetrievalDataset, path: Path | None) -> str:
-    """``_files_key`` for descriptors computed from the images, ``_names_key`` for a descriptor file."""
+    """``_files_key`` for descriptors computed from the images, ``_names_key`` for a descriptor file (for a
+    run folder, with its files' sizes and mtimes: ``vme_run.run_stamp``)."""
+    if (path is not None and path.is_dir() and isinstance(ds, RetrievalDataset)
+            and ds.layout is Layout.DATABASE_QUERIES):
+        from vpr_explorer.descriptors.vme_run import run_stamp
+
+        return _names_key(ds) + run_stamp(path, ds)
     return _files_key(ds) if path is None else _names_key(ds)
 
 
 def check_descriptor_file(text: str) -> Path:
     """A typed descriptor file path, checked before it is read: it lies under the app's data root, it
-    exists, its extension is one the library reads, and its stem (the descriptor's name) names no extractor."""
+    exists, its extension is one the library reads (or it is a VPR-methods-evaluation run folder holding both
+    its files), and its stem (the descriptor's name) names no extractor."""
     from vpr_explorer.descriptors.imported import descriptor_format
     from vpr_explorer.descriptors.registry import EXTRACTOR_NAMES
 
     if not str(text).strip():
         raise VPRInputError("descriptor file: type the path of a .npz, .npy or hloc .h5 file")
     path = under_data_root(str(text).strip(), what="descriptor file")
-    descriptor_format(path)  # an unknown extension, named
-    if not path.is_file():
+    if path.is_dir():  # a VPR-methods-evaluation run folder (descriptors.vme_run): both its .npy files there
+        from vpr_explorer.descriptors.vme_run import check_run_folder
+
+        check_run_folder(path)
+    else:
+        descriptor_format(path)  # an unknown extension, named
+    if not path.is_file() and not path.is_dir():
         raise VPRInputError(f"descriptor file {path}: no such file; give the path of a .npz, .npy or hloc .h5 file "
                             "on this machine")
     if path.stem in EXTRACTOR_NAMES:
@@ -345,6 +360,13 @@ def load(source: str, descriptor: str, *, layout: str = Layout.AUTO.value, radiu
 
 def _load(source: str, descriptor: str, *, layout: str, radius: float | None, file: str | Path | None) -> Loaded:
     """``load``'s result, from the memo or computed."""
+    from vpr_explorer.descriptors.custom import MODELS_ENV
+    from vpr_explorer.descriptors.hub import is_hub_name
+
+    if is_hub_name(descriptor):  # a link's descriptor= must never run a repository's code
+        raise VPRInputError(f"descriptor {descriptor!r}: the app runs a torch.hub model only by a name of the "
+                            f"models settings file ({MODELS_ENV}: [models.NAME] model = \"hub:DIR[:ENTRY]\"); "
+                            "pick a descriptor from the Dataset page's list")
     ds = dataset(source, layout, radius)
     path = descriptor_path(descriptor, file)
     files = _images_key(ds, path)

@@ -142,6 +142,7 @@ _INSTEAD = {
     "group_m": "the default group in metres",
     "step_m": "the default step in metres",
     "descriptors": f"the descriptor named by descriptor, else {DEFAULT_DESCRIPTOR}",
+    "descriptor": f"the default descriptor ({DEFAULT_DESCRIPTOR})",
 }
 """What the app uses when a link's parameter is refused."""
 
@@ -196,6 +197,9 @@ def _parse(name: str, text: str) -> object:
         raise ValueError(f"choose one of {', '.join(x.value for x in Layout)}")
     if name == "geometry" and text not in {g.value for g in PlaceGeometry}:
         raise ValueError(f"choose {' or '.join(g.value for g in PlaceGeometry)}")
+    if name == "descriptor" and text.strip().startswith("hub:"):
+        raise ValueError("a hub:DIR descriptor runs the repository's code, which a link never does; name the model "
+                         "in the app's VPR_EXPLORER_MODELS settings file and choose it by that name")
     if name == "descriptors" and not text.strip():
         raise ValueError("empty: give the path of a .npz, .npy or hloc .h5 file")
     if name == "source" and not text.strip():
