@@ -208,7 +208,7 @@ def test_playback_page_records_every_query_as_the_library_decides(app, layout, r
     assert at.title[0].value == "Playback"
     at.button[0].click().run()
     assert_clean(at)
-    assert at.get("iframe"), "no viewer embedded after recording"
+    assert at.get("component_instance"), "no viewer embedded after recording"  # app/ui/rerun_viewer.py
     assert at.get("download_button"), "no .rrd download offered"
     playback = at.session_state["playback"]
     assert playback.n_queries == value.n_queries

@@ -1,14 +1,18 @@
-"""A real browser on the Playback page: record, then find rerun's viewer loaded with the recording.
+"""A real browser on the Playback page: record, find rerun's viewer showing the recording, and the frame box following its cursor.
 
 Drives Debian's Chromium (never a downloaded one) against a real ``streamlit run app.py``
 with the pixel descriptor: on the built-in demo route (aligned traversals, no dataset
 download), and on GardensPoint written as a VPR-Bench layout (its queries against its
-references, in order).
+references, in order). The viewer is the page's component (``app/ui/rerun_viewer.py``):
+its frame exposes ``window.rerunViewer`` (``app/static/rerun_viewer/index.html``), through
+which the test moves the viewer's time cursor the way rerun-notebook's Python side does (a
+``time_ctrl`` message to the widget).
 """
 
 from __future__ import annotations
 
 import re
+import time
 
 import pytest
 
@@ -21,12 +25,31 @@ CHROMIUM = "/usr/bin/chromium"
 ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
         "--disable-component-update", "--disable-sync"]
 TIMEOUT_MS = 120_000
-VIEWER_URL = re.compile(r"^http://127\.0\.0\.1:\d+/\?url=rerun%2Bhttp%3A%2F%2F127\.0\.0\.1%3A\d+%2Fproxy")
+DEMO_LINK = "source=demo&descriptor=pixels&group=2&step=2&query=night"
+COMPONENT = "iframe[src*='/component/vpr_explorer.app.ui.rerun_viewer.rerun_viewer/index.html']"
 
 
-def _viewer_state(frame) -> str:
-    """The viewer's own report of what it shows (a protobuf message), as text."""
-    return frame.evaluate("() => new TextDecoder('latin1').decode(window._handle.viewer_state())")
+def _record(page, url: str, link: str) -> str:
+    """Open the Playback page at ``link``, press Record and play; the recording's id."""
+    page.goto(f"{url}/playback?{link}", timeout=TIMEOUT_MS)
+    record = page.get_by_role("button", name="Record and play")
+    record.wait_for(timeout=TIMEOUT_MS)
+    record.click()
+    caption = page.get_by_text(re.compile(r"Recording [0-9a-f]{32}"))
+    caption.wait_for(timeout=TIMEOUT_MS)
+    return re.search(r"Recording ([0-9a-f]{32})", caption.inner_text()).group(1)
+
+
+def _viewer(page, recording_id: str):
+    """The component's frame, once its viewer shows ``recording_id`` (opened, and its cursor where the page put it)."""
+    frame = page.wait_for_selector(COMPONENT, timeout=TIMEOUT_MS).content_frame()
+    frame.wait_for_function("rid => window.rerunViewer !== undefined && window.rerunViewer.shown === rid",
+                            arg=recording_id, timeout=TIMEOUT_MS)
+    return frame
+
+
+def _launch(pw):
+    return pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
 
 
 @pytest.mark.parametrize("layout, heading, file_name", [
@@ -35,7 +58,7 @@ def _viewer_state(frame) -> str:
                  marks=pytest.mark.realdata),
 ])
 def test_playback_page_records_and_shows_the_recording_in_the_viewer(tmp_path, request, layout, heading, file_name):
-    link = "source=demo&descriptor=pixels&group=2&step=2&query=night"
+    link = DEMO_LINK
     if layout != "demo":
         from urllib.parse import quote
 
@@ -44,39 +67,32 @@ def test_playback_page_records_and_shows_the_recording_in_the_viewer(tmp_path, r
         written = write_gardens_point_layouts(request.getfixturevalue("data_root") / "GardensPointWalking", tmp_path)
         link = f"source={quote(str(written[layout]))}&descriptor=pixels&group=2&step=5"
     with streamlit_server("app.py") as url, sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        browser = _launch(pw)
         try:
             page = browser.new_page(viewport={"width": 1500, "height": 1100}, accept_downloads=True)
             errors: list[str] = []
             page.on("pageerror", lambda exc: errors.append(f"page: {exc}"))
-            page.goto(f"{url}/playback?{link}", timeout=TIMEOUT_MS)
-            record = page.get_by_role("button", name="Record and play")
-            record.wait_for(timeout=TIMEOUT_MS)
-            record.click()
-
-            caption = page.get_by_text(re.compile(r"Recording [0-9a-f]{32}"))
-            caption.wait_for(timeout=TIMEOUT_MS)
-            recording_id = re.search(r"Recording ([0-9a-f]{32})", caption.inner_text()).group(1)
+            recording_id = _record(page, url, link)
             assert page.get_by_text(heading).is_visible()
             assert page.get_by_text("Looking at").is_visible()  # routed through app.py
+            assert page.get_by_text("box below the viewer follows its time cursor").is_visible()
 
-            page.locator("iframe").first.wait_for(timeout=TIMEOUT_MS)
-            viewer = next(f for f in page.frames if VIEWER_URL.match(f.url))
-            viewer.wait_for_function("() => window._handle !== undefined", timeout=TIMEOUT_MS)
-            canvas = viewer.locator("canvas#the_canvas_id")
-            assert canvas.is_visible()
+            viewer = _viewer(page, recording_id)
+            canvas = viewer.locator("canvas")
+            assert canvas.count() == 1 and canvas.is_visible()
             box = canvas.bounding_box()
             assert box is not None and box["width"] > 600 and box["height"] > 400
-            # The viewer has our recording, as the active one, laid out by our blueprint.
+            # The viewer opened our recording from the gRPC server and reports its cursor on it.
+            events = viewer.evaluate("() => window.rerunViewer.events")
+            assert any(e["type"] == "recording_open" and e["recording_id"] == recording_id for e in events)
+            assert viewer.locator(".rerun-fail-message, #failure").count() == 0
+            # It started where the box stands, and has sent nothing the page already knew.
+            frame_box = page.locator('[data-testid="stNumberInput"] input').first
+            start = int(frame_box.input_value())
             viewer.wait_for_function(
-                "rid => new TextDecoder('latin1').decode(window._handle.viewer_state())"
-                ".includes('recording_id=' + rid)", arg=recording_id, timeout=TIMEOUT_MS)
-            state = _viewer_state(viewer)
-            active = re.search(r"about:recording\?app_id=vpr_explorer&recording_id=([0-9a-f]+)", state)
-            assert active is not None and active.group(1) == recording_id
-            assert "paper's answer" in state and "place: true (grey)" in state
-            assert not viewer.evaluate("() => window._handle.has_panicked()")
-            assert viewer.locator("#center_text").inner_text().strip() == ""
+                "([rid, t]) => window.rerunViewer.events.some(e => e.recording_id === rid && e.time === t)",
+                arg=[recording_id, start], timeout=TIMEOUT_MS)
+            assert viewer.evaluate("() => window.rerunViewer.sent") == []
 
             with page.expect_download(timeout=TIMEOUT_MS) as download:
                 page.get_by_role("button", name="Download the .rrd").click()
@@ -87,6 +103,48 @@ def test_playback_page_records_and_shows_the_recording_in_the_viewer(tmp_path, r
 
             assert page.locator('[data-testid="stException"]').count() == 0
             assert page.locator('[data-testid="stAlertContentError"]').count() == 0
+            assert errors == []
+        finally:
+            browser.close()
+
+
+def _move_cursor(page, viewer, frame: int) -> float:
+    """Move the viewer's cursor to query ``frame`` (paused); seconds until the box, caption and button show it."""
+    began = time.monotonic()
+    viewer.evaluate("q => window.rerunViewer.custom({type: 'time_ctrl', timeline: 'query', sequence: String(q), "
+                    "play: false})", frame)
+    page.get_by_role("button", name=f"Open frame {frame} in the Query inspector").wait_for(timeout=TIMEOUT_MS)
+    return time.monotonic() - began
+
+
+def test_the_frame_box_follows_the_viewers_time_cursor():
+    with streamlit_server("app.py") as url, sync_api.sync_playwright() as pw:
+        browser = _launch(pw)
+        try:
+            page = browser.new_page(viewport={"width": 1500, "height": 1100})
+            errors: list[str] = []
+            page.on("pageerror", lambda exc: errors.append(f"page: {exc}"))
+            recording_id = _record(page, url, DEMO_LINK)
+            viewer = _viewer(page, recording_id)
+            box = page.get_by_label("frame", exact=True)
+            caption = page.locator('[data-testid="stMarkdownContainer"]', has_text="paper (margin")
+            for frame in (17, 5):
+                assert int(box.input_value()) != frame
+                seconds = _move_cursor(page, viewer, frame)
+                assert box.input_value() == str(frame), seconds
+                assert caption.inner_text().startswith(f"night · frame {frame}:")
+                assert "frame=" + str(frame) in page.url  # the view's frame, kept in the link
+                sent = viewer.evaluate("() => window.rerunViewer.sent")[-1]
+                assert (sent["recording_id"], sent["timeline"], sent["time"]) == (recording_id, "query", frame)
+
+            # The box still edits on its own; the viewer's next move takes it back.
+            box.fill("40")
+            box.press("Enter")
+            page.get_by_role("button", name="Open frame 40 in the Query inspector").wait_for(timeout=TIMEOUT_MS)
+            _move_cursor(page, viewer, 23)
+            assert box.input_value() == "23"
+
+            assert page.locator('[data-testid="stException"]').count() == 0
             assert errors == []
         finally:
             browser.close()

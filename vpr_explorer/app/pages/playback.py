@@ -6,19 +6,33 @@ traversal's frames against every other traversal) with its places, recorded by
 (same query, k and places), where each method's decision is explained and drawn. A checkbox
 adds the acceptance bench (every acceptance rule on the same value and places, ``cache.bench``)
 to the recording: each rule's decision of every query on the same timeline.
+
+The viewer is ``ui.rerun_viewer``'s component: where its time cursor stands on the ``query``
+timeline of this recording, the query box below stands too (with its caption and button).
+Where that component cannot run (rerun-notebook missing), rerun's own web viewer is shown
+in an iframe, with the reason, and the box does not follow it.
 """
 
 import numpy as np
 import streamlit as st
 
+from vpr_explorer.errors import VPRInputError
 from vpr_explorer.method.database import Verdict
 from vpr_explorer.method.places import BETWEEN_PLACES_RULE
 from vpr_explorer.method.retrieval import METHODS_BY_KEY
 from vpr_explorer.protocols.acceptance import REFERENCE_SHARE, BenchOptions
-from vpr_explorer.recording import BENCH_SETS, RECORDED, TIMELINE, bench_lines, record_playback, verdicts
+from vpr_explorer.recording import (
+    BENCH_SETS,
+    RECORDED,
+    TIMELINE,
+    bench_lines,
+    record_playback,
+    verdicts,
+    viewer_servers,
+)
 from vpr_explorer.views.numbers import UNKNOWN, query_label
 
-from vpr_explorer.app.ui import cache, state
+from vpr_explorer.app.ui import cache, rerun_viewer, state
 from vpr_explorer.app.ui.current import current
 from vpr_explorer.app.ui.feedback import PLACES_HINT, progress_reporter, stop_on_input_error
 from vpr_explorer.app.ui.routing import ensure_routed, page_file
@@ -104,10 +118,33 @@ st.caption(
        "them a wrong accept. " if unknown else "")
     + f"{BETWEEN_PLACES_RULE} "
     "Route: the query's position in blue, answers green (right) or red (wrong), where the dataset has positions "
-    "or frames. The viewer lists every recording made on this server (newest shown); pick another in its "
-    "recordings panel."
+    "or frames. The viewer lists every recording made on this server (this one shown); pick another in its "
+    f"recordings panel. The {noun} box below the viewer follows its time cursor on this recording."
 )
-st.iframe(playback.viewer_url, height=VIEWER_HEIGHT)
+
+
+same = (playback.dataset, playback.query, playback.database, playback.n_queries) == (
+    ds.name, cur.query, cur.database, ds.n_queries)
+said = {key: verdicts(playback.decisions, key) for key in RECORDED}
+wrong = [q for q, verdict in enumerate(said["margin-weighted"])
+         if verdict in (Verdict.WRONG_ACCEPT.value, Verdict.WRONG_REJECT.value)]
+default = v.frame if v.frame is not None and 0 <= v.frame < playback.n_queries else (wrong[0] if wrong else 0)
+
+
+def follow(cursor: rerun_viewer.Cursor) -> None:
+    """The viewer's cursor moved: its query becomes the view's frame (the box below is drawn from it)."""
+    q = cursor.position(playback.recording_id, TIMELINE, playback.n_queries)
+    if q is not None and same:
+        state.update(frame=q)
+
+
+try:
+    rerun_viewer.viewer(viewer_servers().grpc_url, playback.recording_id, timeline=TIMELINE, height=VIEWER_HEIGHT,
+                        key="w_playback_viewer", sequence=int(default) if same else None, on_cursor=follow)
+except VPRInputError as exc:
+    st.caption(f"rerun's own web viewer below: the viewer that reports its time cursor cannot run ({exc}), so the "
+               f"{noun} box does not follow the cursor.")
+    st.iframe(playback.viewer_url, height=VIEWER_HEIGHT)
 st.download_button(
     "Download the .rrd", data=playback.rrd.read_bytes, icon=":material/download:", on_click="ignore",
     file_name=f"{playback.dataset}_{playback.query}_vs_{'+'.join(playback.database)}.rrd",
@@ -115,22 +152,18 @@ st.download_button(
 )
 
 st.subheader(f"Open a {noun} in the Query inspector")
-if (playback.dataset, playback.query, playback.database, playback.n_queries) != (
-        ds.name, cur.query, cur.database, ds.n_queries):
+if not same:
     st.info(f"This recording is of {playback.dataset} ({playback.query} against {', '.join(playback.database)}); the "
             f"app now looks at {ds.name} ({cur.query} against {', '.join(cur.database)}): record again to open its "
             "queries in the Query inspector.", icon=":material/info:")
     st.stop()
-said = {key: verdicts(playback.decisions, key) for key in RECORDED}
-wrong = [q for q, verdict in enumerate(said["margin-weighted"])
-         if verdict in (Verdict.WRONG_ACCEPT.value, Verdict.WRONG_REJECT.value)]
-default = v.frame if v.frame is not None and 0 <= v.frame < playback.n_queries else (wrong[0] if wrong else 0)
 pick, told, go = st.columns([1, 3, 2], vertical_alignment="bottom")
 pick.number_input(
     noun, 0, playback.n_queries - 1, step=1, **state.bind("w_playback_frame", "frame", int(default)),
     help=f"A query of the recording by its number (0 to {playback.n_queries - 1}, in order: for aligned traversals "
-         f"the query traversal's frame): the one the viewer's time cursor shows on its `{TIMELINE}` timeline. The "
-         "button opens it in the Query inspector. Queries the paper's method got wrong here: "
+         f"the query traversal's frame): the one the viewer's time cursor shows on its `{TIMELINE}` timeline. It "
+         "follows the cursor as you drag or play it; the button opens it in the Query inspector. Queries the "
+         "paper's method got wrong here: "
          f"{', '.join(map(str, wrong[:12])) or 'none'}{' …' if len(wrong) > 12 else ''}.",
 )
 q = int(np.clip(state.view().frame if state.view().frame is not None else default, 0, playback.n_queries - 1))
