@@ -189,8 +189,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--descriptor", default="pixels", help="descriptor name (default pixels)")
     parser.add_argument("--repeat", type=int, default=3, help="GardensPoint: best of this many runs")
     parser.add_argument("--skip-nordland", action="store_true")
-    # Group 2, step 4: the figures quoted in the README (once, above 2,000 database images, the
-    # automatic θ's sample gathered 16 GB of pairs; its tile sample now reads each image about once).
+    # Group 2, step 4: the figures the documentation quotes. Above 2,000 database images the automatic
+    # θ scores a tile sample (``thresholds.training_pair_scores``), which reads each image about once.
     parser.add_argument("--nordland-group", type=int, default=2)
     parser.add_argument("--nordland-step", type=int, default=4)
     args = parser.parse_args(argv)

@@ -1,9 +1,10 @@
 """The 50-split protocol's pass and whole run: an earlier commit's one-file ``scale`` against the package, side by side.
 
-    python benchmarks/bench_scale_before_after.py 69166e8 [--places 2250] [--repeats 2]
+    python benchmarks/bench_scale_before_after.py COMMIT [--places 2250] [--repeats 2]
 
-Reads the earlier commit's ``vpr_explorer`` package with ``git archive`` into a temporary
-folder (the repository is only read) and imports its one-file ``scale`` module
+COMMIT is an earlier commit of this repository whose ``scale`` is one file. Reads that
+commit's ``vpr_explorer`` package with ``git archive`` into a temporary folder (the
+repository is only read) and imports its one-file ``scale`` module
 (``vpr_explorer/protocols/scale.py``, or ``vpr_explorer/scale.py`` in older commits; its own
 private names: ``_blocked_pass``, ``_Entries``) with that commit's package under it, beside
 this checkout's ``vpr_explorer.protocols.scale``; and on the same
@@ -128,7 +129,7 @@ def cpu(fn):
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("before", help="an earlier commit with a one-file scale module (e.g. 69166e8)")
+    ap.add_argument("before", help="an earlier commit of this repository whose scale module is one file")
     ap.add_argument("--places", type=int, default=2250, help="places of 12 images (default 2,250: 27,000 images)")
     ap.add_argument("--dim", type=int, default=1280)
     ap.add_argument("--runs", type=int, default=50)

@@ -57,6 +57,22 @@ def isolated_cache(tmp_path_factory) -> Path:
         yield root
 
 
+#: rerun 0.41 (``re_analytics``) collects no usage data, and prints no first-run notice, while this
+#: variable is set, to any value
+RERUN_ANALYTICS_OFF = "CI"
+
+
+@pytest.fixture(scope="session", autouse=True)
+def rerun_analytics_off() -> Iterator[None]:
+    """rerun's analytics off for the session: no first-run notice, nothing written under ~/.config/rerun.
+
+    Set in the environment, so that the recordings the tests make, the commands they run and
+    the Streamlit servers they start (which inherit it) see it; a value already set is kept.
+    """
+    with _environment(RERUN_ANALYTICS_OFF, os.environ.get(RERUN_ANALYTICS_OFF, "1")):
+        yield
+
+
 @pytest.fixture(scope="session", autouse=True)
 def app_data_root(tmp_path_factory) -> Path:
     """The app's data root for the session: the nearest folder holding pytest's temporary folders and the real data.

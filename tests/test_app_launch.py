@@ -85,12 +85,22 @@ def test_the_link_holds_the_started_view_and_a_reachable_host(route, mine, tmp_p
                                                                              DATA_ROOT_ENV: str(plan().data_root)}
 
 
+def toml_flag(value) -> str:
+    """A config.toml value as Streamlit's command line writes it (``true``, ``none``, ``8501``)."""
+    return str(value).lower() if isinstance(value, bool) else str(value)
+
+
 def test_the_checkouts_streamlit_settings_travel_as_flags():
-    """``.streamlit/config.toml`` is read from the current directory only: the launcher passes it on."""
+    """``.streamlit/config.toml`` is read from the current directory only: the launcher passes the same settings.
+
+    Both ways: ``streamlit run app.py`` in a checkout gets every setting ``vpr-explorer app``
+    passes (no file watcher among them), and the launcher passes every one the file sets.
+    """
     config = tomllib.loads((ROOT / ".streamlit" / "config.toml").read_text())
-    wanted = {f"{section}.{name}": str(value).lower() for section, values in config.items()
-              for name, value in values.items()}
-    assert wanted and all(SETTINGS.get(name) == value for name, value in wanted.items()), (wanted, SETTINGS)
+    in_file = {f"{section}.{name}": toml_flag(value) for section, values in config.items()
+               for name, value in values.items()}
+    assert in_file == SETTINGS
+    assert in_file["server.fileWatcherType"] == "none"
     f = flags(plan().argv)
     assert all(f[f"--{name}"] == value for name, value in SETTINGS.items())
 

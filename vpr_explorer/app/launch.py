@@ -57,7 +57,7 @@ SETTINGS = {
     # An installed app does not change while it runs; a watcher would only poll site-packages.
     "server.fileWatcherType": "none",
 }
-"""Streamlit settings passed as ``--name value``; those of the checkout's ``.streamlit/config.toml`` among them."""
+"""Streamlit settings passed as ``--name value``; the checkout's ``.streamlit/config.toml`` holds the same ones."""
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,7 @@ same and is refused with the same words in every command that takes it.
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,12 +51,29 @@ def default_note(value) -> str:
     return f" (default: {shown(value)})".replace("%", "%%")
 
 
+#: reStructuredText's inline literals (two backticks each side) and roles (``:func:`` and the like, ``~`` too)
+RST_LITERAL = re.compile(r"``(.+?)``|:[a-z]+(?::[a-z]+)?:`~?(.+?)`")
+
+
+def plain(text: str) -> str:
+    """``text`` as a terminal shows it: reStructuredText's literals and roles become single-backtick words."""
+    return RST_LITERAL.sub(lambda m: f"`{m.group(1) or m.group(2)}`", text)
+
+
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
     """argparse's help with each option's default appended where there is one to state.
 
     A required option, a switch (default False) and an option whose default is None (not
-    given: the command decides, and the option's help says how) get none appended.
+    given: the command decides, and the option's help says how) get none appended. Help,
+    descriptions and epilogs print reStructuredText's literals and roles with single backticks
+    (:func:`plain`), so a text shared with a docstring reads plainly in a terminal.
     """
+
+    def _format_text(self, text: str) -> str:
+        return super()._format_text(plain(text))
+
+    def _expand_help(self, action: argparse.Action) -> str:
+        return plain(super()._expand_help(action))
 
     def _get_help_string(self, action: argparse.Action) -> str:
         text = action.help or ""

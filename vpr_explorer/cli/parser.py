@@ -40,7 +40,8 @@ INTERRUPTED = "interrupted; run the same command again to resume (descriptors co
 
 def build_parser() -> argparse.ArgumentParser:
     """``vpr-explorer``'s parser: one sub-command per row of :data:`COMMANDS`, its ``run`` as ``func``."""
-    parser = argparse.ArgumentParser(prog="vpr-explorer", description=vpr_explorer.__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="vpr-explorer", description=vpr_explorer.__doc__.splitlines()[0],
+                                     formatter_class=HelpFormatter)
     commands = parser.add_subparsers(dest="command", required=True)
     for name, module, help in COMMANDS:
         command = commands.add_parser(name, help=help, formatter_class=HelpFormatter)

@@ -26,8 +26,8 @@ per-image centre score aᵢ = dᵢ·m, for any m exactly:
     n⁻ᵢ E⁻[(s − aᵢ)²]      = dᵢᵀ E dᵢ − Σ_{j∈p} (sᵢⱼ − aᵢ)²
     σᵢ²                    = E⁻[(s − aᵢ)²] − (μᵢ − aᵢ)²
 
-so the float32 error is relative to |dᵢ|·|eⱼ|, not to |sᵢⱼ|, and the last line no longer
-cancels (μᵢ − aᵢ is the gap between the negatives' mean and the all-image mean). μᵢ, aᵢ, dᵢ·T
+so the float32 error is relative to |dᵢ|·|eⱼ|, not to |sᵢⱼ|, and the last line does not
+cancel (μᵢ − aᵢ is the gap between the negatives' mean and the all-image mean). μᵢ, aᵢ, dᵢ·T
 and the same-place terms are float64 products (``_place_terms``): μ is exact to float64
 rounding. Three passes: E (``_centred_gram``), the float64 terms place by place
 (``_place_terms``), dᵢᵀEdᵢ (``_quadratic_forms``, (1 + 1/8)·N·D² flops by symmetry).
