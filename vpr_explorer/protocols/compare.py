@@ -222,7 +222,7 @@ MAX_RUN_FILE_BYTES = 64 * 2**20
 
 def read_run_file(path: Path) -> tuple[list[RunRecord], list[str]]:
     """The runs of a file, to keep beside the session's: a runs export (``runs_json``, the Evaluation page's
-    **Download runs (JSON)**) or the ``results.json`` of ``vpr-explorer bench`` (one run per cell that ran).
+    **Download runs (JSON)**) or the ``bench.json`` of ``vpr-explorer bench`` (one run per cell that ran).
 
     Each record keeps the file's name and settings (a bench cell: ``dataset · descriptor · protocol``, its
     evaluation's settings with the descriptor); its id is empty: ``add_runs`` gives each one. A bench cell that
@@ -237,14 +237,14 @@ def read_run_file(path: Path) -> tuple[list[RunRecord], list[str]]:
         size = path.stat().st_size
         if size > MAX_RUN_FILE_BYTES:
             raise VPRInputError(f"{path}: {size / 2**20:.0f} MiB, more than a runs file holds "
-                                f"({MAX_RUN_FILE_BYTES // 2**20} MiB): open a runs .json or a bench's results.json")
+                                f"({MAX_RUN_FILE_BYTES // 2**20} MiB): open a runs .json or a bench's bench.json")
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
-        raise VPRInputError(f"{path}: cannot be read ({exc}); give a runs .json or a bench's results.json") from None
+        raise VPRInputError(f"{path}: cannot be read ({exc}); give a runs .json or a bench's bench.json") from None
     try:
         data = json.loads(text)
     except json.JSONDecodeError as exc:
-        raise VPRInputError(f"{path}: not JSON ({exc}); give a runs .json or a bench's results.json") from None
+        raise VPRInputError(f"{path}: not JSON ({exc}); give a runs .json or a bench's bench.json") from None
     notes: list[str] = []
     found: list[RunRecord] = []
     try:
@@ -261,7 +261,7 @@ def read_run_file(path: Path) -> tuple[list[RunRecord], list[str]]:
                 ev = Evaluation.from_dict(c["evaluation"])
                 found.append(RunRecord("", where, run_settings(ev, {"descriptor": c["descriptor"]}), ev))
         else:
-            raise VPRInputError(f"{path}: neither a runs export (a 'runs' list) nor a bench's results.json "
+            raise VPRInputError(f"{path}: neither a runs export (a 'runs' list) nor a bench's bench.json "
                                 "(a 'cells' list): give the file the Evaluation page's Download runs (JSON) or "
                                 "vpr-explorer bench --out writes")
     except (KeyError, TypeError, AttributeError) as exc:
