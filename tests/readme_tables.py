@@ -1,10 +1,11 @@
-"""The README's tables are what ``vpr-explorer evaluate`` and ``vpr-explorer acceptance`` print, digit for digit.
+"""The tables of the README and the docs are what ``vpr-explorer evaluate`` and ``vpr-explorer acceptance`` print, digit for digit.
 
-Every fenced block of README.md that holds lines starting with ``$ vpr-explorer evaluate``
-or ``$ vpr-explorer acceptance`` is read as commands, each followed by the lines it printed (up to a blank line, the next
-``$`` line or the end of the block). Each command is run with ``python -m vpr_explorer.cli``
+Every fenced block of README.md and of each ``docs/*.md`` page (``pages()``) that holds
+lines starting with ``$ vpr-explorer evaluate`` or ``$ vpr-explorer acceptance`` is read as
+commands, each followed by the lines it printed (up to a blank line, the next ``$`` line or
+the end of the block). Each command is run with ``python -m vpr_explorer.cli``
 (``$VPR_EXPLORER_DATA`` substituted), after the block's other ``$ python …`` lines above it
-(e.g. the one that writes the example layouts), and the README's lines are compared with
+(e.g. the one that writes the example layouts), and the page's lines are compared with
 what it prints:
 
 - a table with its ``----`` separator line is a whole table: header, separator and every
@@ -15,10 +16,11 @@ what it prints:
 - a line outside the tables (a dataset's description) must equal the printed line that
   starts with the same word.
 
-Printed lines the README leaves out (the ``protocol:`` line, notes, timings) are not looked at.
+Printed lines a page leaves out (the ``protocol:`` line, notes, timings) are not looked at.
+A command shown on several pages runs once.
 
-Run as a script it checks (exit 1 on a difference); ``--write`` rewrites those lines of
-README.md with what the commands print now, keeping excerpts as excerpts::
+Run as a script it checks every page (exit 1 on a difference); ``--write`` rewrites those
+lines of each page with what the commands print now, keeping excerpts as excerpts::
 
     VPR_EXPLORER_DATA=../shared/datasets python tests/readme_tables.py [--write]
 
@@ -39,6 +41,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
+DOCS = ROOT / "docs"
 PROMPTS = ("$ vpr-explorer evaluate", "$ vpr-explorer acceptance")
 DATA_VARIABLE = "$VPR_EXPLORER_DATA"
 _SEPARATOR = re.compile(r"^-+(  +-+)*$")
@@ -53,11 +56,12 @@ def cells(line: str) -> list[str]:
 
 @dataclass
 class Command:
-    """One ``$ vpr-explorer evaluate`` (or ``acceptance``) line of the README and the output lines shown under it.
+    """One ``$ vpr-explorer evaluate`` (or ``acceptance``) line of a page and the output lines shown under it.
 
-    ``line`` is the command's 1-based line number in README.md; ``output`` maps each shown
-    line's 1-based number to its text, without the block's indentation; ``setup`` are the
-    block's other ``$`` commands above it.
+    ``line`` is the command's 1-based line number in ``page`` (a path relative to the
+    repository root, e.g. ``docs/results.md``); ``output`` maps each shown line's 1-based
+    number to its text, without the block's indentation; ``setup`` are the block's other
+    ``$`` commands above it.
     """
 
     line: int
@@ -65,6 +69,7 @@ class Command:
     indent: str
     setup: tuple[str, ...] = ()
     output: dict[int, str] = field(default_factory=dict)
+    page: str = "README.md"
 
 
 @dataclass
@@ -81,8 +86,18 @@ class Table:
         return {tuple(cells(r)[: 1 if firsts.count(f) == 1 else 2]): r for r, f in zip(self.rows, firsts)}
 
 
-def find_commands(text: str) -> list[Command]:
-    """Every ``$ vpr-explorer evaluate`` (or ``acceptance``) line inside a fenced block, with the output lines below it."""
+def pages() -> list[Path]:
+    """The pages whose tables are checked: README.md, then every ``docs/*.md`` by name."""
+    return [README, *sorted(DOCS.glob("*.md"))]
+
+
+def page_name(path: Path) -> str:
+    """``path`` as messages name it: relative to the repository root."""
+    return path.relative_to(ROOT).as_posix()
+
+
+def find_commands(text: str, page: str = "README.md") -> list[Command]:
+    """Every ``$ vpr-explorer evaluate`` (or ``acceptance``) line inside a fenced block of ``page``, with the output lines below it."""
     commands: list[Command] = []
     in_block, current, setup = False, None, []
     for number, raw in enumerate(text.splitlines(), start=1):
@@ -92,7 +107,7 @@ def find_commands(text: str) -> list[Command]:
         elif not in_block:
             continue
         elif stripped.startswith(PROMPTS):
-            current = Command(number, stripped[2:], raw[: len(raw) - len(raw.lstrip())], tuple(setup))
+            current = Command(number, stripped[2:], raw[: len(raw) - len(raw.lstrip())], tuple(setup), page=page)
             commands.append(current)
         elif stripped.startswith("$ "):
             setup.append(stripped[2:])
@@ -105,7 +120,7 @@ def find_commands(text: str) -> list[Command]:
 
 
 def argv(command: str, data_root: Path) -> list[str]:
-    """A README command as arguments for this interpreter, ``$VPR_EXPLORER_DATA`` replaced.
+    """A page's command as arguments for this interpreter, ``$VPR_EXPLORER_DATA`` replaced.
 
     ``vpr-explorer …`` becomes ``python -m vpr_explorer.cli …`` and ``python …`` this
     interpreter; nothing else is run.
@@ -115,7 +130,7 @@ def argv(command: str, data_root: Path) -> list[str]:
         return [sys.executable, "-m", "vpr_explorer.cli", *words[1:]]
     if words[0] in ("python", "python3"):
         return [sys.executable, *words[1:]]
-    raise ValueError(f"README command {command!r}: only vpr-explorer and python commands are run")
+    raise ValueError(f"command {command!r}: only vpr-explorer and python commands are run")
 
 
 def _stdout(args: list[str], where: str) -> str:
@@ -128,14 +143,23 @@ def _stdout(args: list[str], where: str) -> str:
 @functools.cache
 def _set_up(command: str, data_root: Path) -> None:
     """Run a block's preparing command once per process."""
-    _stdout(argv(command, data_root), f"README setup `{command}`")
+    _stdout(argv(command, data_root), f"setup `{command}`")
+
+
+_PRINTED: dict[tuple[str, tuple[str, ...], Path], str] = {}
 
 
 def run(command: Command, data_root: Path) -> str:
-    """What the command prints on stdout (progress bars go to stderr), its block's setup run first."""
-    for setup in command.setup:
-        _set_up(setup, data_root)
-    return _stdout(argv(command.text, data_root), f"README.md:{command.line}: `{command.text}`")
+    """What the command prints on stdout (progress bars go to stderr), its block's setup run first.
+
+    The same command with the same setup runs once per process, whichever page shows it.
+    """
+    key = (command.text, command.setup, Path(data_root))
+    if key not in _PRINTED:
+        for setup in command.setup:
+            _set_up(setup, data_root)
+        _PRINTED[key] = _stdout(argv(command.text, data_root), f"{command.page}:{command.line}: `{command.text}`")
+    return _PRINTED[key]
 
 
 def printed_tables(stdout: str) -> list[Table]:
@@ -154,7 +178,7 @@ def printed_tables(stdout: str) -> list[Table]:
 
 
 def expected_lines(command: Command, stdout: str) -> tuple[dict[int, list[str]], list[str]]:
-    """``(line number -> the printed lines it should be, problems)`` for the README lines under ``command``.
+    """``(line number -> the printed lines it should be, problems)`` for the page's lines under ``command``.
 
     Each shown line should be one printed line, except in a whole table of another length than
     printed: its surplus lines should be none, and its last line carries the rows it lacks.
@@ -173,11 +197,11 @@ def expected_lines(command: Command, stdout: str) -> tuple[dict[int, list[str]],
     problems: list[str] = []
 
     def missing(n: int, what: str, line: str) -> None:
-        problems.append(f"README.md:{n}: {what} of `{command.text}` carries the label of {line.strip()!r}")
+        problems.append(f"{command.page}:{n}: {what} of `{command.text}` carries the label of {line.strip()!r}")
 
     whole = any(_SEPARATOR.match(line.strip()) for _, line in shown)
     if whole and (header_at is None or len(candidates) != 1):
-        problems.append(f"README.md:{command.line}: a whole table under `{command.text}` whose header matches "
+        problems.append(f"{command.page}:{command.line}: a whole table under `{command.text}` whose header matches "
                         f"{len(candidates) if header_at is not None else 'no'} printed tables")
         return expected, problems
     for i, (n, line) in enumerate(shown):
@@ -204,18 +228,18 @@ def expected_lines(command: Command, stdout: str) -> tuple[dict[int, list[str]],
         printed = [table.header, table.separator, *table.rows]
         numbers = [n for n, _ in shown[header_at:]]
         expected.update({n: [p] for n, p in zip(numbers, printed)})
-        expected.update({n: [] for n in numbers[len(printed):]})  # README lines beyond the printed table
-        expected[numbers[-1]] = expected[numbers[-1]] + printed[len(numbers):]  # printed rows the README lacks
+        expected.update({n: [] for n in numbers[len(printed):]})  # the page's lines beyond the printed table
+        expected[numbers[-1]] = expected[numbers[-1]] + printed[len(numbers):]  # printed rows the page lacks
     return expected, problems
 
 
 def compare(command: Command, stdout: str) -> list[str]:
-    """One message per README line under ``command`` that is not what it printed."""
+    """One message per line of the page under ``command`` that is not what it printed."""
     expected, problems = expected_lines(command, stdout)
     for n, printed in expected.items():
         if [command.output[n]] != printed:
             now = "\n    ".join(map(repr, printed)) or "(nothing: the printed table is shorter)"
-            problems.append(f"README.md:{n}: the README shows\n    {command.output[n]!r}\n"
+            problems.append(f"{command.page}:{n}: the page shows\n    {command.output[n]!r}\n"
                             f"where `{command.text}` prints\n    {now}")
     return problems
 
@@ -230,34 +254,39 @@ def rewrite(text: str, fixes: dict[int, list[str]]) -> str:
 
 def main(argv_: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--write", action="store_true", help="rewrite README.md's output lines with what is printed now")
+    parser.add_argument("--write", action="store_true",
+                        help="rewrite the output lines of README.md and docs/*.md with what is printed now")
     parser.add_argument("--data", type=Path, default=os.environ.get("VPR_EXPLORER_DATA"),
                         help="the datasets folder (default $VPR_EXPLORER_DATA)")
     args = parser.parse_args(argv_)
     if args.data is None:
         parser.error("set VPR_EXPLORER_DATA or pass --data")
-    text = README.read_text()
-    fixes: dict[int, list[str]] = {}
     problems: list[str] = []
-    for command in find_commands(text):
-        print(f"README.md:{command.line}: {command.text}", file=sys.stderr)
-        stdout = run(command, args.data)
-        expected, unmatched = expected_lines(command, stdout)
-        problems += unmatched if args.write else compare(command, stdout)
-        fixes.update({n: [command.indent + p for p in printed] for n, printed in expected.items()
-                      if [command.output[n]] != printed})
-    if args.write and fixes:
-        old = text.splitlines()
-        for n in sorted(fixes):
-            print(f"README.md:{n}:\n  - {old[n - 1].strip()}" + "".join(f"\n  + {p.strip()}" for p in fixes[n]))
-        if README.read_text() != text:
-            print(f"{README} changed while the commands ran: nothing written; run again")
-            return 1
-        README.write_text(rewrite(text, fixes))
-        print(f"rewrote {len(fixes)} lines of {README}")
+    status = 0
+    for path in pages():
+        name = page_name(path)
+        text = path.read_text()
+        fixes: dict[int, list[str]] = {}
+        for command in find_commands(text, name):
+            print(f"{name}:{command.line}: {command.text}", file=sys.stderr)
+            stdout = run(command, args.data)
+            expected, unmatched = expected_lines(command, stdout)
+            problems += unmatched if args.write else compare(command, stdout)
+            fixes.update({n: [command.indent + p for p in printed] for n, printed in expected.items()
+                          if [command.output[n]] != printed})
+        if args.write and fixes:
+            old = text.splitlines()
+            for n in sorted(fixes):
+                print(f"{name}:{n}:\n  - {old[n - 1].strip()}" + "".join(f"\n  + {p.strip()}" for p in fixes[n]))
+            if path.read_text() != text:
+                print(f"{path} changed while the commands ran: nothing written; run again")
+                status = 1
+                continue
+            path.write_text(rewrite(text, fixes))
+            print(f"rewrote {len(fixes)} lines of {path}")
     for problem in problems:
         print(problem)
-    return 1 if problems else 0
+    return 1 if problems else status
 
 
 if __name__ == "__main__":

@@ -97,14 +97,15 @@ def test_the_failure_table_downloads_and_opens_a_row_in_the_inspector(browser, d
         assert not errors, errors
 
 
-#: The README's failure pictures: ``vpr-explorer failures`` on GardensPoint, night_right against day_right, pixels,
-#: raw-weighted, three candidates (the command the README shows beside them; ``test_failures.gp_out`` runs it).
-README_FAILURES = ("071-wrong-answer.png", "000-wrong-answer.png")
+#: The failure pictures the README and the Results page show: ``vpr-explorer failures`` on GardensPoint, night_right
+#: against day_right, pixels, raw-weighted, three candidates (the command they show beside them).
+README_FAILURES = ("071-wrong-answer.png",)
+RESULTS_FAILURES = ("071-wrong-answer.png", "000-wrong-answer.png", "index.png")
 
 
 def test_the_failure_pictures_and_their_index_in_a_browser(browser, gardens_point, tmp_path):
-    """The command's index.html in Chromium: every picture loads, each row links its PNG; the README shows two of the
-    PNGs and the index as the command draws them (saved to ``docs/screenshots/failures/`` with
+    """The command's index.html in Chromium: every picture loads, each row links its PNG; the README and the Results
+    page show the PNGs and the index as the command draws them (saved to ``docs/screenshots/failures/`` with
     ``VPR_EXPLORER_SCREENSHOTS=docs``)."""
     import shutil
 
@@ -130,11 +131,12 @@ def test_the_failure_pictures_and_their_index_in_a_browser(browser, gardens_poin
     shots.mkdir(parents=True, exist_ok=True)
     page.screenshot(path=str(shots / "index.png"), clip={"x": 0, "y": 0, "width": WIDTH, "height": 900})
     readme = (ROOT / "README.md").read_text(encoding="utf-8")
-    for name in README_FAILURES:
+    results = (ROOT / "docs" / "results.md").read_text(encoding="utf-8")
+    assert all(f"docs/screenshots/failures/{name}" in readme for name in README_FAILURES)
+    assert all(f"screenshots/failures/{name}" in results for name in RESULTS_FAILURES)
+    for name in RESULTS_FAILURES[:-1]:
         assert name in pngs
-        assert f"docs/screenshots/failures/{name}" in readme
         shutil.copyfile(out / name, shots / name)
         committed = ROOT / "docs" / "screenshots" / "failures" / name
         with Image.open(out / name) as drawn, Image.open(committed) as shown:
-            assert shown.size == drawn.size  # the README's picture is this command's, at its size
-    assert "docs/screenshots/failures/index.png" in readme
+            assert shown.size == drawn.size  # the picture shown is this command's, at its size

@@ -6,17 +6,21 @@ download), and on GardensPoint written as a VPR-Bench layout (its queries agains
 references, in order). The viewer is the page's component (``app/ui/rerun_viewer.py``):
 its frame exposes ``window.rerunViewer`` (``app/static/rerun_viewer/index.html``), through
 which the test moves the viewer's time cursor the way rerun-notebook's Python side does (a
-``time_ctrl`` message to the widget).
+``time_ctrl`` message to the widget). The GardensPoint case saves ``playback.png`` (to a temporary folder, or
+``docs/screenshots/`` with ``VPR_EXPLORER_SCREENSHOTS=docs``).
 """
 
 from __future__ import annotations
 
+import os
 import re
+import tempfile
 import time
+from pathlib import Path
 
 import pytest
 
-from streamlit_server import streamlit_server
+from streamlit_server import ROOT, streamlit_server
 
 pytestmark = pytest.mark.browser
 sync_api = pytest.importorskip("playwright.sync_api")
@@ -26,6 +30,8 @@ ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--
         "--disable-component-update", "--disable-sync"]
 TIMEOUT_MS = 120_000
 DEMO_LINK = "source=demo&descriptor=pixels&group=2&step=2&query=night"
+SCREENSHOTS = (ROOT / "docs" / "screenshots" if os.environ.get("VPR_EXPLORER_SCREENSHOTS") == "docs"
+               else Path(tempfile.mkdtemp(prefix="vpr_screenshots_")))
 COMPONENT = "iframe[src*='/component/vpr_explorer.app.ui.rerun_viewer.rerun_viewer/index.html']"
 
 
@@ -93,6 +99,11 @@ def test_playback_page_records_and_shows_the_recording_in_the_viewer(tmp_path, r
                 "([rid, t]) => window.rerunViewer.events.some(e => e.recording_id === rid && e.time === t)",
                 arg=[recording_id, start], timeout=TIMEOUT_MS)
             assert viewer.evaluate("() => window.rerunViewer.sent") == []
+            if layout != "demo":  # the documentation's picture: GardensPoint's queries in the viewer
+                page.mouse.move(5, 5)
+                page.set_viewport_size({"width": 1500, "height": 1950})  # the page down to the query box under the viewer
+                time.sleep(3)  # the viewer draws the cursor's images at the new size
+                page.screenshot(path=str(SCREENSHOTS / "playback.png"))
 
             with page.expect_download(timeout=TIMEOUT_MS) as download:
                 page.get_by_role("button", name="Download the .rrd").click()

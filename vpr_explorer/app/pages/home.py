@@ -35,8 +35,7 @@ ensure_routed(__file__)
 OTHER = "__folder__"
 FILE = "__file__"  # the descriptor radio's "a file of descriptors" choice
 STRIP = 8  # thumbnails per traversal
-RADIUS_RANGE = (0.1, 10_000.0)
-"""The radius box's range in metres."""
+RADIUS_RANGE = (0.1, 10_000.0)  # the radius box's range in metres (a bare string here: Streamlit would draw it)
 LAYOUT_LABELS = {
     Layout.TRAVERSALS: "traversals: one sub-folder per traversal, frame i = the same spot",
     Layout.PREPARED: "prepared: Place####_Cond##_G## images",
