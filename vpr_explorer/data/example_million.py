@@ -1,6 +1,6 @@
 """A synthetic position-tagged database of any size, for the million-image benchmark and tests.
 
-Written as a user would hand one over (README, "A million-image database"): a manifest
+Written as a user would hand one over (docs/performance.md, the million-image database): a manifest
 ``manifest.csv`` (``path,role,x,y``: database images along a route, then queries), the
 image files it names, and a float16 descriptor ``.npy`` in the manifest's order (what
 ``vpr-explorer list`` prints), so that the app and ``pipeline.imported_descriptors`` open it

@@ -17,7 +17,7 @@ Two sources give such a file:
 
 Whether to map: ``mmap="auto"`` maps once the float32 copy would reach
 ``mmap_min_bytes()`` (``MMAP_MIN_BYTES``, 1 GiB, or the ``VPR_EXPLORER_MMAP_BYTES``
-variable): smaller descriptor sets keep today's in-memory path unchanged.
+variable): smaller descriptor sets are read into memory, as they are below that size.
 
 Checks run chunk-wise (:func:`check_rows`): a NaN, infinite or all-zero row, or one off unit
 length by more than ``UNIT_TOLERANCE_F16`` (a float16 file cannot be normalised in place),

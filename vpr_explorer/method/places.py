@@ -150,7 +150,7 @@ BETWEEN_PLACES_RULE = (
     "own frame's place); a frame with no such place lies between places, has no right answer, and is left out "
     "of scoring on every page, protocol and recording (shown as \"between places, not scored\")."
 )
-"""The between-place rule in one sentence (README's method section; the pages quote it)."""
+"""The between-place rule in one sentence (docs/method.md, "Rules that hold everywhere"; the pages quote it)."""
 
 
 def right_places(query_frames: np.ndarray, frame_place: np.ndarray, tolerance: int = 0) -> np.ndarray:

@@ -123,7 +123,7 @@ def training_pair_scores(
     Args:
         descriptors: ``(n, D)`` training descriptors, or the rows ``rows`` of a larger array
             (then the result is exactly that of ``descriptors[rows]``, without copying it).
-        sample: above ``max_pairs`` pairs, which sample (README, "The app at that scale"):
+        sample: above ``max_pairs`` pairs, which sample (docs/method.md, "Retrieval: baselines and filter-then-rank"):
 
             * ``"tiles"`` (default): a seeded permutation of the n images, of which the first
               m = min(n, ``images``) are cut into g = ⌈m²/max_pairs⌉ (≥ 3) groups of ⌊m/g⌋ or
