@@ -395,10 +395,8 @@ def _load_callable(spec: CustomModel, device):
 
 
 def _build(spec: CustomModel, device, precision) -> Extractor:
-    import numpy as np
-
     from vpr_explorer.descriptors.preprocess import load_squashed
-    from vpr_explorer.descriptors.runtime import TorchExtractor
+    from vpr_explorer.descriptors.runtime import TorchExtractor, probe_length
 
     model = _load_callable(spec, device)
     width, height = spec.input_size
@@ -413,27 +411,13 @@ def _build(spec: CustomModel, device, precision) -> Extractor:
         device=device,
         precision=precision,
     )
-    # One probe image finds (or checks) the descriptor length before any real work.
-    try:
-        probe = extractor.forward(np.zeros((1, 3, height, width), dtype=np.float32))
-    except VPRInputError:
-        raise  # already says what is wrong
-    except Exception as exc:  # the user's forward pass; reported as bad input, as above
+    dim = probe_length(extractor, width, height, who=f"model {spec.name!r}:", fix="check input_size and the model",
+                       returns="it must return (B, D) descriptors")
+    if spec.dim is not None and dim != spec.dim:
         raise VPRInputError(
-            f"model {spec.name!r}: fails on a (1, 3, {height}, {width}) batch ({type(exc).__name__}: "
-            f"{str(exc)[:200]}); check input_size and the model"
-        ) from exc
-    if probe.ndim != 2 or probe.shape[0] != 1:
-        raise VPRInputError(
-            f"model {spec.name!r}: maps a (1, 3, {height}, {width}) batch to shape {tuple(probe.shape)}; "
-            "it must return (B, D) descriptors"
+            f"model {spec.name!r}: returns {dim}-d descriptors, registered as dim={spec.dim}; fix dim or leave it out"
         )
-    if spec.dim is not None and probe.shape[1] != spec.dim:
-        raise VPRInputError(
-            f"model {spec.name!r}: returns {probe.shape[1]}-d descriptors, registered as dim={spec.dim}; "
-            "fix dim or leave it out"
-        )
-    extractor.dim = int(probe.shape[1])
+    extractor.dim = dim
     return extractor
 
 

@@ -71,7 +71,6 @@ from __future__ import annotations
 import ast
 import hashlib
 import json
-import math
 import os
 import re
 from collections.abc import Mapping, Sequence
@@ -665,10 +664,8 @@ class _FirstOutput:
 def _build(spec: HubModel, identity: str, device, precision) -> Extractor:
     import functools
 
-    import numpy as np
-
     from vpr_explorer.descriptors.preprocess import load_short_side, load_squashed
-    from vpr_explorer.descriptors.runtime import TorchExtractor
+    from vpr_explorer.descriptors.runtime import TorchExtractor, probe_length
 
     model = _load(spec, device)
     patch = model_patch(model)
@@ -691,25 +688,11 @@ def _build(spec: HubModel, identity: str, device, precision) -> Extractor:
         device=device,
         precision=precision,
     )
-    # One probe image finds the descriptor length before any real work.
-    try:
-        probe = extractor.forward(np.zeros((1, 3, height, width), dtype=np.float32))
-    except VPRInputError:
-        raise
-    except Exception as exc:  # the repository's forward pass; reported as bad input, as above
-        raise VPRInputError(
-            f"hub model {spec.call} fails on a (1, 3, {height}, {width}) batch ({type(exc).__name__}: "
-            f"{str(exc)[:200]}); check the input size (--hub-size / --hub-short-side) and the model"
-        ) from exc
-    if probe.ndim != 2 or probe.shape[0] != 1 or probe.shape[1] < 1:
-        raise VPRInputError(
-            f"hub model {spec.call} maps a (1, 3, {height}, {width}) batch to shape {tuple(probe.shape)}; it must "
-            "return (B, D) descriptors (or a tuple whose first element is): pick the entry that returns the "
-            "descriptor model"
-        )
-    if not math.isfinite(float(np.abs(probe).sum())):
-        raise VPRInputError(f"hub model {spec.call} returns NaN or infinite values on a black image; check the model")
-    extractor.dim = int(probe.shape[1])
+    extractor.dim = probe_length(
+        extractor, width, height, who=f"hub model {spec.call}",
+        fix="check the input size (--hub-size / --hub-short-side) and the model",
+        returns="it must return (B, D) descriptors (or a tuple whose first element is): pick the entry that returns "
+                "the descriptor model")
     return extractor
 
 

@@ -268,3 +268,27 @@ class TorchExtractor(Extractor):
     def __repr__(self) -> str:
         return f"{type(self).__name__}(cache_key={self.cache_key!r}, dim={self.dim}, device={str(self.device)!r})"
 
+
+def probe_length(extractor: TorchExtractor, width: int, height: int, *, who: str, fix: str, returns: str) -> int:
+    """The descriptor length of a model from one black ``(1, 3, height, width)`` image, before any real work.
+
+    Args:
+        who: how messages name the model (``"model 'x':"``, ``"hub model DIR:ENTRY"``).
+        fix: what to check when the forward pass fails.
+        returns: what to do when the output is not ``(1, D)``.
+
+    Raises:
+        VPRInputError: the forward pass fails, its output is not ``(1, D)`` with D ≥ 1, or holds NaN or ±inf.
+    """
+    try:
+        probe = extractor.forward(np.zeros((1, 3, height, width), dtype=np.float32))
+    except VPRInputError:
+        raise  # already says what is wrong
+    except Exception as exc:  # the model's own forward pass: reported as bad input
+        raise VPRInputError(f"{who} fails on a (1, 3, {height}, {width}) batch ({type(exc).__name__}: "
+                            f"{str(exc)[:200]}); {fix}") from exc
+    if probe.ndim != 2 or probe.shape[0] != 1 or probe.shape[1] < 1:
+        raise VPRInputError(f"{who} maps a (1, 3, {height}, {width}) batch to shape {tuple(probe.shape)}; {returns}")
+    if not np.isfinite(probe).all():
+        raise VPRInputError(f"{who} returns NaN or infinite values on a black image; check the model")
+    return int(probe.shape[1])
