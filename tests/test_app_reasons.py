@@ -15,7 +15,7 @@ from vpr_explorer.protocols import acceptance
 from vpr_explorer.protocols.acceptance import RULES, acceptance_report
 from vpr_explorer.app.ui.reasons import OPEN
 from vpr_explorer.views import reasons as why
-from vpr_explorer.views.numbers import database_label
+from vpr_explorer.views.numbers import thumbnail_label
 
 CHARTS = ("reasons_patch", "reasons_seqslam", "reasons_graph", "reasons_sue")
 
@@ -90,12 +90,12 @@ def test_the_bench_runs_on_demand_and_every_rule_gives_its_reasons(app, demo_ben
     assert trace(figure(at, "reasons_graph"), "path")["x"].tolist() == match.path[20:41].tolist()
     # the images beside the lines: one per rule that weighed one
     captions = [c for element in at.image for c in element.captions if c.endswith(("(right)", "(wrong)"))]
-    assert captions[:-2] == [f"{database_label(value, r.image)} ({'right' if r.right else 'wrong'})" for r in reasons
+    assert captions[:-2] == [f"{thumbnail_label(value, r.image)} ({'right' if r.right else 'wrong'})" for r in reasons
                              if r.image >= 0]
     # the PA-ratio's two nearest images
     two = why.nearest_two(nb.row(30))
     for caption, name, image, d in zip(captions[-2:], ("d₁", "d₂"), two.images, two.distances):
-        assert caption.startswith(f"{name} = {d:.4f}") and f"image {image}, {database_label(value, image)}" in caption
+        assert caption.startswith(f"{name} = {d:.4f}") and f"): {thumbnail_label(value, int(image))} (" in caption
 
 
 def test_another_query_is_explained_at_once_and_an_end_query_says_why_seqslam_has_no_figure(app, demo_bench):
