@@ -187,11 +187,11 @@ def test_every_page_scores_the_same_frames_the_same_way(gardens_point, gp_pixels
         assert np.array_equal(~overview(f, gp_pixels).scored, expected)
 
 
-def test_the_rule_is_stated_once_in_the_readme():
+def test_the_rule_is_stated_once_in_the_method_page():
     from pathlib import Path
 
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    assert readme.count("**Frames between places:**") == 1 and "`places.right_places`" in readme
+    method = (Path(__file__).resolve().parents[1] / "docs" / "method.md").read_text()
+    assert method.count("**Frames between places.**") == 1 and "`places.right_places`" in method
     assert "left out of scoring" in BETWEEN_PLACES_RULE
 
 

@@ -200,7 +200,7 @@ def test_manifest_with_place_ids_and_with_positions(tmp_path, data_root, gp_trav
     assert ev.settings["queries_without_positive"] == 140
     ref = gp_traversal(0)
     for key in ("place-baseline", "margin-weighted", "raw-simple"):
-        assert ev.row(key).recall == ref.row(key).recall
+        np.testing.assert_equal(ev.row(key).recall, ref.row(key).recall)  # a one-run std is NaN on both sides
     with path.open("a") as fh:
         fh.write("missing.jpg,query,3\n")
     with pytest.raises(VPRInputError, match=r"m.csv: line 402: .*missing.jpg does not exist"):
