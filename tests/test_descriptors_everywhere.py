@@ -28,7 +28,8 @@ from streamlit.testing.v1 import AppTest
 # the autouse fixtures of test_app (fresh caches, navigation mode) apply here too
 from test_app import assert_clean, fresh_caches, navigation_mode  # noqa: F401
 from cli_run import assert_one_error_line, refused, run
-from test_vme_run import RUN, descriptor_of, vme_images, vme_positives, vme_recall, vme_utm, write_run
+from test_vme_run import (RUN, descriptor_of, hand_dataset, vme_images, vme_positives, vme_recall, vme_utm,
+                          write_run)
 from vpr_explorer.app import DESCRIPTORS_ENV, ENTRY, descriptor_files
 from vpr_explorer.app.launch import plan
 from vpr_explorer.cli import main
@@ -376,20 +377,6 @@ def test_the_other_commands_read_a_run_folder_as_their_descriptors(small_run, tm
 
 
 # --------------------------------------------------------------------------- R@K over every query, as VME counts
-
-
-def hand_dataset(root: Path) -> Path:
-    """Four database images at 0, 25, 200, 225 m along a line; query 0 at 50 m (database image 1, exactly 25.0 m
-    away, is its one positive), query 1 at 250.5 m (25.5 m from the nearest: no positive)."""
-    for i, east in enumerate((0.0, 25.0, 200.0, 225.0)):
-        path = root / "database" / utm_name(500000 + east, 6960000.0, i)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        Image.new("RGB", (8, 8), (i * 40, 0, 0)).save(path)
-    for i, east in enumerate((50.0, 250.5)):
-        path = root / "queries" / utm_name(500000 + east, 6960000.0, 10 + i)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        Image.new("RGB", (8, 8), (0, i * 40, 0)).save(path)
-    return root
 
 
 @pytest.mark.parametrize("nearest, want", [(1, 0.5), (0, 0.0)])

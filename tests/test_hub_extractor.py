@@ -9,7 +9,6 @@ called by hand (the hubconf executed by hand, the images resized and normalised 
 
 from __future__ import annotations
 
-import os
 import re
 import shutil
 import signal
@@ -24,6 +23,7 @@ import torch
 from PIL import Image
 
 from cli_run import assert_one_error_line, refused, run
+from test_ray import cluster  # noqa: F401  (the fixture: a local Ray instance)
 
 from vpr_explorer.descriptors import DescriptorCache, extract_descriptors, get_extractor
 from vpr_explorer.descriptors import hub
@@ -540,29 +540,14 @@ def test_entries_and_models_that_fail_are_refused_naming_repository_entry_and_fi
 
 
 @pytest.mark.realdata
-def test_ray_fills_the_same_cache_and_a_second_job_finds_it(repos, frames, tmp_path):
-    ray = pytest.importorskip("ray")
+def test_ray_fills_the_same_cache_and_a_second_job_finds_it(repos, frames, tmp_path, cluster):
     from vpr_explorer.descriptors.distributed import extract_on_ray
 
     name = f"hub:{repos / 'convnet'}"
     options = {"hub_args": ("width=5",), "input_size": SIZE, "device": "cpu"}
-    if ray.is_initialized():
-        ray.shutdown()
-    old = os.environ.get("RAY_worker_niceness")
-    os.environ["RAY_worker_niceness"] = "0"
-    try:
-        ray.init(address="local", num_cpus=2, object_store_memory=100 * 2**20, include_dashboard=False,
-                 log_to_driver=False)
-        # address None: the jobs use this process's connection
-        first = extract_on_ray(frames, name, options=options, cache_root=tmp_path / "cache", batch_size=2,
-                               shard_images=4)
-        second = extract_on_ray(frames, name, options=options, cache_root=tmp_path / "cache")
-    finally:
-        ray.shutdown()
-        if old is None:
-            os.environ.pop("RAY_worker_niceness", None)
-        else:
-            os.environ["RAY_worker_niceness"] = old
+    # address None: the jobs use this process's connection to test_ray's local instance
+    first = extract_on_ray(frames, name, options=options, cache_root=tmp_path / "cache", batch_size=2, shard_images=4)
+    second = extract_on_ray(frames, name, options=options, cache_root=tmp_path / "cache")
     assert (first.computed, first.cached) == (8, 0) and (second.computed, second.cached) == (0, 8)
     extractor = get_extractor(name, **options)
     assert first.cache_key == extractor.cache_key

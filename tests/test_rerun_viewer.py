@@ -22,6 +22,7 @@ from pathlib import Path
 
 import pytest
 
+from test_app import app, fresh_caches, navigation_mode  # noqa: F401  (fixtures)
 from vpr_explorer.app.ui import rerun_viewer
 from vpr_explorer.app.ui.rerun_viewer import ASSETS, FOLDER, INDEX, Cursor, component_folder, notebook_static
 from vpr_explorer.errors import VPRInputError
@@ -243,26 +244,6 @@ def test_a_cursor_value_and_its_position_on_the_recording():
 
 
 # --------------------------------------------------------------------------- the page without the component (AppTest)
-
-
-@pytest.fixture
-def app(monkeypatch):
-    import streamlit as st
-    from streamlit.runtime.pages_manager import PagesManager
-    from streamlit.testing.v1 import AppTest
-
-    from vpr_explorer.app import ENTRY
-
-    init = PagesManager.__init__
-
-    def init_after_navigation(self, *args, **kwargs):  # as tests/test_app.py: route through st.navigation
-        init(self, *args, **kwargs)
-        PagesManager.uses_pages_directory = False
-
-    monkeypatch.setattr(PagesManager, "__init__", init_after_navigation)
-    st.cache_data.clear()
-    st.cache_resource.clear()
-    return AppTest.from_file(str(ENTRY), default_timeout=60)
 
 
 def _playback(at):

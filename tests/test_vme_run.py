@@ -178,12 +178,9 @@ def test_recall_on_gardens_point_equals_vmes_loop(tmp_path, data_root):
     assert 0.05 < want[1] < 0.95  # neither nothing nor everything: the comparison means something
 
 
-def test_a_hand_computed_run_at_exactly_25_m_and_a_query_without_positive(tmp_path):
-    """Four database images 0, 25, 200, 225 m along a line; query 0 at 50 m (database image 1 at exactly
-    25.0 m is its positive and its nearest descriptor), query 1 at 250.5 m (the nearest image 25.5 m away: no
-    positive). VME: R@1 = 1/2 (every query counts); the explorer's image level: 1/1 (over the queries with a
-    positive, query 1 an unknown place)."""
-    root = tmp_path / "hand"
+def hand_dataset(root: Path) -> Path:
+    """Four database images at 0, 25, 200, 225 m along a line; query 0 at 50 m (database image 1, exactly 25.0 m
+    away, is its one positive), query 1 at 250.5 m (25.5 m from the nearest: no positive)."""
     for i, east in enumerate((0.0, 25.0, 200.0, 225.0)):
         path = root / "database" / utm_name(500000 + east, 6960000.0, i)
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -192,6 +189,15 @@ def test_a_hand_computed_run_at_exactly_25_m_and_a_query_without_positive(tmp_pa
         path = root / "queries" / utm_name(500000 + east, 6960000.0, 10 + i)
         path.parent.mkdir(parents=True, exist_ok=True)
         Image.new("RGB", (8, 8), (0, i * 40, 0)).save(path)
+    return root
+
+
+def test_a_hand_computed_run_at_exactly_25_m_and_a_query_without_positive(tmp_path):
+    """Four database images 0, 25, 200, 225 m along a line; query 0 at 50 m (database image 1 at exactly
+    25.0 m is its positive and its nearest descriptor), query 1 at 250.5 m (the nearest image 25.5 m away: no
+    positive). VME: R@1 = 1/2 (every query counts); the explorer's image level: 1/1 (over the queries with a
+    positive, query 1 an unknown place)."""
+    root = hand_dataset(tmp_path / "hand")
     ds = open_dataset(root)
     eye = np.eye(4, dtype=np.float32)
     q = np.array([eye[1] + 0.1 * eye[0], eye[3] + 0.2 * eye[2]], dtype=np.float32)

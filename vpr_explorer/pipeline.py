@@ -299,8 +299,9 @@ def evaluate_dataset(
 ) -> Evaluation:
     """Everything from a dataset path (or ``"demo"``) to an ``Evaluation``.
 
-    ``dtype``, ``storage`` and ``descriptor_options`` (the extractor's) go to :func:`dataset_descriptors`; ``options`` (or ``fields``,
-    its field names as keywords) and ``progress`` to :func:`run_protocol`. With
+    ``dtype``, ``storage`` and ``descriptor_options`` (the extractor's) go to
+    :func:`dataset_descriptors`; ``options`` (or ``fields``, its field names as keywords) and
+    ``progress`` to :func:`run_protocol`. With
     ``descriptors_file``, descriptors computed elsewhere are read
     from it (:func:`imported_descriptors`) instead of ``descriptor``'s extraction, the
     file's stem names the descriptor, and the settings record the file's path and sha256

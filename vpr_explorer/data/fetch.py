@@ -130,11 +130,8 @@ def url_of(download: Download, mirror: str | None = None) -> str:
 
 def sha256_of(path: Path) -> str:
     """The hex sha256 of a file, read in chunks."""
-    digest = hashlib.sha256()
     with open(path, "rb") as fh:
-        while chunk := fh.read(CHUNK):
-            digest.update(chunk)
-    return digest.hexdigest()
+        return hashlib.file_digest(fh, "sha256").hexdigest()
 
 
 # --------------------------------------------------------------------------- download

@@ -26,7 +26,6 @@ before any widget is drawn.
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import importlib.metadata
 import importlib.util
@@ -179,9 +178,10 @@ def component_folder(static: Path | None = None, *, root: Path | None = None, in
     return folder
 
 
-@functools.cache
-def _component(path: str) -> Callable[..., object]:
-    return components.declare_component("rerun_viewer", path=path)
+@st.cache_resource(show_spinner=False)
+def _component() -> Callable[..., object]:
+    """The component, declared on its folder once per server (a refusal is not kept: the next run tries again)."""
+    return components.declare_component("rerun_viewer", path=str(component_folder()))
 
 
 def viewer(grpc_url: str, recording_id: str, *, timeline: str, height: int, key: str, sequence: int | None = None,
@@ -203,7 +203,7 @@ def viewer(grpc_url: str, recording_id: str, *, timeline: str, height: int, key:
         VPRInputError: the viewer cannot be gathered (``component_folder``); the page then shows rerun's
             own web viewer.
     """
-    draw = _component(str(component_folder()))
+    draw = _component()
 
     def changed() -> None:
         cursor = Cursor.from_value(st.session_state.get(key))
