@@ -15,10 +15,20 @@ prints its achieved rate, the convolution and matrix flops torch counts for one 
 measured in the same process: numpy's float32 GEMM on the CPU (``gemm_peak``, which names
 the BLAS kernel), torch's matmul in the run's precision on a GPU. Models whose weights are not installed (AlexNet, CosPlace, EigenPlaces
 without a download) run with random weights written to a temporary file: the speed is
-the same, the descriptors are meaningless, and the table says so. Run::
+the same, the descriptors are meaningless, and the table says so.
+
+``--decode device`` times the pipeline with JPEGs decoded and resized on the model's device
+(:mod:`vpr_explorer.descriptors.device_decode`), ``both`` the two paths side by side, one
+row each, and then, per torch extractor with a recipe, how far the device path is from the
+CPU path: the min and mean cosine between their descriptors of every image, the max abs
+difference of the decoded pixels (torchvision on the device vs PIL) and of the resized
+8-bit levels (the device resize vs PIL's, from the same PIL-decoded pixels) with the share
+of values that differ. Extractors without a recipe (``pixels``) run on the CPU path only.
+Run::
 
     python benchmarks/bench_extraction.py --data /work/shared/datasets --n 192
     python benchmarks/bench_extraction.py --n 600 --device cuda --batch-size 64
+    python benchmarks/bench_extraction.py --device cuda --decode both --extractors efficientnet-lite0
 """
 
 from __future__ import annotations
@@ -91,11 +101,14 @@ def _sync(extractor) -> None:
         torch.cuda.synchronize(device)
 
 
-def bench(extractor, paths: list[Path], batch_size: int, workers: int, repeats: int) -> dict[str, float]:
-    """Best-of-``repeats`` seconds for decoding (1 thread), bare forward, end-to-end and cached runs.
+def bench(extractor, paths: list[Path], batch_size: int, workers: int, repeats: int,
+          decodes: tuple[str, ...] = ("cpu",)) -> tuple[dict[str, float], dict[str, np.ndarray]]:
+    """Best-of-``repeats`` seconds for decoding (1 thread), bare forward, end-to-end and cached runs; and descriptors.
 
-    The three runs alternate within each repeat, and the fastest of each is kept, so
-    that load from other processes on a shared machine hits them alike.
+    End-to-end runs once per decode path (``end_to_end:cpu``, ``end_to_end:device``), the
+    cached run after the first path's. The runs alternate within each repeat, and the
+    fastest of each is kept, so that load from other processes on a shared machine hits
+    them alike. The descriptors are each path's last end-to-end result.
     """
     start = time.perf_counter()
     decoded = [extractor.load(p) for p in paths]
@@ -104,10 +117,12 @@ def bench(extractor, paths: list[Path], batch_size: int, workers: int, repeats: 
     for batch in batches[:2]:
         extractor.forward(batch)  # warm-up: first-call kernel selection is not throughput
     # Warm the pipeline too (thread pool, allocator, cuDNN plans for a last partial batch).
-    extract_descriptors(paths[: batch_size + 1], extractor, batch_size=batch_size, workers=workers)
+    for path in decodes:
+        extract_descriptors(paths[: batch_size + 1], extractor, batch_size=batch_size, workers=workers, decode=path)
     _sync(extractor)
 
-    best = {"decode": decode, "bare": np.inf, "end_to_end": np.inf, "cached": np.inf}
+    best = {"decode": decode, "bare": np.inf, "cached": np.inf, **{f"end_to_end:{d}": np.inf for d in decodes}}
+    results: dict[str, np.ndarray] = {}
     for _ in range(repeats):
         start = time.perf_counter()
         for batch in batches:
@@ -115,17 +130,60 @@ def bench(extractor, paths: list[Path], batch_size: int, workers: int, repeats: 
         _sync(extractor)
         best["bare"] = min(best["bare"], time.perf_counter() - start)
 
-        with tempfile.TemporaryDirectory() as tmp:
-            cache = DescriptorCache(Path(tmp))
-            start = time.perf_counter()
-            fresh = extract_descriptors(paths, extractor, cache=cache, batch_size=batch_size, workers=workers)
-            best["end_to_end"] = min(best["end_to_end"], time.perf_counter() - start)
-            start = time.perf_counter()
-            cached = extract_descriptors(paths, extractor, cache=cache, batch_size=batch_size, workers=workers)
-            best["cached"] = min(best["cached"], time.perf_counter() - start)
-        if not np.array_equal(fresh, cached):
-            raise SystemExit(f"{extractor.name}: the cached descriptors differ from the fresh ones")
-    return best
+        for path in decodes:
+            with tempfile.TemporaryDirectory() as tmp:
+                cache = DescriptorCache(Path(tmp))
+                start = time.perf_counter()
+                fresh = extract_descriptors(paths, extractor, cache=cache, batch_size=batch_size, workers=workers,
+                                            decode=path)
+                best[f"end_to_end:{path}"] = min(best[f"end_to_end:{path}"], time.perf_counter() - start)
+                results[path] = fresh
+                if path != decodes[0]:
+                    continue
+                start = time.perf_counter()
+                cached = extract_descriptors(paths, extractor, cache=cache, batch_size=batch_size, workers=workers,
+                                             decode=path)
+                best["cached"] = min(best["cached"], time.perf_counter() - start)
+            if not np.array_equal(fresh, cached):
+                raise SystemExit(f"{extractor.name}: the cached descriptors differ from the fresh ones")
+    return best, results
+
+
+def pixel_differences(extractor, paths: list[Path]) -> dict[str, tuple[int, float]]:
+    """``{"decode": (max abs, share differing), "resize": (...)}`` of the device path against PIL's, over the JPEGs.
+
+    decode: torchvision's ``decode_jpeg`` on the extractor's device vs PIL's RGB pixels;
+    resize: ``device_decode.resize_levels`` vs PIL's bilinear resize, both from PIL's pixels.
+    """
+    import torch
+    from PIL import Image
+    from torchvision.io import ImageReadMode, decode_jpeg
+
+    from vpr_explorer.descriptors.device_decode import device_decodable, resize_levels
+
+    recipe, device = extractor.recipe, extractor.device
+    worst = {"decode": 0, "resize": 0}
+    differing = {"decode": 0, "resize": 0}
+    values = {"decode": 0, "resize": 0}
+    for path in paths:
+        data = path.read_bytes()
+        if not device_decodable(data):
+            continue
+        with Image.open(path) as image:
+            rgb = image.convert("RGB")
+        pil = np.asarray(rgb)
+        got = decode_jpeg(torch.frombuffer(bytearray(data), dtype=torch.uint8), mode=ImageReadMode.RGB, device=device)
+        size = recipe.output_size(rgb.width, rgb.height)
+        want = np.asarray(rgb.resize(size, Image.BILINEAR) if size != rgb.size else rgb)
+        x = torch.from_numpy(pil.transpose(2, 0, 1).copy())[None].to(device)
+        levels = resize_levels(x, recipe)[0]
+        for key, a, b in (("decode", pil, got.permute(1, 2, 0).cpu().numpy()),
+                          ("resize", want, levels.permute(1, 2, 0).cpu().numpy())):
+            diff = np.abs(a.astype(np.int16) - b.astype(np.int16))
+            worst[key] = max(worst[key], int(diff.max()))
+            differing[key] += int(np.count_nonzero(diff))
+            values[key] += diff.size
+    return {key: (worst[key], differing[key] / max(values[key], 1)) for key in worst}
 
 
 def batch_flops(extractor, paths: list[Path], batch_size: int) -> int:
@@ -147,6 +205,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--repeats", type=int, default=3, help="runs of each measurement; the fastest is reported")
     parser.add_argument("--device", default="auto", help="auto (GPU when there is one), cpu, cuda, cuda:N")
     parser.add_argument("--precision", default="fp32", choices=("fp32", "bf16", "fp16"))
+    parser.add_argument("--decode", default="cpu", choices=("cpu", "device", "both"),
+                        help="JPEG decoding of the end-to-end run: PIL in threads (cpu), torchvision on the model's "
+                             "device (device), or both, one row each, with the cosine and pixel differences between them")
     parser.add_argument(
         "--extractors", nargs="+", default=list(DEFAULT_EXTRACTORS),
         choices=("pixels", *TORCH_EXTRACTORS),
@@ -186,19 +247,37 @@ def main(argv: list[str] | None = None) -> None:
     with tempfile.TemporaryDirectory() as weights_dir:
         for name in args.extractors:
             extractor, note = make_extractor(name, args.device, args.precision, Path(weights_dir))
-            t = bench(extractor, paths, args.batch_size, args.workers, args.repeats)
+            has_recipe = getattr(extractor, "recipe", None) is not None
+            decodes = {"cpu": ("cpu",), "device": ("device",), "both": ("cpu", "device")}[args.decode]
+            if not has_recipe:
+                decodes = ("cpu",)
+                if args.decode != "cpu":
+                    note = ", ".join(filter(None, [note, "no device recipe"]))
+            t, results = bench(extractor, paths, args.batch_size, args.workers, args.repeats, decodes)
             n = len(paths)
             device = str(getattr(extractor, "device", "cpu")).replace(":0", "")
             precision = getattr(extractor, "precision", None)
             if precision is not None and precision != "fp32":
                 note = ", ".join(filter(None, [note, str(precision)]))
-            # pixels' forward is a reshape: the ratio means nothing there
-            ratio = f"{t['bare'] / t['end_to_end']:.2f}" if t["bare"] > 0.05 * t["end_to_end"] else "n/a"
-            print(
-                f"{name:<20}{device:>8}{n / t['end_to_end']:>18.1f}{n / t['bare']:>16.1f}{ratio:>7}"
-                f"{n / t['decode']:>14.1f}{t['end_to_end']:>11.3f}{t['cached']:>10.3f}  {note}",
-                flush=True,
-            )
+            for path in decodes:
+                seconds = t[f"end_to_end:{path}"]
+                # pixels' forward is a reshape: the ratio means nothing there
+                ratio = f"{t['bare'] / seconds:.2f}" if t["bare"] > 0.05 * seconds else "n/a"
+                row_note = note if args.decode == "cpu" else ", ".join(filter(None, [f"{path} decode", note]))
+                cached = f"{t['cached']:>10.3f}" if path == decodes[0] else f"{'':>10}"
+                print(
+                    f"{name:<20}{device:>8}{n / seconds:>18.1f}{n / t['bare']:>16.1f}{ratio:>7}"
+                    f"{n / t['decode']:>14.1f}{seconds:>11.3f}{cached}  {row_note}",
+                    flush=True,
+                )
+            if len(results) == 2:
+                cosines = np.sum(results["cpu"].astype(np.float64) * results["device"], axis=1)
+                worst = int(np.argmin(cosines))
+                diffs = pixel_differences(extractor, paths)
+                print(f"{'':<20}device vs cpu decode: cosine min {cosines.min():.8f} ({paths[worst].name}), "
+                      f"mean {cosines.mean():.8f}; pixels max abs diff (share differing): decode "
+                      f"{diffs['decode'][0]} ({diffs['decode'][1]:.2%}), resize {diffs['resize'][0]} "
+                      f"({diffs['resize'][1]:.2%})", flush=True)
             flops = batch_flops(extractor, paths, args.batch_size) if name in TORCH_EXTRACTORS else 0
             if flops:
                 if device.startswith("cuda"):

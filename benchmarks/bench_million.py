@@ -29,6 +29,9 @@ memory after it (``ru_maxrss``; the memory map's pages count in it while residen
   same blocked numpy pass (numbers side by side, results compared);
 * ``--app``: the app's pages on the same files under AppTest, in process.
 
+``--device cuda`` runs the fits' two N·D² products on the GPU (``fit_retrieval(device=…)``, what
+the app does under ``VPR_EXPLORER_DEVICE``); the floor pass stays numpy's.
+
 ``python benchmarks/bench_million.py --dim 512 --skip-eval`` takes about 5 minutes on 2 cores (1 GB of
 files under ``--out``, written once, about a minute); the protocol over every query, ``--faiss``
 and ``--app`` add about 5, 5 and 10 minutes. ``--dim 2048``: 4 GB of files, about 4× each pass.
@@ -107,6 +110,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--faiss", action="store_true", help="compare faiss.IndexFlatIP (pip install faiss-cpu)")
     parser.add_argument("--app", action="store_true", help="time the app's pages under AppTest")
     parser.add_argument("--skip-eval", action="store_true", help="leave out the protocol over every query")
+    parser.add_argument("--device", default=None,
+                        help="torch device for the fits' products (cpu, cuda; default numpy, as VPR_EXPLORER_DEVICE)")
     args = parser.parse_args(argv)
 
     from gemm_peak import blas_kernel, load_average
@@ -125,7 +130,8 @@ def main(argv: list[str] | None = None) -> None:
         print(f"wrote {folder}: manifest, {args.database + args.queries:,} image links, float16 descriptors "
               f"({npy.stat().st_size / 2**30:.2f} GiB) in {time.perf_counter() - start:.0f} s")
     print(f"{args.database:,} database + {args.queries:,} query images, D = {args.dim}, float16 descriptor file "
-          f"{npy.stat().st_size / 2**30:.2f} GiB; load average {load_average()}; BLAS: {blas_kernel()}")
+          f"{npy.stat().st_size / 2**30:.2f} GiB; load average {load_average()}; BLAS: {blas_kernel()}; "
+          f"fits' products: {'numpy' if args.device is None else 'torch on ' + args.device}")
     rows: list[tuple[str, float, float]] = []
 
     def report(label: str, seconds: float, floor: float | None, note: str = "") -> None:
@@ -165,16 +171,16 @@ def main(argv: list[str] | None = None) -> None:
     places_a = rv.RetrievalPlaces(PlaceGeometry.ROUTE, metric=MetricPlaceSpec(args.group, args.step))
     places_b = rv.RetrievalPlaces(PlaceGeometry.ROUTE, metric=MetricPlaceSpec(args.group, args.step2))
     start = time.perf_counter()
-    fa = rv.fit_retrieval(d, dataset, places_a)
+    fa = rv.fit_retrieval(d, dataset, places_a, device=args.device)
     report(f"fit {args.group:g} m / {args.step:g} m ({len(fa.model.images):,} images in places)",
            time.perf_counter() - start, floor, f"{fa.n_places:,} places; {fit_floor(len(fa.model.images))}")
     start = time.perf_counter()
-    fb = rv.fit_retrieval(d, dataset, places_b)
+    fb = rv.fit_retrieval(d, dataset, places_b, device=args.device)
     report(f"group/step change to {args.group:g} m / {args.step2:g} m ({len(fb.model.images):,} images)",
            time.perf_counter() - start, floor, f"{fb.n_places:,} places; {fit_floor(len(fb.model.images))}")
     change_floor = 2 * len(fb.model.images) * args.dim ** 2 / rate
     start = time.perf_counter()
-    rv.fit_retrieval(d, dataset, places_a)
+    rv.fit_retrieval(d, dataset, places_a, device=args.device)
     report("back to the first group/step (kept fit)", time.perf_counter() - start, floor)
     start = time.perf_counter()
     ov = rv.overview(fa, d)

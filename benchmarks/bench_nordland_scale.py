@@ -29,7 +29,9 @@ flops dense for the panels' rows, R = splits: 3.9% of N²·D at R = 50, D = 1,28
 N²·R/(2m) sparse additions for block J's rows, m images per place), the float64 full-set sums (O(N·D²))
 and the per-split steps. Compare kernels with
 ``env -u OPENBLAS_CORETYPE -u OPENBLAS_L2_SIZE python benchmarks/bench_nordland_scale.py``.
-``--device cpu`` (or ``cuda``) runs the pass's block products through torch.
+``--device cpu`` (or ``cuda``) runs each panel of the pass, its product and its bookkeeping,
+in torch on that device (``scale.device_panel``); the line ``pass:`` says which path ran and
+how many panels it computed.
 ``--phases`` prints the protocol's wall and CPU seconds per step (timers around the step functions
 ``scale.protocol`` calls; steps that run beside each other overlap, and their CPU seconds are
 the whole process's).
@@ -54,6 +56,7 @@ from pathlib import Path
 
 import numpy as np
 
+import vpr_explorer.protocols.scale.blocked_pass as blocked_pass
 import vpr_explorer.protocols.scale.protocol as scale_protocol
 from gemm_peak import load_average, measure_peak, share
 from vpr_explorer.method.thresholds import auto_global_threshold, training_pair_scores
@@ -154,6 +157,28 @@ def _time_phases() -> dict[str, list]:
     return out
 
 
+def counting_panels(device: str | None) -> list[int]:
+    """``[panels]``: how many panels the pass's path computes from now on (``DevicePanels.task``
+    with a device, ``panel_task`` without), counted by wrapping that function."""
+    count = [0]
+    if device is None:
+        task = blocked_pass.panel_task
+
+        def counted(*a, **k):
+            count[0] += 1
+            return task(*a, **k)
+        blocked_pass.panel_task = counted  # read by blocked_pass
+    else:
+        cls = blocked_pass.DevicePanels
+        method = cls.task
+
+        def counted_method(self, *a, **k):
+            count[0] += 1
+            return method(self, *a, **k)
+        cls.task = counted_method
+    return count
+
+
 def peak_gib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB on Linux
 
@@ -175,7 +200,8 @@ def main() -> None:
     ap.add_argument("--storage", choices=["float32", "float16"], default="float32")
     ap.add_argument("--skip-floor", action="store_true", help="do not time the full similarity pass")
     ap.add_argument("--check", action="store_true", help="also run paper_protocol and compare (small N only)")
-    ap.add_argument("--device", default=None, help="torch device for the pass's block products (default: numpy)")
+    ap.add_argument("--device", default=None,
+                    help="torch device for the pass's panels, products and bookkeeping (default: numpy on the CPU)")
     ap.add_argument("--profile", action="store_true",
                     help="print the protocol's CPU profile (cProfile on CPU time), the 15 largest by cumulative time")
     ap.add_argument("--phases", action="store_true",
@@ -221,6 +247,7 @@ def main() -> None:
                                    settings={"data": "nordland-like synthetic"})
 
     phases = _time_phases() if args.phases else None
+    panels = counting_panels(args.device)
     if args.profile:
         import cProfile
         import pstats
@@ -232,6 +259,9 @@ def main() -> None:
         ev, w_fast, c_fast = timed(protocol)
     print(f"fast paper protocol ({args.runs} splits):        {w_fast:8.1f} s wall  {c_fast:8.1f} s CPU   "
           f"peak RSS {peak_gib():.2f} GiB", flush=True)
+    path = ("numpy on the CPU (panel.panel_task)" if args.device is None
+            else f"torch on {args.device} (device_panel.DevicePanels.task)")
+    print(f"pass: {path}, {panels[0]:,} panels", flush=True)
     if phases is not None:
         for name, (wall, cpu, calls) in phases.items():
             print(f"  {name:<20} {wall:7.2f} s wall {cpu:7.2f} s CPU  ({calls} calls)")

@@ -57,6 +57,17 @@ def isolated_cache(tmp_path_factory) -> Path:
         yield root
 
 
+#: The torch device the device-path tests run on. Unset: the CPU, where the device code runs on
+#: CPU tensors; ``benchmarks/gpu_check.py`` sets it to the GPU on a machine with one.
+TEST_DEVICE_ENV = "VPR_EXPLORER_TEST_DEVICE"
+
+
+@pytest.fixture(scope="session")
+def device_under_test() -> str:
+    """The device-path tests' torch device: ``$VPR_EXPLORER_TEST_DEVICE``, else ``"cpu"``."""
+    return os.environ.get(TEST_DEVICE_ENV, "cpu")
+
+
 #: rerun 0.41 (``re_analytics``) collects no usage data, and prints no first-run notice, while this
 #: variable is set, to any value
 RERUN_ANALYTICS_OFF = "CI"

@@ -594,11 +594,12 @@ def test_full_sums_against_plain_float64_and_any_thread_count():
     assert not first.a_centred[lay.image_of_row < 0].any() and not first.dot_other[lay.image_of_row < 0].any()
 
 
-def test_torch_device_products_give_the_same_numbers(monkeypatch):
-    # device="cpu": the pass's block products as torch matmuls (the GPU path's code on CPU
-    # tensors); last-bit differences from numpy's sgemm never cross the tie tolerance
+def test_torch_device_products_give_the_same_numbers(monkeypatch, device_under_test):
+    # the pass on a torch device (its products and bookkeeping as torch operations: CPU tensors
+    # here, the GPU under benchmarks/gpu_check.py); last-bit differences from numpy's sgemm
+    # never cross the tie tolerance
     d, labels, trav = structured(seed=3, n_places=120, per_place=6, dim=48)
-    check(monkeypatch, d, labels, trav, 120, runs=2, fast_kw={"block": 200, "device": "cpu"})
+    check(monkeypatch, d, labels, trav, 120, runs=2, fast_kw={"block": 200, "device": device_under_test})
     with pytest.raises(VPRInputError, match="device='tpu'"):
         fast_paper_protocol(d, labels, trav, 120, ProtocolOptions(runs=2, device="tpu"))
 

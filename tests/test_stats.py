@@ -476,17 +476,73 @@ def test_closed_form_equals_pairwise_on_real_descriptors(request, fixture, garde
 
 
 @pytest.mark.parametrize("dtype, block", [(np.float32, 4096), (np.float64, 100), (np.float16, 7)])
-def test_torch_device_within_the_same_bound(dtype, block):
-    # The torch path (here on CPU tensors; on a GPU the same code) keeps μ exact to float64
-    # rounding and σ² within the float32 bound, on the hard shared-component data.
+def test_torch_device_within_the_same_bound(dtype, block, device_under_test):
+    # The torch path (on CPU tensors here; on a GPU, the same code, under benchmarks/gpu_check.py)
+    # keeps μ exact to float64 rounding and σ² within the float32 bound, on the hard
+    # shared-component data.
     rng = np.random.default_rng(3)
     d, labels = shared_component(rng, 1200, 64, 150)
     d = d.astype(dtype)
     mu, sigma = pairwise_negative_stats(d.astype(np.float64), labels)
-    st = negative_stats(d, labels, block=block, device="cpu")
+    st = negative_stats(d, labels, block=block, device=device_under_test)
     assert_within_bound(st, mu, sigma, d, labels, block=block)
     np.testing.assert_array_equal(st.n_neg, negative_stats(d, labels).n_neg)
     np.testing.assert_allclose(st.sigma, negative_stats(d, labels, block=block).sigma, rtol=0, atol=1e-7)
+
+
+@pytest.mark.parametrize("block", [4096, 333])
+def test_a_database_fit_on_a_device_reads_the_rows_in_places_within_the_bound(block, device_under_test):
+    # stats_rows (the fit of a database's images in places, from a float16 map) on the device:
+    # the rows gathered block by block, the pairwise reference's μ to float64 rounding and σ²
+    # within the float32 bound; n⁻ and the positive means as the numpy path gives them.
+    from vpr_explorer.method.stats import stats_rows
+
+    rng = np.random.default_rng(8)
+    d, labels = shared_component(rng, 1500, 48, 120)
+    d16 = d.astype(np.float16)
+    rows = np.flatnonzero(np.arange(1500) % 5 != 2)  # gaps between runs of rows
+    got, pm = stats_rows(d16, rows, labels[rows], block=block, device=device_under_test)
+    gathered = d16[rows].astype(np.float32)
+    mu, sigma = pairwise_negative_stats(gathered.astype(np.float64), labels[rows])
+    assert_within_bound(got, mu, sigma, gathered, labels[rows], block=block)
+    want, want_pm = stats_rows(d16, rows, labels[rows], block=block)
+    np.testing.assert_array_equal(got.n_neg, want.n_neg)
+    np.testing.assert_allclose(pm, want_pm, rtol=0, atol=1e-13)
+    bad = d16.copy()
+    bad[rows[700]] = np.nan  # stops the fit, naming the row among those in places, before any product
+    with pytest.raises(VPRInputError, match=r"rows 700 contain NaN or inf"):
+        stats_rows(bad, rows, labels[rows], device=device_under_test)
+
+
+@pytest.mark.parametrize("value, want", [(None, None), ("", None), ("numpy", None), ("cpu", "cpu"), ("auto", "auto")])
+def test_the_fit_device_setting(monkeypatch, value, want):
+    import torch
+
+    from vpr_explorer.method.stats import fit_device
+    from vpr_explorer.settings import DEVICE_ENV
+
+    if value is None:
+        monkeypatch.delenv(DEVICE_ENV, raising=False)
+    else:
+        monkeypatch.setenv(DEVICE_ENV, value)
+    if want == "auto":
+        want = "cuda" if torch.cuda.is_available() else None
+    assert fit_device() == want
+
+
+@pytest.mark.parametrize("value, fragment", [("tpu", "not a torch device"), ("gpu0", "not a torch device"),
+                                             ("cuda:7", "CUDA device")])
+def test_a_bad_fit_device_setting_names_the_variable(monkeypatch, value, fragment):
+    import torch
+
+    from vpr_explorer.method.stats import fit_device
+    from vpr_explorer.settings import DEVICE_ENV
+
+    monkeypatch.setenv(DEVICE_ENV, value)
+    if value == "cuda:7" and torch.cuda.device_count() > 7:
+        pytest.skip("this machine has a cuda:7")
+    with pytest.raises(VPRInputError, match=f"VPR_EXPLORER_DEVICE={value}: [^;]*{fragment}[^;]*; set it to numpy"):
+        fit_device()
 
 
 @pytest.mark.parametrize("kw, fragment", [({"device": "tpu"}, "device='tpu'"),

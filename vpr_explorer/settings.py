@@ -7,6 +7,10 @@ Read from the environment so that tests, CI and users can redirect them:
   *root*: descriptors live under ``<root>/descriptors/`` and the demo route under
   ``<root>/demo/``, so one folder is always one cache.
 * ``VPR_EXPLORER_DATA``: folder holding real datasets (e.g. ``../shared/datasets``).
+* ``VPR_EXPLORER_DEVICE``: where a database fit's two N·D² products run
+  (:func:`vpr_explorer.method.stats.fit_device` reads it):
+  unset or ``numpy`` (the default), ``auto`` (the GPU when torch sees one, else numpy), or a
+  torch device (``cpu``, ``cuda``, ``cuda:N``).
 
 Threads: every pool whose size the caller leaves open takes :func:`default_workers`.
 """
@@ -28,6 +32,7 @@ they share the cores with the work they feed; beside a GPU they are what feeds i
 
 CACHE_ENV = "VPR_EXPLORER_CACHE"
 DATA_ENV = "VPR_EXPLORER_DATA"
+DEVICE_ENV = "VPR_EXPLORER_DEVICE"
 DESCRIPTORS_FOLDER = "descriptors"
 # ``.<name>.<host>.<pid>.<32 hex>.tmp``: who writes a temporary is in its name, so a
 # cleaner can tell a dead writer's leftovers from a live writer's file.

@@ -11,6 +11,10 @@ images/s and how many were already cached.
 (:mod:`vpr_explorer.descriptors.hub`), with ``--hub-arg key=value`` (repeatable),
 ``--hub-size W H`` or ``--hub-short-side N``, and ``--hub-normalisation``; these are refused
 with any other descriptor.
+
+``--decode device`` decodes and resizes JPEGs on the model's device
+(:mod:`vpr_explorer.descriptors.device_decode`); ``auto`` (the default) does so when a torch
+model runs on a GPU. Local extraction only: Ray actors decode with ``auto``.
 """
 
 from __future__ import annotations
@@ -41,6 +45,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--precision", choices=["fp32", "bf16", "fp16"], default=None,
                    help="arithmetic of a torch model's forward pass (default: fp32; bf16/fp16 have cache keys of "
                         "their own; fp16 needs a GPU)")
+    p.add_argument("--decode", choices=["auto", "cpu", "device"], default=None,
+                   help="where JPEGs are decoded and resized: cpu (PIL in the decoding threads), device (torchvision "
+                        "on the model's device, nvJPEG on a GPU; other formats stay on the CPU; same descriptors "
+                        "within float rounding, same cache), auto: device when a torch model runs on a GPU, else "
+                        "cpu; local extraction only" + default_note("auto"))
     p.add_argument("--batch-size", type=int, default=32, help="images per forward pass")
     p.add_argument("--ray", default=None, metavar="ADDRESS|local",
                    help=f"run on Ray: '{LOCAL}' starts an instance on this machine, HOST:PORT joins a cluster "
@@ -66,6 +75,8 @@ def run(args: argparse.Namespace) -> int:
         raise VPRInputError(f"--batch-size {args.batch_size}: must be 1 or more")
     if args.ray is None and (args.actors is not None or args.shard_images is not None):
         raise VPRInputError("--actors and --shard-images apply with --ray only: add --ray local (or an address)")
+    if args.ray is not None and args.decode is not None:
+        raise VPRInputError("--decode applies to local extraction only (Ray actors decode with auto): drop it or --ray")
     check_cache_root(args.cache_dir)
     dataset = open_dataset(args.dataset, args.layout)
     paths = list(dataset.image_paths)
@@ -112,7 +123,7 @@ def _local(args: argparse.Namespace, paths: list[Path], options: dict) -> str:
     start = time.perf_counter()
     try:
         extract_descriptors(paths, extractor, cache=cache, batch_size=args.batch_size, progress=progress,
-                            dtype=args.dtype)
+                            dtype=args.dtype, decode=args.decode or "auto")
     finally:
         progress.close()
     seconds = time.perf_counter() - start

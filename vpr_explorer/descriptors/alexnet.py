@@ -28,7 +28,7 @@ import torch
 import torchvision
 
 from vpr_explorer.descriptors.checkpoints import ALEXNET, locate_weights
-from vpr_explorer.descriptors.preprocess import Normalisation, load_squashed
+from vpr_explorer.descriptors.preprocess import DeviceRecipe, Normalisation
 from vpr_explorer.descriptors.runtime import (
     TorchExtractor,
     file_identity,
@@ -50,6 +50,8 @@ PROJECTION_SEED = 0
 # Bumped when the recipe changes; the weights' hash and the seed are in the version too.
 # 2: 16-bit greyscale is scaled by its bit depth (1 clipped it to a white image).
 RECIPE_VERSION = "2"
+#: The input rule, read by the CPU load and by the device path alike.
+RECIPE = DeviceRecipe(normalisation=Normalisation.IMAGENET, size=(INPUT_SIZE, INPUT_SIZE))
 
 
 @functools.lru_cache(maxsize=1)
@@ -103,9 +105,10 @@ def _build(path: Path, device: torch.device, precision) -> TorchExtractor:
         version=f"{RECIPE_VERSION}.p{PROJECTION_SEED}.{digest[:12]}",
         dim=PROJECTION_DIM,
         model=model,
-        load=functools.partial(load_squashed, size=(INPUT_SIZE, INPUT_SIZE), normalisation=Normalisation.IMAGENET),
+        load=RECIPE.load,
         device=device,
         precision=precision,
+        recipe=RECIPE,
     )
 
 

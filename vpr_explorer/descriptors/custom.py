@@ -49,7 +49,6 @@ This module imports no torch until a model is built, so listing models stays che
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import importlib
 import importlib.util
@@ -61,7 +60,7 @@ from pathlib import Path
 
 from vpr_explorer.descriptors.base import Extractor
 from vpr_explorer.descriptors.hub import PREFIX as HUB_PREFIX, hub_arguments, split_hub_name
-from vpr_explorer.descriptors.preprocess import INPUT_SIDE_RANGE, RECIPE_VERSION, Normalisation
+from vpr_explorer.descriptors.preprocess import INPUT_SIDE_RANGE, RECIPE_VERSION, DeviceRecipe, Normalisation
 from vpr_explorer.errors import VPRInputError
 
 MODELS_ENV = "VPR_EXPLORER_MODELS"
@@ -395,17 +394,18 @@ def _load_callable(spec: CustomModel, device):
 
 
 def _build(spec: CustomModel, device, precision) -> Extractor:
-    from vpr_explorer.descriptors.preprocess import load_squashed
     from vpr_explorer.descriptors.runtime import TorchExtractor, probe_length
 
     model = _load_callable(spec, device)
+    recipe = DeviceRecipe(normalisation=spec.normalisation, size=spec.input_size)
     width, height = spec.input_size
     extractor = TorchExtractor(
         name=spec.name,
         version=f"{RECIPE_VERSION}.{width}x{height}.{spec.normalisation.value}.{model_digest(spec)[:12]}",
         dim=spec.dim or 0,
         model=model,
-        load=functools.partial(load_squashed, size=spec.input_size, normalisation=spec.normalisation),
+        load=recipe.load,
+        recipe=recipe,
         # Users' models may view() their input: NCHW-contiguous is the safe layout.
         channels_last=False,
         device=device,

@@ -19,9 +19,8 @@ from pathlib import Path
 import numpy as np
 import timm
 import torch
-from PIL import Image
 
-from vpr_explorer.descriptors.base import open_image
+from vpr_explorer.descriptors.preprocess import DeviceRecipe
 from vpr_explorer.descriptors.efficientnet_weights import WEIGHTS_PACKAGE, unavailable_reason, weights_path
 from vpr_explorer.descriptors.runtime import Precision, TorchExtractor, resolve_device, resolve_precision
 from vpr_explorer.errors import VPRInputError
@@ -108,6 +107,10 @@ def to_unit_range(rgb: np.ndarray) -> np.ndarray:
     return (rgb.astype(np.float32) / np.float32(127.5) - np.float32(1.0)).transpose(2, 0, 1).copy()
 
 
+#: The input rule, read by the CPU load and by the device path alike.
+RECIPE = DeviceRecipe(normalisation=to_unit_range, size=(INPUT_SIZE, INPUT_SIZE))
+
+
 class EfficientNetLite0Extractor(TorchExtractor):
     """ImageNet EfficientNet-Lite0, global average pool of the last feature map: 1280-d.
 
@@ -125,20 +128,16 @@ class EfficientNetLite0Extractor(TorchExtractor):
             version=VERSION,
             dim=FEATURE_DIM,
             model=model,
-            load=self._load_image,
+            load=RECIPE.load,
             device=device,
             precision=precision,
             channels_last=True,
+            recipe=RECIPE,
         )
-
-    @staticmethod
-    def _load_image(path: Path) -> np.ndarray:
-        image = open_image(path, "RGB").resize((INPUT_SIZE, INPUT_SIZE), Image.BILINEAR)
-        return to_unit_range(np.asarray(image))
 
     def load(self, path: Path) -> np.ndarray:
         """``(3, 224, 224)`` float32 in [-1, 1]."""
-        return self._load_image(path)
+        return RECIPE.load(path)
 
     def forward(self, batch: np.ndarray) -> np.ndarray:
         """``(B, 3, 224, 224)`` float32 -> ``(B, 1280)`` float32 pooled features."""

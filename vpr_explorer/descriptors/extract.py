@@ -1,4 +1,10 @@
-"""Images -> L2-normalised descriptors, through the cache, decoding in parallel with the model."""
+"""Images -> L2-normalised descriptors, through the cache, decoding in parallel with the model.
+
+Decoding is PIL's in worker threads (``decode="cpu"``), or, for a torch extractor with a
+:class:`~vpr_explorer.descriptors.device_decode.DeviceRecipe`, JPEGs decoded and resized on
+the model's device while the threads only read file bytes (``decode="device"``, the
+default on a GPU: :mod:`~vpr_explorer.descriptors.device_decode`).
+"""
 
 from __future__ import annotations
 
@@ -14,14 +20,15 @@ import numpy as np
 
 from vpr_explorer.descriptors.base import Extractor
 from vpr_explorer.descriptors.cache import DescriptorCache, check_dtype, hash_file
+from vpr_explorer.descriptors.device_decode import device_inputs, forward_tensors, read_source, use_device
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.settings import default_workers
 
-# Batches decoded ahead of the one in the model. When the model runs on the CPU it
-# shares the cores with the decoders: one batch ahead hides decoding, and more only lets
-# the decoders steal more from the forward pass. A GPU leaves the cores to the decoders,
-# which then should never wait. Memory stays at a few batches (a 224x224 float32 image is
-# 0.6 MB).
+# Batches decoded (or, decoding on the device, read) ahead of the one in the model. When
+# the model runs on the CPU it shares the cores with the decoders: one batch ahead hides
+# decoding, and more only lets the decoders steal more from the forward pass. A GPU leaves
+# the cores to the decoders, which then should never wait. Memory stays at a few batches
+# (a 224x224 float32 image is 0.6 MB, a 960x540 JPEG's bytes ~50 kB).
 PREFETCH_BATCHES = 1
 PREFETCH_BATCHES_GPU = 3
 # New vectors are cached as the run goes, so that an interrupted run resumes where it
@@ -212,6 +219,7 @@ def extract_descriptors(
     workers: int | None = None,
     progress: Callable[[int, int], None] | None = None,
     dtype: str = "float32",
+    decode: str = "auto",
 ) -> np.ndarray:
     """Descriptors of ``paths``, one L2-normalised row per image.
 
@@ -220,7 +228,12 @@ def extract_descriptors(
     threads (PIL releases the GIL) up to ``PREFETCH_BATCHES`` batches
     (``PREFETCH_BATCHES_GPU`` for a model on a GPU) ahead of the forward pass, which
     runs in the calling thread, ``batch_size`` images at a time (split by image shape
-    when an extractor keeps the aspect ratio).
+    when an extractor keeps the aspect ratio). With ``decode="device"`` the threads read
+    the JPEGs' bytes instead, and one more thread decodes, resizes and normalises each
+    batch on the extractor's device, in order, up to the same number of batches ahead
+    (:func:`~vpr_explorer.descriptors.device_decode.device_inputs`); other files are
+    loaded by the threads as with ``"cpu"``. Either way the descriptors go to the same
+    cache key: the two paths agree to a cosine above 0.9999.
 
     With a cache, the cache folder is checked first (before any image is read), then
     cleared of what killed writers left in it (:meth:`DescriptorCache.remove_stale`).
@@ -246,13 +259,18 @@ def extract_descriptors(
             number of images found in the cache (not computed in this run).
         dtype: ``"float32"`` (default) or ``"float16"``: the result's dtype. float16
             halves its memory, at ~1e-3 relative error in the entries.
+        decode: ``"cpu"``: PIL in the decoding threads; ``"device"``: JPEGs on the
+            extractor's device (a CPU device too), for torch extractors with a recipe;
+            ``"auto"`` (default): ``"device"`` when the extractor has a recipe and runs
+            on CUDA, else ``"cpu"``.
 
     Returns:
         ``(len(paths), extractor.dim)`` in ``dtype``, read-only, unit rows (to float16
         precision for float16).
 
     Raises:
-        VPRInputError: no paths, a bad option (named, ``dtype`` included), a cache folder
+        VPRInputError: no paths, a bad option (named, ``dtype`` and ``decode`` included;
+            ``decode="device"`` for an extractor without a recipe), a cache folder
             that cannot be written (named, before any work), an unreadable image
             (named), or images whose descriptor is zero or not finite (named).
         ExtractionInterrupted: on Ctrl-C, saying how many descriptors are cached.
@@ -263,13 +281,15 @@ def extract_descriptors(
     workers = default_workers() if workers is None else workers
     _check_options(paths, batch_size, workers)
     dtype = check_dtype(dtype)
+    on_device = use_device(decode, extractor)
     if cache is not None:
         cache.check_writable()
         cache.remove_stale(extractor.cache_key)
     total = len(paths)
     out: np.ndarray | None = None
 
-    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="vpr-decode") as pool:
+    with (ThreadPoolExecutor(max_workers=workers, thread_name_prefix="vpr-decode") as pool,
+          ThreadPoolExecutor(max_workers=1, thread_name_prefix="vpr-device-feed") as feeder):
         if cache is not None:
             # Files are hashed HASH_CHUNK per task: one task per file costs more in thread
             # hand-offs than hashing a small image (110k Nordland-size PNGs: 10 s -> ~2 s).
@@ -311,11 +331,21 @@ def extract_descriptors(
         hits = done
 
         submitted = 0
+        # On the device path the threads read bytes (or load what is not a JPEG), and the
+        # feeder turns each batch, in order, into inputs on the device.
+        load = (lambda path: read_source(path, extractor)) if on_device else extractor.load
+        fed: deque[Future[list]] = deque()
+
+        def feed(reads: list[Future], batch_paths: list[Path]) -> list:
+            return device_inputs([f.result() for f in reads], batch_paths, extractor)
 
         def submit_up_to(end: int) -> None:
             nonlocal submitted
             for batch in batches[submitted:end]:
-                pending.append([pool.submit(extractor.load, paths[groups[h][0]]) for h in batch])
+                reads = [pool.submit(load, paths[groups[h][0]]) for h in batch]
+                pending.append(reads)
+                if on_device:
+                    fed.append(feeder.submit(feed, reads, [paths[groups[h][0]] for h in batch]))
             submitted = max(submitted, min(end, len(batches)))
 
         on_gpu = str(getattr(extractor, "device", "cpu")).startswith("cuda")
@@ -328,7 +358,10 @@ def extract_descriptors(
                 submit_up_to(b + 1 + ahead)
                 futures = pending.popleft()
                 batch_paths = [paths[groups[h][0]] for h in batch]
-                raw = forward_images([f.result() for f in futures], extractor)
+                if on_device:
+                    raw = forward_tensors(fed.popleft().result(), extractor)
+                else:
+                    raw = forward_images([f.result() for f in futures], extractor)
                 vectors = normalise_rows(raw, batch_paths, extractor)
                 for h, v in zip(batch, vectors):
                     out[groups[h]] = v
@@ -340,7 +373,9 @@ def extract_descriptors(
             if unsaved is not None:
                 unsaved.flush()
         except BaseException as exc:
-            # Stop decoding what no one will use; the pool's exit waits for running loads.
+            # Stop decoding what no one will use; the pools' exits wait for running loads.
+            for f in fed:
+                f.cancel()
             for futures in pending:
                 for f in futures:
                     f.cancel()

@@ -38,7 +38,7 @@ import torch.nn.functional as F
 import torchvision
 
 from vpr_explorer.descriptors.checkpoints import PUBLISHED_MODELS, WeightsSpec, locate_weights, place_weights
-from vpr_explorer.descriptors.preprocess import Normalisation, load_short_side
+from vpr_explorer.descriptors.preprocess import DeviceRecipe, Normalisation
 from vpr_explorer.descriptors.runtime import (
     TorchExtractor,
     file_identity,
@@ -147,14 +147,16 @@ def _check_short_side(short_side: int) -> None:
 def _build(method: str, spec: WeightsSpec, path: Path, backbone: str, fc_output_dim: int, short_side: int,
            device: torch.device, precision) -> TorchExtractor:
     net, digest = load_network(path, spec, backbone, fc_output_dim)
+    recipe = DeviceRecipe(normalisation=Normalisation.IMAGENET, short_side=short_side)
     return TorchExtractor(
         name=method,
         version=f"{RECIPE_VERSION}.{backbone}-{fc_output_dim}.s{short_side}.{digest[:12]}",
         dim=fc_output_dim,
         model=prepare(net, device, channels_last=True),
-        load=functools.partial(load_short_side, short=short_side, normalisation=Normalisation.IMAGENET),
+        load=recipe.load,
         device=device,
         precision=precision,
+        recipe=recipe,
     )
 
 

@@ -21,9 +21,9 @@ is a Python identifier, given once. When the entry's signature (read from the sy
 takes no ``**kwargs``, an unknown or missing argument is refused before anything runs.
 
 Input: the whole frame resized bilinearly to ``input_size`` = ``(width, height)`` (aspect
-not kept; :func:`~vpr_explorer.descriptors.preprocess.load_squashed`), or its shorter side
-to ``short_side`` (aspect kept; :func:`~vpr_explorer.descriptors.preprocess.load_short_side`),
-then normalised (``imagenet`` default, ``unit``, ``signed``). Models the field publishes this
+not kept), or its shorter side to ``short_side`` (aspect kept), then normalised
+(``imagenet`` default, ``unit``, ``signed``): a
+:class:`~vpr_explorer.descriptors.preprocess.DeviceRecipe`. Models the field publishes this
 way are recognised by the folder's name (case ignored) and entry, and get their authors'
 input unless one is given (:data:`KNOWN_MODELS`):
 
@@ -78,7 +78,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from vpr_explorer.descriptors.base import Extractor
-from vpr_explorer.descriptors.preprocess import INPUT_SIDE_RANGE, RECIPE_VERSION, Normalisation
+from vpr_explorer.descriptors.preprocess import INPUT_SIDE_RANGE, RECIPE_VERSION, DeviceRecipe, Normalisation
 from vpr_explorer.errors import VPRInputError
 
 PREFIX = "hub:"
@@ -662,27 +662,24 @@ class _FirstOutput:
 
 
 def _build(spec: HubModel, identity: str, device, precision) -> Extractor:
-    import functools
-
-    from vpr_explorer.descriptors.preprocess import load_short_side, load_squashed
     from vpr_explorer.descriptors.runtime import TorchExtractor, probe_length
 
     model = _load(spec, device)
     patch = model_patch(model)
     if patch is not None and spec.patch is None:
         check_patch(spec.call, spec.input_size, spec.short_side, patch)
+    recipe = DeviceRecipe(normalisation=spec.normalisation, size=spec.input_size, short_side=spec.short_side)
     if spec.input_size is not None:
-        load = functools.partial(load_squashed, size=spec.input_size, normalisation=spec.normalisation)
         width, height = spec.input_size
     else:
-        load = functools.partial(load_short_side, short=spec.short_side, normalisation=spec.normalisation)
         width = height = spec.short_side
     extractor = TorchExtractor(
         name=spec.name,
         version=f"{RECIPE_VERSION}.{spec.resize}.{spec.normalisation.value}.{model_digest(spec, identity)[:12]}",
         dim=0,
         model=_FirstOutput(model),
-        load=load,
+        load=recipe.load,
+        recipe=recipe,
         # A repository's model may view() its input: NCHW-contiguous is the safe layout.
         channels_last=False,
         device=device,

@@ -1,11 +1,15 @@
 """Image file -> network input: resizing rules and pixel normalisations; torch-free.
 
-These run in the decoding threads (PIL and numpy release the GIL), so whatever is done
-here is hidden behind the forward pass rather than added to it.
+A torch extractor's input rule is one :class:`DeviceRecipe` (a resize rule and a
+normalisation): its :meth:`DeviceRecipe.load` is the CPU path, run in the decoding threads
+(PIL and numpy release the GIL), so whatever is done here is hidden behind the forward pass
+rather than added to it; ``device_decode`` reads the same recipe to do it on the model's device.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
 from enum import StrEnum
 from pathlib import Path
 
@@ -13,6 +17,7 @@ import numpy as np
 from PIL import Image
 
 from vpr_explorer.descriptors.base import open_image
+from vpr_explorer.errors import VPRInputError
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -67,21 +72,57 @@ def short_side_size(width: int, height: int, short: int) -> tuple[int, int]:
     return int(short * width / height), short
 
 
-def load_squashed(path: Path, size: tuple[int, int], normalisation: Normalisation) -> np.ndarray:
-    """``(3, H, W)``: the whole frame resized (bilinear, aspect not kept) to ``size = (W, H)``."""
-    image = open_image(path, "RGB").resize(size, Image.BILINEAR)
-    return to_chw(np.asarray(image), normalisation)
+@dataclass(frozen=True)
+class DeviceRecipe:
+    """A torch extractor's preprocessing: RGB, a bilinear resize, a per-pixel normalisation.
 
+    Exactly one of ``size`` and ``short_side`` is given.
 
-def load_short_side(path: Path, short: int, normalisation: Normalisation) -> np.ndarray:
-    """``(3, H, W)``: shorter side resized (bilinear) to ``short``, aspect kept, no crop.
-
-    PIL's bilinear widens its kernel when shrinking, as torchvision's ``Resize`` on a PIL
-    image does (it calls the same function). Frames of another aspect come out another
-    shape; ``extract_descriptors`` batches equal shapes together.
+    Attributes:
+        normalisation: a :class:`Normalisation` (``preprocess.to_chw``), or a function
+            ``(H, W, 3) uint8 -> (3, H, W) float32`` that treats each pixel and channel on
+            its own (EfficientNet's ``x / 127.5 - 1``, which is not ``SIGNED``'s
+            multiply-add to the last bit).
+        size: ``(width, height)``: the whole frame squashed to it, aspect not kept.
+        short_side: the shorter side resized to it, aspect kept
+            (:func:`~vpr_explorer.descriptors.preprocess.short_side_size`).
     """
-    image = open_image(path, "RGB")
-    size = short_side_size(image.width, image.height, short)
-    if size != image.size:
-        image = image.resize(size, Image.BILINEAR)
-    return to_chw(np.asarray(image), normalisation)
+
+    normalisation: Normalisation | Callable[[np.ndarray], np.ndarray]
+    size: tuple[int, int] | None = None
+    short_side: int | None = None
+
+    def __post_init__(self) -> None:
+        if (self.size is None) == (self.short_side is None):
+            raise VPRInputError("DeviceRecipe: give size=(width, height) or short_side, exactly one")
+        if self.size is not None:
+            object.__setattr__(self, "size", (int(self.size[0]), int(self.size[1])))  # hashable, as a key
+
+    def output_size(self, width: int, height: int) -> tuple[int, int]:
+        """``(width, height)`` the network is fed for a ``width`` x ``height`` image."""
+        if self.size is not None:
+            return self.size
+        return short_side_size(width, height, self.short_side)
+
+    def to_chw(self, rgb: np.ndarray) -> np.ndarray:
+        """``(H, W, 3)`` uint8 RGB at the output size -> ``(3, H, W)`` float32 network input."""
+        if isinstance(self.normalisation, Normalisation):
+            return to_chw(rgb, self.normalisation)
+        return self.normalisation(rgb)
+
+    def load(self, path: Path) -> np.ndarray:
+        """The CPU path: PIL decode, PIL bilinear resize (skipped at the output size), :meth:`to_chw`.
+
+        ``(3, H, W)`` float32. PIL's bilinear widens its kernel when shrinking, as torchvision's
+        ``Resize`` on a PIL image does (it calls the same function). With ``short_side``, frames
+        of another aspect come out another shape; ``extract_descriptors`` batches equal shapes
+        together.
+
+        Raises:
+            VPRInputError: naming ``path`` when it cannot be read as an image.
+        """
+        image = open_image(path, "RGB")
+        size = self.output_size(image.width, image.height)
+        if size != image.size:
+            image = image.resize(size, Image.BILINEAR)
+        return self.to_chw(np.asarray(image))

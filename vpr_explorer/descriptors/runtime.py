@@ -22,12 +22,16 @@ from collections import OrderedDict
 from collections.abc import Callable, Mapping
 from enum import StrEnum
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from vpr_explorer.descriptors.base import Extractor
 from vpr_explorer.errors import VPRInputError
+
+if TYPE_CHECKING:
+    from vpr_explorer.descriptors.preprocess import DeviceRecipe
 
 # Models kept alive per process (each is 50-250 MB, AlexNet's projection 1 GB more).
 MAX_SHARED_MODELS = 4
@@ -203,6 +207,9 @@ class TorchExtractor(Extractor):
         device: where ``model`` lives (:func:`resolve_device`).
         precision: fp32, or bf16/fp16 autocast.
         channels_last: feed NHWC-strided batches (faster convolutions on CPU and GPU).
+        recipe: ``load``'s rule in tensor terms, for decoding JPEGs on ``device``
+            (:mod:`~vpr_explorer.descriptors.device_decode`); ``None``: images are
+            loaded on the CPU only.
     """
 
     def __init__(
@@ -216,6 +223,7 @@ class TorchExtractor(Extractor):
         device: torch.device,
         precision: Precision = Precision.FP32,
         channels_last: bool = True,
+        recipe: DeviceRecipe | None = None,
     ) -> None:
         self.name = name
         self.version = version + _VERSION_SUFFIX[precision]
@@ -225,6 +233,7 @@ class TorchExtractor(Extractor):
         self._model = model
         self._load = load
         self._channels_last = channels_last
+        self.recipe = recipe
 
     def load(self, path: Path) -> np.ndarray:
         return self._load(path)
@@ -257,6 +266,10 @@ class TorchExtractor(Extractor):
         if self.device.type == "cuda":
             # Pinned host memory lets the copy run by DMA while the CPU goes on.
             x = x.pin_memory().to(self.device, non_blocking=True)
+        return self.forward_tensor(x)
+
+    def forward_tensor(self, x: torch.Tensor) -> np.ndarray:
+        """``(B, C, H, W)`` float32 already on :attr:`device` -> ``(B, dim)`` float32 on the CPU."""
         y = self.run(x)
         if not isinstance(y, torch.Tensor):
             raise VPRInputError(

@@ -62,6 +62,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import os
 import threading
 import warnings
 from collections.abc import Callable, Iterable
@@ -74,7 +75,7 @@ import numpy as np
 from scipy import sparse
 
 from vpr_explorer.errors import VPRInputError
-from vpr_explorer.settings import MAX_DEFAULT_WORKERS, default_workers
+from vpr_explorer.settings import DEVICE_ENV, MAX_DEFAULT_WORKERS, default_workers
 
 #: σ below this is treated as this when a weight 1/σ² or a density is needed: a place
 #: whose image has a single negative score (σ = 0) would otherwise divide by zero.
@@ -595,6 +596,32 @@ def triangular_quadratic_forms(x: np.ndarray, cols: list[tuple[int, int]], w: li
     return np.einsum("ij,ij->i", y, x, dtype=np.float64)
 
 
+def fit_device() -> str | None:
+    """Where a database fit's products run (``numbers.fit_retrieval``): ``VPR_EXPLORER_DEVICE`` read.
+
+    Returns:
+        ``None`` for numpy (the variable unset, empty or ``numpy``; ``auto`` without a GPU), else
+        the torch device's name (``auto`` with a GPU: ``"cuda"``).
+
+    Raises:
+        VPRInputError: naming the variable, for a value that is not ``numpy``, ``auto``, ``cpu``,
+            ``cuda`` or ``cuda:N``, or a GPU torch cannot see.
+    """
+    value = os.environ.get(DEVICE_ENV, "").strip()
+    if value in ("", "numpy"):
+        return None
+    import torch
+
+    if value == "auto":
+        return "cuda" if torch.cuda.is_available() else None
+    try:
+        return str(torch_device(value))
+    except VPRInputError as exc:  # its reason, then what this variable takes
+        reason = str(exc).split(": ", 1)[-1].split(";", 1)[0]
+        raise VPRInputError(f"{DEVICE_ENV}={value}: {reason}; set it to numpy (the default), auto, cpu, "
+                            "cuda or cuda:N") from None
+
+
 def torch_device(device: object):
     """``torch.device(device)``, checked usable here; a ``VPRInputError`` naming ``device=`` otherwise."""
     try:
@@ -1058,7 +1085,8 @@ class _FirstPass(RowsOf):
 
 
 def stats_rows(descriptors: np.ndarray, rows: np.ndarray | None, labels: np.ndarray, n_places: int | None = None, *,
-               block: int = BLOCK, threads: int | None = None) -> tuple[NegativeStats, np.ndarray]:
+               block: int = BLOCK, threads: int | None = None,
+               device: object | None = None) -> tuple[NegativeStats, np.ndarray]:
     """``negative_stats_rows`` and the positive means of the same rows, reading each block once for the checks.
 
     The closed form's first pass (the Gram) reads the rows in consecutive blocks; each block,
@@ -1069,6 +1097,11 @@ def stats_rows(descriptors: np.ndarray, rows: np.ndarray | None, labels: np.ndar
     same float32 blocks); should the first pass read otherwise, the checks run on their own.
     The positive means come from the place terms' float64 same-place scores
     (``_positive_from_terms``): ``positive_means`` to float64 rounding, with no pass of their own.
+
+    With ``device`` (a torch device, as ``negative_stats`` takes it) the rows are checked in a
+    pass of their own, then the two N·D² products run as torch matmuls there
+    (``_closed_form_torch``): the statistics of ``negative_stats(..., device=device)`` on the
+    same rows, within the same error bound as the numpy path.
     """
     base = RowsOf(descriptors, rows)
     if base.shape[0] == 0 or base.shape[1] == 0:
@@ -1085,6 +1118,13 @@ def stats_rows(descriptors: np.ndarray, rows: np.ndarray | None, labels: np.ndar
     block, threads = _block_and_threads(block, threads)
     counts = np.bincount(labels, minlength=n_places)
     n_neg = n - counts[labels]
+    if device is not None:
+        dev = torch_device(device)
+        validate_rows(base, "training descriptors")
+        fit = _closed_form_torch(base, labels, counts, n_neg, block, threads, device=dev)
+        sigma = np.sqrt(np.clip(fit.var, 0.0, None))
+        stats = NegativeStats(mu=fit.mu, sigma=sigma, n_neg=n_neg.astype(np.int64), labels=labels, n_places=n_places)
+        return stats, _positive_from_terms(fit.terms.same, fit.terms.own, labels, n_places)
     with ThreadPoolExecutor(1, thread_name_prefix="vpr-read-ahead") as ahead:
         view = _FirstPass(descriptors, rows, [check], ahead if threads > 1 else None)
         try:

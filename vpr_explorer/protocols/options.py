@@ -101,8 +101,10 @@ class ProtocolOptions:
         spill_dir: fast paper protocol: folder for that file (None: the system's temporary folder).
         threads: fast paper protocol: panels of its pass run side by side, each GEMM in one BLAS
             thread; None is one per usable CPU, at most ``MOST_THREADS``. Read back, a whole number.
-        device: fast paper protocol: None (numpy) or a torch device ("cpu", "cuda") for the
-            pass's block products; read back, a ``torch.device``.
+        device: fast paper protocol: None (numpy on the CPU) or a torch device ("cpu", "cuda") on
+            which its full-set float64 sums run (``scale.full_sums.device_set_sums``) and each panel
+            of its pass, its product and bookkeeping (``scale.device_panel``); read back, a
+            ``torch.device``.
 
     No number depends on ``block`` … ``device``: they trade memory and threads for time.
 

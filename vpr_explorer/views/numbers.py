@@ -482,27 +482,31 @@ FIT_MEMO = 8
 _FITS: dict[tuple, tuple] = {}
 
 
-def fit_retrieval(descriptors: np.ndarray, dataset: RetrievalDataset, places: RetrievalPlaces) -> RetrievalFitted:
+def fit_retrieval(descriptors: np.ndarray, dataset: RetrievalDataset, places: RetrievalPlaces, *,
+                  device: str | None = None) -> RetrievalFitted:
     """Label the database images with ``places`` and fit the thresholds on those in a place.
 
     Args:
         descriptors: ``(n_images, D)`` L2-normalised, database rows first (``dataset.image_paths``' order),
             in memory or memory-mapped (float16 or float32; read a block at a time, never copied whole).
             The fits of a memory-mapped (read-only) matrix are kept, the last ``FIT_MEMO``.
+        device: ``None`` (numpy) or a torch device for the statistics' two N·D² products
+            (``stats.stats_rows``); the app passes ``stats.fit_device()``.
     """
     if dense(descriptors):
-        return _fit(descriptors, dataset, places)
-    key = (id(dataset), id(descriptors), places)
+        return _fit(descriptors, dataset, places, device)
+    key = (id(dataset), id(descriptors), places, device)
     hit = _FITS.pop(key, None)
     if hit is None:
-        hit = (dataset, descriptors, _fit(descriptors, dataset, places))  # holding both keeps their ids unique
+        hit = (dataset, descriptors, _fit(descriptors, dataset, places, device))  # holding both keeps their ids unique
     _FITS[key] = hit
     while len(_FITS) > FIT_MEMO:
         _FITS.pop(next(iter(_FITS)))
     return hit[2]
 
 
-def _fit(descriptors: np.ndarray, dataset: RetrievalDataset, places: RetrievalPlaces) -> RetrievalFitted:
+def _fit(descriptors: np.ndarray, dataset: RetrievalDataset, places: RetrievalPlaces,
+         device: str | None = None) -> RetrievalFitted:
     if len(descriptors) != dataset.n_images:
         raise VPRInputError(f"{len(descriptors)} descriptors for {dataset.n_images} images of {dataset.name!r}: "
                             "recompute them")
@@ -511,7 +515,7 @@ def _fit(descriptors: np.ndarray, dataset: RetrievalDataset, places: RetrievalPl
     labels = place[images]
     # the rows in places, read a block at a time (a memory-mapped float16 database is never
     # gathered nor converted whole); the same sums as on descriptors[images]
-    stats, positive_mean = stats_rows(descriptors, images, labels, n_places)
+    stats, positive_mean = stats_rows(descriptors, images, labels, n_places, device=device)
     neg_mean, spread = mixture_moments(stats)
     model = DatabaseModel(
         images=images, places=labels, traversals=tuple(int(t) for t in np.unique(dataset.database_traversal)),

@@ -68,6 +68,7 @@ from vpr_explorer.pipeline import (
     run_protocol,
 )
 from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec, retrieval_places
+from vpr_explorer.method.stats import fit_device
 from vpr_explorer.protocols.acceptance import AcceptanceReport, BenchOptions, acceptance_report
 from vpr_explorer.protocols.shared_scores import SHARED_LIMIT, SharedScores
 from vpr_explorer.views import numbers as views
@@ -454,7 +455,7 @@ def _places(key: tuple) -> RetrievalPlaces:
 
 @st.cache_resource(show_spinner="Fitting the database thresholds for these places…", max_entries=32)
 def _fitted(key: str, places: tuple, _data: Loaded) -> RetrievalFitted:
-    return views.fit_retrieval(_data.descriptors, _data.dataset, _places(places))
+    return views.fit_retrieval(_data.descriptors, _data.dataset, _places(places), device=fit_device())
 
 
 def fitted(data: Loaded, places: RetrievalPlaces) -> RetrievalFitted:

@@ -13,11 +13,14 @@ How the pass runs (rows per block, table memory, threads, device) is part of the
 
 ``layout``        ``Layout``: the labelled images place by place, slot-padded, in blocks of
                   whole places; ``as_layout32``, its float32 copy, which the pass reads.
-``full_sums``     ``full_set_sums``: the float64 sums over all images, once (step 1).
+``full_sums``     ``full_set_sums``: the float64 sums over all images, once (step 1); with
+                  ``ProtocolOptions.device``, in torch float64 there (``device_set_sums``).
 ``table``         the top-2 table the pass files and the scoring reads: ``Entries`` (in RAM,
                   then a temporary file), ``NearSlots``, ``Records``; ``TIE``, ``round_down32``.
 ``panel``         ``panel_task``: one panel of the pass, a GEMM and its squares, downdate
                   products and maxima, slab by slab (step 2).
+``device_panel``  ``DevicePanels``: the same panel on a torch device, in whole-panel tensor
+                  operations (step 2, with ``ProtocolOptions.device``).
 ``blocked_pass``  ``blocked_pass``: every panel of every block pair, in threads, merged in
                   task order into V, b and the table (step 2).
 ``twins``         places whose training images are byte-identical, which get one θ.
@@ -46,13 +49,16 @@ functions doing each step are named at its end.
 
    so no split forms a D×D gram: dᵢ·Σ_q d_q for all splits is one (N×D)·(D×R) product,
    dᵢᵀCdᵢ is dᵢᵀWdᵢ with W block upper triangular (``stats.triangular_blocks``: float64
-   GEMMs, (1 + 1/8)·N·D² flops instead of 2·N·D²), and V comes out of the pass (2). μ,
-   hence the simple θ, is exact to float64 rounding; σ carries the float32 rounding of the
-   scores in V (taken about c, so descriptors whose scores all sit near 0.8 lose no more
-   than centred ones), which moves a weighted θ_p by ~1e-11 (synthetic) to ~2e-9 (Nordland
-   pixels). Step 6 keeps that from changing any outcome. Places whose training images are
-   byte-identical get one θ, as in the reference (same inputs, same operations: their
-   margins tie exactly). ``full_set_sums``, ``split_mu``, ``downdated_sigma``; twins:
+   GEMMs, (1 + 1/8)·N·D² flops instead of 2·N·D²), and V comes out of the pass (2). With
+   ``ProtocolOptions.device`` these sums are torch float64 products on that device (dᵢᵀCdᵢ
+   through the full C there), which differ from numpy's by float64 rounding only (under
+   1e-14 of their terms' magnitudes). μ, hence the simple θ, is exact to float64 rounding;
+   σ carries the float32 rounding of the scores in V (taken about c, so descriptors whose
+   scores all sit near 0.8 lose no more than centred ones), which moves a weighted θ_p by
+   ~1e-11 (synthetic) to ~2e-9 (Nordland pixels). Step 6 keeps that from changing any
+   outcome. Places whose training images are byte-identical get one θ, as in the reference
+   (same inputs, same operations: their margins tie exactly). ``full_set_sums`` (on a
+   device ``device_set_sums``), ``split_mu``, ``downdated_sigma``; twins:
    ``content_classes``, ``twins``.
 2. **One blocked pass** over the block pairs I ≤ J of the place-major layout (``Layout``).
    S = X_I X_Jᵀ in float32. Its scores may differ from the reference's in the last bits
@@ -65,8 +71,14 @@ functions doing each step are named at its end.
    GEMM in one thread, read after it slab by slab (``SLAB_ROWS`` rows of one slot, which
    stay in cache) for everything below; panels run side by side in ``threads`` threads
    (BLAS in one thread each) and are merged in task order, so the sums and the table are
-   the same for any number of threads. Each panel gives, for its rows and, by symmetry,
-   block J's rows:
+   the same for any number of threads. With ``ProtocolOptions.device`` each panel runs on
+   that torch device instead (``DevicePanels``): the GEMM, the squares, both downdate products
+   (dense there, float32 over ``W_CHUNK`` rows or columns, summed in float64), the masks, b,
+   both maxima and the selection of the table's entries with their top 2, in whole-panel
+   operations on panels of ``DEVICE_PANEL_ROWS`` rows; only the floors and the merge stay on
+   the CPU, and the panels' results are the numpy panels' (V to the rounding of its float32
+   sums, whose order differs). Each panel gives, for its rows and, by symmetry, block J's
+   rows:
 
    * V (above): ((S − c)∘(S − c)) @ M, same-place pairs zeroed, with M the (N × R) query
      indicator: for the panel's rows, float32 products over chunks of ``W_CHUNK`` columns

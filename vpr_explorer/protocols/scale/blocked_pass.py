@@ -12,6 +12,14 @@ panel before it is merged: the floors of those columns are then known.
 BLAS runs in one thread whatever ``threads`` is: OpenBLAS's Haswell sgemm splits the sum of
 a (64 × 2,048) @ (2,048 × 50) product (the downdate's shape) between its threads, which
 would make V depend on their number.
+
+With ``ProtocolOptions.device`` a panel is ``device_panel.DevicePanels.task`` instead: its
+GEMM, squares, downdate products, masks, maxima, b and the selection of its table entries run
+on the torch device in whole-panel operations (what costs there is kernel launches, not cache
+misses), and only the floors (n numbers a panel) and the merge stay on the CPU. Panels there
+are ``DEVICE_PANEL_ROWS`` rows (a whole default block), at most ``DEVICE_THREADS`` of them in
+flight side by side, merged in task order as on the CPU; matmuls run in full float32
+(``stats.ieee_float32``, no TF32) throughout the pass.
 """
 
 from __future__ import annotations
@@ -24,8 +32,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vpr_explorer.method.stats import one_blas_thread
+from vpr_explorer.method.stats import ieee_float32, one_blas_thread
 from vpr_explorer.protocols.options import ProtocolOptions
+from vpr_explorer.protocols.scale.device_panel import DevicePanels
 from vpr_explorer.protocols.scale.layout import Layout
 from vpr_explorer.protocols.scale.panel import (
     BlockProducts,
@@ -45,6 +54,13 @@ PANEL_ROWS = 1536
 #: from its own on (``panel.panel_task``), so 8 panels of a 4,096-row block compute 9/16 of
 #: it (3 would compute 2/3; the triangle alone is 1/2).
 DIAGONAL_SPLIT = 3
+#: Rows per panel on a torch device: a block of up to 8,192 rows is one panel (the default
+#: 4,096-row block: 64 MiB of float32 scores there, as much for their squares); fewer, larger
+#: panels mean fewer kernel launches.
+DEVICE_PANEL_ROWS = 8192
+#: Panels in flight on a device at once: one computes while another's results come back and
+#: the next is queued (each holds its scores there).
+DEVICE_THREADS = 2
 
 
 @dataclass(frozen=True, eq=False)
@@ -203,33 +219,46 @@ def blocked_pass(inputs: PassInputs, entries: Entries, cap: int, options: Protoc
         inputs: what the pass reads: the float32 layout rows, the queries, the floors' μ range.
         entries: where the top-2 table's entries are filed.
         cap: image-level records kept per row (max(ks): more put the rank beyond every K).
-        options: ``threads`` (panels side by side) and ``device`` (a torch device for the
-            panel products; the bookkeeping stays in numpy on the CPU).
+        options: ``threads`` (panels side by side) and ``device`` (a torch device: each panel's
+            product and bookkeeping run there, ``device_panel``, in at most ``DEVICE_THREADS``
+            threads; None: numpy on the CPU, ``panel.panel_task``).
         progress: ``progress(pairs done, message)`` after each block pair.
-        panel_rows: rows per panel (default ``PANEL_ROWS``).
+        panel_rows: rows per panel (default ``PANEL_ROWS``, ``DEVICE_PANEL_ROWS`` on a device).
 
     Returns:
         V, b, the image-level records and the near-tie slot scores.
     """
-    panel_rows = PANEL_ROWS if panel_rows is None else panel_rows
-    st = PassState(inputs, BlockProducts(inputs.x, options.device), panel_rows)
+    device = options.device
+    if panel_rows is None:
+        panel_rows = PANEL_ROWS if device is None else DEVICE_PANEL_ROWS
+    st = PassState(inputs, BlockProducts(inputs.x, device), panel_rows)
     plan = _plan(inputs.lay, panel_rows)
     merge = _Merge(st, entries, cap, plan, progress)
+    if device is not None:
+        on_device = DevicePanels(st)
+        with ieee_float32():  # process-wide: set once here, not by each worker thread
+            _run_all(plan, lambda p: on_device.task(p, plan.wait_for(p)), merge, min(options.threads, DEVICE_THREADS))
+        return merge.result()
 
     def task(p: Panel) -> PanelResult:
         return panel_task(st, p, plan.wait_for(p))
 
-    if options.threads == 1:  # BLAS in one thread here too: a multithreaded sgemm may split the sums
+    _run_all(plan, task, merge, options.threads)
+    return merge.result()
+
+
+def _run_all(plan: _Plan, task: Callable[[Panel], PanelResult], merge: _Merge, threads: int) -> None:
+    """The diagonal panels, then the others, each merged in task order, in ``threads`` threads."""
+    if threads == 1:  # BLAS in one thread here too: a multithreaded sgemm may split the sums
         with one_blas_thread():
             _run(plan.diagonal, task, merge, None, 0)
             _run(plan.off_diagonal, task, merge, None, 0)
-        return merge.result()
-    ahead = 2 * options.threads
-    with ThreadPoolExecutor(options.threads) as pool, one_blas_thread():
+        return
+    ahead = 2 * threads
+    with ThreadPoolExecutor(threads) as pool, one_blas_thread():
         try:
             _run(plan.diagonal, task, merge, pool, ahead)  # b and the floors, which every other panel reads
         except BaseException:
             plan.release()
             raise
         _run(plan.off_diagonal, task, merge, pool, ahead)
-    return merge.result()

@@ -2,6 +2,16 @@
 
 T = Σⱼ dⱼ, the within-place grams, C = Σⱼ dⱼdⱼᵀ through each row's quadratic form, and each
 split's Σ_{q∈Q_r} d_q, once for the run, from the descriptors' own values.
+
+Two ways to the same ``FullSums``: ``full_set_sums`` with numpy float64 BLAS in threads on the
+CPU, and, with a torch ``device`` (``ProtocolOptions.device``), ``device_set_sums``: the layout
+rows as one float64 tensor there, whole-array float64 products (the full C = XᵀX, not its
+triangle; the within-place grams batched; each split's Σ_q d_q through the query indicator),
+back to numpy for the last step. Both end in ``_combine`` (c, dᵢ·(T − T_p), aᵢ), so they differ
+only by the float64 rounding of sums taken in another order: observed up to 8.4e-15 of a sum's
+magnitude (Σ of its terms' absolute values: a within-place gram of Nordland pixels, 2,048
+terms; under 1e-15 for the other sums), far below the float32 rounding of V that step 6
+covers, so every outcome is the same.
 """
 
 from __future__ import annotations
@@ -19,6 +29,9 @@ from vpr_explorer.protocols.scale.layout import Layout
 SUM_LANES = 4
 #: Rows per float64 product of the quadratic forms (their products stay in cache).
 QUAD_ROWS = 1024
+#: Rows per float64 product x C on a torch device (``device_set_sums``): 16,384 × 1,280
+#: float64 is 160 MiB there, beside the float64 rows themselves (1.1 GiB at Nordland's 110,000).
+DEVICE_QUAD_ROWS = 16384
 
 
 @dataclass(frozen=True, eq=False)
@@ -55,14 +68,15 @@ def _layout_rows64(d: np.ndarray, lay: Layout, rows: slice, out: np.ndarray, x32
 
 
 def full_set_sums(d: np.ndarray, lay: Layout, query_rows: np.ndarray, threads: int = 1,
-                  x32: np.ndarray | None = None) -> FullSums:
+                  x32: np.ndarray | None = None, device: object | None = None) -> FullSums:
     """T, T_p, C and the quadratic forms, once (O(N·D²) float64), from the original values.
 
     Two passes over the layout's row blocks, as pool tasks in ``threads`` threads with BLAS in
     one thread each. The first sums T, C (one syrk per block) and each split's Σ_q d_q into
     float64 lanes (block k on lane k mod ``SUM_LANES``, in order: ``stats.run_in_lanes``) and
     forms the within-place grams; the second gives each row its dot products and quadratic
-    form. So the sums are the same numbers for any thread count.
+    form. So the sums are the same numbers for any thread count. With ``device``, they are
+    ``device_set_sums``' instead (``threads`` unused).
 
     Args:
         d: ``(n_images, D)`` descriptors, any float dtype.
@@ -71,12 +85,15 @@ def full_set_sums(d: np.ndarray, lay: Layout, query_rows: np.ndarray, threads: i
         threads: threads of the two passes.
         x32: the float32 layout rows (``as_layout32``), read instead of gathering from ``d``
             when ``d`` is float32 or float16.
+        device: None (numpy here) or a torch device (``ProtocolOptions.device``).
     """
+    if x32 is not None and np.dtype(d.dtype).itemsize > 4:
+        x32 = None  # float64 descriptors: the sums take their own values, not float32 roundings
+    if device is not None:
+        return device_set_sums(d, lay, query_rows, device, x32)
     n_rows, dim = lay.n_rows, d.shape[1]
     m, n_p, runs = lay.slots, len(lay.places), len(query_rows)
     threads = max(1, threads)
-    if x32 is not None and np.dtype(d.dtype).itemsize > 4:
-        x32 = None  # float64 descriptors: the sums take their own values, not float32 roundings
     widest = int(np.diff(lay.block_start).max()) * m
     buffers = threading.local()  # each thread's float64 rows and products, reused across its blocks
 
@@ -126,6 +143,71 @@ def full_set_sums(d: np.ndarray, lay: Layout, query_rows: np.ndarray, threads: i
             sq[rows] = quad - (gb**2).sum(axis=2).T.reshape(-1)  # Σ_{j∉p} s²
 
         list(pool.map(second, range(lay.n_blocks)))
+    return _combine(lay, total, gram, dot_total, dot_place, sq, dot_q)
+
+
+def device_set_sums(d: np.ndarray, lay: Layout, query_rows: np.ndarray, device: object,
+                    x32: np.ndarray | None = None) -> FullSums:
+    """``full_set_sums``' ``FullSums`` computed in torch float64 on ``device`` (numpy arrays on the CPU).
+
+    The layout rows go to the device block by block into one ``(n_rows, D)`` float64 tensor
+    (from ``x32``, converted there, where given: the same values when ``d`` is float32 or
+    float16; gathered from ``d`` in float64 otherwise), then in whole-array operations: T =
+    Σ rows, C = XᵀX (the full product), the within-place grams (a batched product per block),
+    each split's Σ_q d_q as the ``(R × n_rows)`` query indicator times X, and per row dᵢ·T,
+    dᵢ·Σ_q d_q, dᵢᵀCdᵢ (as ((X C)∘X) row sums, ``DEVICE_QUAD_ROWS`` rows at a time) and the
+    own place's terms. Products and sums are all float64 (no index_add: on CUDA its atomics
+    would make the sums change from run to run). ``_combine`` finishes with numpy.
+
+    Args:
+        d: ``(n_images, D)`` descriptors, any float dtype.
+        lay: their layout.
+        query_rows: ``(R, P)`` layout row of each split's query of each place index.
+        device: a torch device (or its name: "cpu", "cuda").
+        x32: the float32 layout rows (``as_layout32``); ignored for float64 descriptors, whose
+            sums take their own values, not float32 roundings.
+    """
+    import torch
+
+    dev, f64 = torch.device(device), torch.float64
+    n_rows, dim, m, runs = lay.n_rows, d.shape[1], lay.slots, len(query_rows)
+    if x32 is not None and np.dtype(d.dtype).itemsize > 4:
+        x32 = None
+    x = torch.empty((n_rows, dim), dtype=f64, device=dev)
+    buffer = None if x32 is not None else np.empty((int(np.diff(lay.block_start).max()) * m, dim))
+    grams = []
+    for b in range(lay.n_blocks):
+        rows = lay.rows(b)
+        host = x32[rows] if x32 is not None else _layout_rows64(d, lay, rows, buffer, None)
+        xb = x[rows]
+        xb.copy_(torch.from_numpy(host))  # synchronous from pageable memory: the buffer is free after
+        x3 = xb.view(m, -1, dim).transpose(0, 1)  # (G, m, D): each place's images
+        grams.append(x3 @ x3.transpose(1, 2))
+    gram = torch.cat(grams)  # (P, m, m)
+    total = x.sum(dim=0)
+    gram_all = x.T @ x
+    indicator = torch.zeros((runs, n_rows), dtype=f64, device=dev)
+    indicator[torch.arange(runs, device=dev)[:, None], torch.from_numpy(query_rows).to(dev)] = 1.0
+    queries = indicator @ x  # (R, D)
+    del indicator
+    dot_total = x @ total
+    dot_q = x @ queries.T  # (n_rows, R)
+    # row (k, g) of a block is gram[g, k]: its own place's scores, zero for padding slots
+    own = gram[torch.from_numpy(lay.place_of_row).to(dev), torch.from_numpy(lay.slot_of_row).to(dev)]
+    dot_place, own_sq = own.sum(dim=1), own.square().sum(dim=1)
+    del own
+    quad = torch.cat([(x[lo : lo + DEVICE_QUAD_ROWS] @ gram_all).mul_(x[lo : lo + DEVICE_QUAD_ROWS]).sum(dim=1)
+                      for lo in range(0, n_rows, DEVICE_QUAD_ROWS)])
+    sq = quad - own_sq  # Σ_{j∉p} s²
+    back = [t.cpu().numpy() for t in (total, gram, dot_total, dot_place, sq, dot_q)]
+    return _combine(lay, *back)
+
+
+def _combine(lay: Layout, total: np.ndarray, gram: np.ndarray, dot_total: np.ndarray, dot_place: np.ndarray,
+             sq: np.ndarray, dot_q: np.ndarray) -> FullSums:
+    """``FullSums`` from the float64 sums: T ``(D,)``, the grams ``(P, m, m)``, per row dᵢ·T,
+    dᵢ·T_p and Σ_{j∉p} sᵢⱼ² ``(n_rows,)``, and dᵢ·Σ_q d_q ``(n_rows, R)``: c as a float32 value,
+    dᵢ·(T − T_p) and aᵢ = Σ_{j∉p} sᵢⱼ² − 2c·dᵢ·(T − T_p) + c²·n_other (zero on padding rows)."""
     # scores are taken relative to c in the pass: (s − c)² sums carry float32 rounding in
     # proportion to |s − c|, not |s| (descriptors with a shared component score 0.7 everywhere)
     n_lab = int(lay.sizes.sum())

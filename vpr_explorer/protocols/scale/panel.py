@@ -64,6 +64,7 @@ class BlockProducts:
     copied there once (CPU tensors share numpy's memory) and each panel's product comes back
     to the CPU buffer. Its float32 scores may differ from numpy's in the last bits, like
     another BLAS kernel's: the tie tolerance (package doc, step 2) keeps every outcome the same.
+    A pass on a device reads only ``xt`` (``device_panel``: the whole panel runs there).
     """
 
     def __init__(self, x: np.ndarray, device: object | None):
@@ -216,7 +217,7 @@ def table_side(s3: np.ndarray, t1: np.ndarray, floor: np.ndarray, *, axis: int) 
 
 
 @dataclass(frozen=True, eq=False)
-class _Shape:
+class PanelShape:
     """Where a panel's scores sit: its ``rows`` (every slot of its ``gp`` places, slot-major)
     against its ``cols`` (every slot of ``gj`` places from place ``c0`` of block J on)."""
 
@@ -244,7 +245,7 @@ class _Shape:
         return np.arange(self.gp) if self.diagonal else None
 
 
-def _shape(lay: Layout, p: Panel) -> _Shape:
+def panel_shape(lay: Layout, p: Panel) -> PanelShape:
     m = lay.slots
     ri, rj = lay.rows(p.bi), lay.rows(p.bj)
     gi = (ri.stop - ri.start) // m
@@ -254,10 +255,10 @@ def _shape(lay: Layout, p: Panel) -> _Shape:
         cols: slice | np.ndarray = ri.start + (np.arange(m)[:, None] * gi + np.arange(p.g0, gi)[None, :]).ravel()
     else:
         gj, c0, cols = (rj.stop - rj.start) // m, 0, rj
-    return _Shape(p, rows, cols, ri.start, rj.start, p.g1 - p.g0, gj, c0)
+    return PanelShape(p, rows, cols, ri.start, rj.start, p.g1 - p.g0, gj, c0)
 
 
-def _scores(st: PassState, sh: _Shape) -> np.ndarray:
+def _scores(st: PassState, sh: PanelShape) -> np.ndarray:
     """``(n, m·gj)`` float32 S of the panel's rows against its columns, in this thread's buffer."""
     n, nj = len(sh.rows), st.lay.slots * sh.gj
     s = st.buffers()[0][: n * nj].reshape(n, nj)
@@ -276,7 +277,7 @@ class _Reduced:
     best: np.ndarray | None  # (n,) float32: b, the best of the own place's other images (diagonal)
 
 
-def _reduce(st: PassState, sh: _Shape, s: np.ndarray) -> _Reduced:
+def _reduce(st: PassState, sh: PanelShape, s: np.ndarray) -> _Reduced:
     """Squares, downdate products and maxima of the panel's scores ``s``, slab by slab.
 
     ``s`` is left masked: −∞ where a pair may not match (padding; in cross-condition, the
@@ -330,7 +331,7 @@ def _reduce(st: PassState, sh: _Shape, s: np.ndarray) -> _Reduced:
     return out
 
 
-def _row_side(st: PassState, sh: _Shape, s: np.ndarray, red: _Reduced) -> dict[str, np.ndarray]:
+def _row_side(st: PassState, sh: PanelShape, s: np.ndarray, red: _Reduced) -> dict[str, np.ndarray]:
     """The table's side of the panel's rows: per row, the columns' places at or above its floor.
 
     A diagonal panel holds its rows' own place, hence b and their floor (``row_floor``).
@@ -344,7 +345,22 @@ def _row_side(st: PassState, sh: _Shape, s: np.ndarray, red: _Reduced) -> dict[s
     return side
 
 
-def _column_side(st: PassState, sh: _Shape, s: np.ndarray, red: _Reduced,
+def column_floor(st: PassState, sh: PanelShape, wait: Callable[[], object] | None) -> np.ndarray:
+    """The floor of each of the panel's columns (a copy); +∞ for the columns of the panel's own places.
+
+    On the diagonal the columns' floors come from their own (diagonal) panels: ``wait()``
+    returns once those are merged.
+    """
+    if sh.diagonal:
+        if wait is not None:
+            wait()
+        floor = st.floor[sh.cols]  # a copy (cols: an index array)
+        floor.reshape(st.lay.slots, sh.gj)[:, : sh.gp] = np.inf  # the rows' side has them
+        return floor
+    return st.floor[sh.cols]
+
+
+def _column_side(st: PassState, sh: PanelShape, s: np.ndarray, red: _Reduced,
                  wait: Callable[[], object] | None) -> dict[str, np.ndarray]:
     """The table's side of the panel's columns: per column row, the panel's places at or above its floor.
 
@@ -353,14 +369,7 @@ def _column_side(st: PassState, sh: _Shape, s: np.ndarray, red: _Reduced,
     of the panel's own places are its rows' side already.
     """
     m, p = st.lay.slots, sh.panel
-    if sh.diagonal:
-        if wait is not None:
-            wait()
-        col_floor = st.floor[sh.cols]  # a copy (cols: an index array)
-        col_floor.reshape(m, sh.gj)[:, : sh.gp] = np.inf
-    else:
-        col_floor = st.floor[sh.cols]
-    side = table_side(s.reshape(m, sh.gp, m * sh.gj), red.col_max, col_floor, axis=0)
+    side = table_side(s.reshape(m, sh.gp, m * sh.gj), red.col_max, column_floor(st, sh, wait), axis=0)
     if sh.diagonal:
         side["row"] = sh.cols[side["row"]] - sh.col0
     side["own"], side["place"] = None, st.lay.block_start[p.bi] + p.g0 + side["place"]
@@ -379,7 +388,7 @@ def panel_task(st: PassState, p: Panel, wait: Callable[[], object] | None = None
     Returns:
         The panel's share of V, b (diagonal panels) and both sides of the table.
     """
-    sh = _shape(st.lay, p)
+    sh = panel_shape(st.lay, p)
     s = _scores(st, sh)
     red = _reduce(st, sh, s)
     sides = [(p.bi, _row_side(st, sh, s, red))]

@@ -2,7 +2,9 @@
 
 Step 1's full-set sums (with step 4's automatic θs and the twins' content classes beside
 them), step 2's pass, steps 1 and 3 per split, step 6's error bounds, then steps 5 and 6
-together (package doc).
+together (package doc). With ``ProtocolOptions.device`` the full-set sums
+(``full_sums.device_set_sums``) and the pass's panels run on that torch device; the rest
+runs on the CPU.
 """
 
 from __future__ import annotations
@@ -95,7 +97,7 @@ def _scale_splits(d: np.ndarray, image_place: np.ndarray, image_traversal: np.nd
         later = aside.submit if threads > 1 else _now
         autos, content = later(automatic_thetas, d, splits, options.seed), later(content_classes, d, lay)
         x = as_layout32(d, lay, threads)  # the pass's float32 rows, which the full-set sums read too
-        sums = full_set_sums(d, lay, query_rows, threads, x)
+        sums = full_set_sums(d, lay, query_rows, threads, x, options.device)  # on the device where set
         mus = [split_mu(r, lay.row_of_image[sp.train], lay, sums, held[r]) for r, sp in enumerate(splits)]
         autos, content = autos.result(), content.result()
     report = _counting_from(progress, steps, 0)
@@ -147,7 +149,8 @@ def scale_splits(
         options: cross_condition (queries match other traversals only), user_theta (a global θ
             scored beside the automatic one), seed (the automatic threshold's pooled sample is
             drawn with it), ks (image-level ranks beyond max(ks) are reported as max(ks) + 1),
-            and how the pass runs: block, table_memory, spill_dir, threads, device.
+            and how the pass runs: block, table_memory, spill_dir, threads, device (the
+            full-set sums and the pass's panels on that torch device).
         progress: ``progress(done, total, message)`` over the splits (their automatic θ), the
             pass's block pairs, then the scoring's row blocks.
 
