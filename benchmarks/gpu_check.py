@@ -32,9 +32,9 @@ estimate says cannot finish in what is left is skipped, and the summary says so.
    the group/step change's refit with its products on the device (what the app does under
    ``VPR_EXPLORER_DEVICE``), beside its GEMM floor, when time is left.
 
-Writes into ``--logs``: ``summary.md`` (the table, the machine), ``check.log`` (all that is
-printed) and ``pytest.log``, ``million.log`` (their subprocesses' output): four files, within
-what the device tool brings back.
+Writes into ``--logs``: ``summary.md`` (the table, the machine; rewritten after each step),
+``check.log`` (all that is printed) and ``pytest.log``, ``million.log`` (their subprocesses'
+output, stopped at the budget's end): four files, within what the device tool brings back.
 """
 
 from __future__ import annotations
@@ -209,13 +209,24 @@ def machine(device, sizes: Sizes, summary: Summary) -> dict[str, float]:
     return peaks
 
 
-def tests(device, logs: Path, summary: Summary) -> None:
+def within(cmd: list[str], seconds: float, log: Path, **kw) -> subprocess.CompletedProcess:
+    """``cmd``'s run, stopped after ``seconds``; its command line and output written to ``log`` either way."""
+    try:
+        done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=max(seconds, 1), **kw)
+    except subprocess.TimeoutExpired as exc:
+        out = (exc.stdout or b"").decode(errors="replace") if isinstance(exc.stdout, bytes) else exc.stdout or ""
+        err = (exc.stderr or b"").decode(errors="replace") if isinstance(exc.stderr, bytes) else exc.stderr or ""
+        done = subprocess.CompletedProcess(cmd, -1, out, err + f"\nstopped after {seconds:.0f} s: the budget's end\n")
+    log.write_text("$ " + " ".join(cmd) + "\n" + done.stdout + done.stderr)
+    return done
+
+
+def tests(device, logs: Path, summary: Summary, seconds: float) -> None:
     """The device tests in a pytest of their own; its output in ``pytest.log``."""
     env = {**os.environ, "VPR_EXPLORER_TEST_DEVICE": str(device)}
     cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *DEVICE_TESTS]
     t0 = time.perf_counter()
-    done = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True)
-    (logs / "pytest.log").write_text("$ " + " ".join(cmd) + "\n" + done.stdout + done.stderr)
+    done = within(cmd, seconds, logs / "pytest.log", env=env)
     last = (done.stdout.strip().splitlines() or ["no output"])[-1]
     summary.add("device tests", last, note=f"exit {done.returncode}, {time.perf_counter() - t0:.0f} s; pytest.log")
 
@@ -368,12 +379,11 @@ def protocol(device, sizes: Sizes, peaks: dict[str, float], budget: Budget, summ
                     "identical numbers" if same else "NUMBERS DIFFER", goal="identical")
 
 
-def million(device, logs: Path, summary: Summary) -> None:
+def million(device, logs: Path, summary: Summary, seconds: float) -> None:
     """``bench_million.py --skip-eval --device``: the refit after a group/step change at a million images."""
     cmd = [sys.executable, str(ROOT / "benchmarks" / "bench_million.py"), "--skip-eval", "--device", str(device),
            "--out", str(Path(tempfile.gettempdir()) / "vpr_million")]
-    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
-    (logs / "million.log").write_text("$ " + " ".join(cmd) + "\n" + done.stdout + done.stderr)
+    done = within(cmd, seconds, logs / "million.log")
     change = [line for line in done.stdout.splitlines() if "group/step change to" in line]
     summary.add(f"group/step change at 1,000,000 images, the fit's products on {device}",
                 change[0].split("m)", 1)[-1].strip() if change else f"exit {done.returncode}: see million.log",
@@ -414,14 +424,14 @@ def main(argv: list[str] | None = None) -> int:
         paths = gardens_point(Path(data), sizes.images)
         # estimates on an H100 from the steps' sizes; ``--quick`` runs are seconds each
         steps: list[tuple[str, float, Callable[[], None]]] = [
-            ("tests", 90, lambda: tests(device, args.logs, summary)),
+            ("tests", 90, lambda: tests(device, args.logs, summary, budget.left() - 5)),
             ("decode", 15, lambda: decode(device, paths, sizes, summary)),
             ("extraction", 80, lambda: extraction(device, paths, sizes, peaks, summary)),
             ("statistics", 20, lambda: statistics(device, sizes, summary)),
             ("protocol", 60, lambda: protocol(device, sizes, peaks, budget, summary)),
         ]
         if sizes.million:
-            steps.append(("million", 120, lambda: million(device, args.logs, summary)))
+            steps.append(("million", 120, lambda: million(device, args.logs, summary, budget.left() - 5)))
         for name, estimate, step in steps:
             if name in args.skip or not budget.allows(name, 0 if args.quick else estimate, summary):
                 continue
@@ -432,6 +442,7 @@ def main(argv: list[str] | None = None) -> int:
             except Exception as exc:  # one failed step is reported; the others still run
                 summary.add(name, f"FAILED: {type(exc).__name__}: {str(exc)[:300]}")
             print(f"   {name}: {time.perf_counter() - t0:.1f} s", flush=True)
+            (args.logs / "summary.md").write_text(summary.markdown())  # after each step: a run cut short keeps it
         (args.logs / "summary.md").write_text(summary.markdown())
         print("\n" + summary.markdown(), flush=True)
     failed = any(r[1].startswith(("FAILED", "NUMBERS DIFFER")) for r in summary.rows)
