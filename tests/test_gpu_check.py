@@ -46,3 +46,23 @@ def test_the_device_check_runs_every_step_on_the_cpu(data_root, tmp_path):
     assert least > 0.9999
     assert not any(cells[0].startswith(("FAILED", "skipped")) for cells in rows.values()), summary
     assert summary in (logs / "check.log").read_text()  # the log holds everything printed, the table last
+
+
+def test_the_check_reads_the_refit_time_off_bench_million(tmp_path):
+    # the million step's figure is read off bench_million.py's report: a small database here
+    env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{ROOT / 'benchmarks'}"}
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "bench_million.py"), "--database", "6000", "--queries", "200",
+         "--skip-eval", "--device", "cpu", "--out", str(tmp_path)],
+        capture_output=True, text=True, env=env, timeout=600,
+    )
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    assert "fits' products: torch on cpu" in done.stdout
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        from gpu_check import refit_time
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    moved, seconds = refit_time(done.stdout)
+    assert moved == "25 m / 50 m (3,000 images)" and float(seconds) >= 0
+    assert refit_time("no such line") is None
