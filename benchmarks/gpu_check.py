@@ -16,10 +16,12 @@ estimate says cannot finish in what is left is skipped, and the summary says so.
    resize to 224 × 224.
 4. **extraction**: EfficientNet-Lite0 (the packaged weights) and CosPlace ResNet-50 (random
    weights of the real shapes: the speed is the same, the descriptors are meaningless), fp32
-   and bf16, end-to-end through ``extract_descriptors`` with JPEGs decoded on the CPU and on
-   the device, beside the bare forward pass on batches decoded beforehand (the goal: end-to-end
-   ≥ 0.8 × bare); the forward's flops as a share of the matmul peak; the least cosine between
-   the two decodes' descriptors (the tests require > 0.9999).
+   and bf16, through ``bench_extraction.bench``: end-to-end into a fresh cache with JPEGs
+   decoded on the CPU and on the device, beside the bare forward pass on batches decoded
+   beforehand (the goal: end-to-end ≥ 0.8 × bare); the forward's flops as a share of the
+   matmul peak; the least cosine between the two decodes' descriptors (the tests require >
+   0.9999); once, the device decoder's and resize's pixels against PIL's
+   (``bench_extraction.pixel_differences``).
 5. **statistics**: the closed form (``negative_stats``) at 100,000 × 1,280, 12,500 places,
    on the device beside numpy on every core, and the largest |Δμ|, |Δσ| between them.
 6. **protocol**: the 50-split paper protocol (``fast_paper_protocol``) at 110,364 × 1,280
@@ -50,7 +52,6 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -263,51 +264,39 @@ def decode(device, paths: list[Path], sizes: Sizes, summary: Summary) -> None:
 
 
 def extraction(device, paths: list[Path], sizes: Sizes, peaks: dict[str, float], summary: Summary) -> None:
-    """End-to-end extraction with CPU and device decoding beside the bare forward pass, per model and precision."""
-    from bench_extraction import make_extractor
-    from gemm_peak import torch_flops
+    """``bench_extraction.bench`` per model and precision: end-to-end with CPU and device decoding beside the
+    bare forward pass; the device decoder's pixels against PIL's (``bench_extraction.pixel_differences``)."""
+    from bench_extraction import batch_flops, bench, make_extractor, pixel_differences
 
-    from vpr_explorer.descriptors import extract_descriptors
     from vpr_explorer.settings import default_workers
 
-    workers = default_workers()
+    workers, n = default_workers(), len(paths)
     with tempfile.TemporaryDirectory() as weights:
         for name in sizes.extractors:
             for precision in PRECISIONS:
                 extractor, note = make_extractor(name, str(device), precision, Path(weights))
-                with ThreadPoolExecutor(workers) as pool:  # decoded beforehand, in threads: untimed
-                    loaded = list(pool.map(extractor.load, paths))
-                batches = [np.stack(loaded[lo : lo + sizes.batch]) for lo in range(0, len(paths), sizes.batch)]
-                del loaded
-
-                def bare():
-                    for b in batches:
-                        extractor.forward(b)
-
-                bare()  # warm-up: cuDNN's algorithm search
-                t_bare, _ = best_of(bare, sizes.repeats, device)
-                flops = torch_flops(lambda: extractor.forward(batches[0])) / len(batches[0]) * len(paths)
-                peak = peaks["fp32" if precision == "fp32" else "bf16"]
                 label = f"{name} {precision}"
-                summary.add(f"{label}: bare forward", f"{len(paths) / t_bare:,.0f} img/s",
-                            note=f"{flops / t_bare / 1e9:,.0f} GFLOP/s = {100 * flops / t_bare / 1e9 / peak:.0f}% "
-                                 f"of the {precision} matmul peak" + (f"; {note}" if note else ""))
-                out = {}
+                if name == sizes.extractors[0] and precision == PRECISIONS[0]:
+                    for key, (worst, share) in pixel_differences(extractor, paths).items():
+                        summary.add(f"{'JPEG decode' if key == 'decode' else 'resize'} on {device} against PIL's",
+                                    f"largest difference {worst} levels", note=f"{100 * share:.2f}% of values differ")
+                best, out = bench(extractor, paths, sizes.batch, workers, sizes.repeats, decodes=("cpu", "device"))
+                flops = batch_flops(extractor, paths, sizes.batch) / min(sizes.batch, n) * n
+                peak = peaks["fp32" if precision == "fp32" else "bf16"]
+                summary.add(f"{label}: bare forward", f"{n / best['bare']:,.0f} img/s",
+                            note=f"{flops / best['bare'] / 1e9:,.0f} GFLOP/s = "
+                                 f"{100 * flops / best['bare'] / 1e9 / peak:.0f}% of the {precision} matmul peak"
+                                 + (f"; {note}" if note else ""))
                 for how in ("cpu", "device"):
-                    def run():
-                        return extract_descriptors(paths, extractor, batch_size=sizes.batch, workers=workers,
-                                                   decode=how)
-
-                    run()  # warm-up
-                    seconds, out[how] = best_of(run, sizes.repeats, device)
+                    seconds = best[f"end_to_end:{how}"]
                     summary.add(f"{label}: end-to-end, JPEGs decoded on the {'CPU' if how == 'cpu' else 'device'}",
-                                f"{len(paths) / seconds:,.0f} img/s", f"{len(paths) / t_bare:,.0f} img/s (bare)",
-                                f"{t_bare / seconds:.2f}", f"≥ {EXTRACTION_GOAL}",
-                                f"{workers} reading threads, batch {sizes.batch}")
+                                f"{n / seconds:,.0f} img/s", f"{n / best['bare']:,.0f} img/s (bare)",
+                                f"{best['bare'] / seconds:.2f}", f"≥ {EXTRACTION_GOAL}",
+                                f"{workers} reading threads, batch {sizes.batch}, into a fresh cache")
                 cosine = np.einsum("ij,ij->i", out["cpu"].astype(np.float64), out["device"].astype(np.float64))
                 summary.add(f"{label}: cosine, device vs CPU decode", f"least {cosine.min():.6f}",
                             note=f"median {np.median(cosine):.7f}; the tests require > 0.9999")
-                extractor = batches = None  # the model and the batches' memory back
+                extractor = None  # the model's memory back
 
 
 def statistics(device, sizes: Sizes, summary: Summary) -> None:

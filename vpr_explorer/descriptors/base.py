@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -58,6 +59,33 @@ class Extractor(ABC):
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(cache_key={self.cache_key!r}, dim={self.dim})"
+
+
+def forward_by_shape(images: Sequence, forward: Callable[[list], np.ndarray], dim: int) -> np.ndarray:
+    """``forward`` on ``images`` (arrays or tensors with a ``shape``), one call per distinct shape.
+
+    Extractors that keep the aspect ratio (CosPlace, EigenPlaces) load frames of another
+    aspect as another shape; those cannot share a batch tensor. Usually every image has the
+    same shape and this is one call.
+
+    Args:
+        forward: a list of images of one shape -> their ``(len, dim)`` descriptors.
+
+    Returns:
+        ``(len(images), dim)`` in the images' order; a call whose output is not
+        ``(len, dim)`` is returned as it is, for ``normalise_rows`` to report.
+    """
+    shapes = list(dict.fromkeys(tuple(image.shape) for image in images))
+    if len(shapes) == 1:
+        return np.asarray(forward(list(images)))
+    raw = np.empty((len(images), dim), dtype=np.float32)
+    for shape in shapes:
+        rows = [i for i, image in enumerate(images) if tuple(image.shape) == shape]
+        part = np.asarray(forward([images[i] for i in rows]))
+        if part.shape != (len(rows), dim):
+            return part
+        raw[rows] = part
+    return raw
 
 
 # PIL's modes for 16-bit greyscale (PNG, TIFF). Its other modes of more than 8 bits per

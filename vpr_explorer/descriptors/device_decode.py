@@ -18,7 +18,7 @@ the calling thread, for each batch:
    (:meth:`DeviceRecipe.to_chw` on the 256 grey levels), so a pixel value gives bit for bit
    the float the CPU path gives it;
 4. **forwards** one batch per distinct input shape (short-side recipes give one shape per
-   aspect), as ``extract.forward_images`` does on the CPU.
+   aspect), as the CPU path does (``base.forward_by_shape``).
 
 Steps 1 to 3 (:func:`device_inputs`) run in a thread of their own in ``extract_descriptors``,
 one batch ahead of step 4 in the calling thread: while the model runs on a batch and its
@@ -73,7 +73,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from vpr_explorer.descriptors.base import Extractor
+from vpr_explorer.descriptors.base import Extractor, forward_by_shape
 from vpr_explorer.descriptors.preprocess import DeviceRecipe
 from vpr_explorer.errors import VPRInputError
 
@@ -278,30 +278,10 @@ def resize_and_normalise(images: list[torch.Tensor], recipe: DeviceRecipe) -> li
 
 
 def forward_tensors(images: list[torch.Tensor], extractor: TorchExtractor) -> np.ndarray:
-    """``extractor.forward_tensor`` on ``(3, h, w)`` inputs, one call per distinct shape; ``(B, dim)`` float32.
-
-    A call returning the wrong shape is returned as it is, for ``normalise_rows`` to report.
-    """
+    """``extractor.forward_tensor`` on ``(3, h, w)`` inputs, one call per distinct shape (``base.forward_by_shape``)."""
     import torch
 
-    shapes = list(dict.fromkeys(tuple(image.shape) for image in images))
-    if len(shapes) == 1:
-        return extractor.forward_tensor(torch.stack(images))
-    raw = np.empty((len(images), extractor.dim), dtype=np.float32)
-    for shape in shapes:
-        rows = [i for i, image in enumerate(images) if tuple(image.shape) == shape]
-        part = extractor.forward_tensor(torch.stack([images[i] for i in rows]))
-        if part.shape != (len(rows), extractor.dim):
-            return part
-        raw[rows] = part
-    return raw
-
-
-def device_forward(items: list[torch.Tensor | np.ndarray], paths: Sequence[Path], extractor: TorchExtractor
-                   ) -> np.ndarray:
-    """One batch of :func:`read_source` results -> ``(B, dim)`` raw descriptors, computed on ``extractor.device``:
-    :func:`device_inputs`, then :func:`forward_tensors`."""
-    return forward_tensors(device_inputs(items, paths, extractor), extractor)
+    return forward_by_shape(images, lambda group: extractor.forward_tensor(torch.stack(group)), extractor.dim)
 
 
 def device_inputs(items: list[torch.Tensor | np.ndarray], paths: Sequence[Path], extractor: TorchExtractor

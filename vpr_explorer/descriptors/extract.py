@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vpr_explorer.descriptors.base import Extractor
+from vpr_explorer.descriptors.base import Extractor, forward_by_shape
 from vpr_explorer.descriptors.cache import DescriptorCache, check_dtype, hash_file
 from vpr_explorer.descriptors.device_decode import device_inputs, forward_tensors, read_source, use_device
 from vpr_explorer.errors import VPRInputError
@@ -191,23 +191,8 @@ def renormalise_in_place(vectors: np.ndarray) -> None:
 
 
 def forward_images(images: list[np.ndarray], extractor: Extractor) -> np.ndarray:
-    """``extractor.forward`` on loaded images, one call per distinct image shape.
-
-    Extractors that keep the aspect ratio (CosPlace, EigenPlaces) load frames of another
-    aspect as another shape; those cannot share a batch tensor. Usually every image has
-    the same shape and this is one call.
-    """
-    shapes = list(dict.fromkeys(image.shape for image in images))
-    if len(shapes) == 1:
-        return np.asarray(extractor.forward(np.stack(images)))
-    raw = np.empty((len(images), extractor.dim), dtype=np.float32)
-    for shape in shapes:
-        rows = [i for i, image in enumerate(images) if image.shape == shape]
-        part = np.asarray(extractor.forward(np.stack([images[i] for i in rows])))
-        if part.shape != (len(rows), extractor.dim):
-            return part  # normalise_rows reports the wrong shape
-        raw[rows] = part
-    return raw
+    """``extractor.forward`` on loaded images, one call per distinct image shape (:func:`forward_by_shape`)."""
+    return forward_by_shape(images, lambda group: extractor.forward(np.stack(group)), extractor.dim)
 
 
 def extract_descriptors(

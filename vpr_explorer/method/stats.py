@@ -1098,10 +1098,11 @@ def stats_rows(descriptors: np.ndarray, rows: np.ndarray | None, labels: np.ndar
     The positive means come from the place terms' float64 same-place scores
     (``_positive_from_terms``): ``positive_means`` to float64 rounding, with no pass of their own.
 
-    With ``device`` (a torch device, as ``negative_stats`` takes it) the rows are checked in a
-    pass of their own, then the two N·D² products run as torch matmuls there
-    (``_closed_form_torch``): the statistics of ``negative_stats(..., device=device)`` on the
-    same rows, within the same error bound as the numpy path.
+    With ``device`` (a torch device, as ``negative_stats`` takes it) the two N·D² products run
+    as torch matmuls there (``_closed_form_torch``, whose first pass reads the blocks in the
+    same order, so they are checked as it reads them): the statistics of
+    ``negative_stats(..., device=device)`` on the same rows, within the same error bound as
+    the numpy path.
     """
     base = RowsOf(descriptors, rows)
     if base.shape[0] == 0 or base.shape[1] == 0:
@@ -1118,17 +1119,12 @@ def stats_rows(descriptors: np.ndarray, rows: np.ndarray | None, labels: np.ndar
     block, threads = _block_and_threads(block, threads)
     counts = np.bincount(labels, minlength=n_places)
     n_neg = n - counts[labels]
-    if device is not None:
-        dev = torch_device(device)
-        validate_rows(base, "training descriptors")
-        fit = _closed_form_torch(base, labels, counts, n_neg, block, threads, device=dev)
-        sigma = np.sqrt(np.clip(fit.var, 0.0, None))
-        stats = NegativeStats(mu=fit.mu, sigma=sigma, n_neg=n_neg.astype(np.int64), labels=labels, n_places=n_places)
-        return stats, _positive_from_terms(fit.terms.same, fit.terms.own, labels, n_places)
+    closed_form = (_closed_form_float32 if device is None
+                   else functools.partial(_closed_form_torch, device=torch_device(device)))
     with ThreadPoolExecutor(1, thread_name_prefix="vpr-read-ahead") as ahead:
         view = _FirstPass(descriptors, rows, [check], ahead if threads > 1 else None)
         try:
-            fit = _closed_form_float32(view, labels, counts, n_neg, block, threads)
+            fit = closed_form(view, labels, counts, n_neg, block, threads)
         finally:
             view.close()
     if not view.complete:  # the first pass read otherwise: the checks on their own

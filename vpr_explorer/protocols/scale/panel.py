@@ -20,7 +20,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import sparse
 
-from vpr_explorer.method.stats import ieee_float32
 from vpr_explorer.protocols.scale.layout import Layout
 from vpr_explorer.protocols.scale.table import TIE, round_down32, top2_rows
 
@@ -58,13 +57,12 @@ class PassInputs:
 
 
 class BlockProducts:
-    """A panel of S = X_I X_Jᵀ, written into a float32 buffer: numpy (BLAS), or torch on ``device``.
+    """A panel of S = X_I X_Jᵀ by numpy (BLAS), written into a float32 buffer; and, for a pass on a
+    torch ``device``, the layout descriptors copied there once (``xt``).
 
-    With a device (a ``torch.device``, as ``ProtocolOptions`` makes it) the layout descriptors are
-    copied there once (CPU tensors share numpy's memory) and each panel's product comes back
-    to the CPU buffer. Its float32 scores may differ from numpy's in the last bits, like
-    another BLAS kernel's: the tie tolerance (package doc, step 2) keeps every outcome the same.
-    A pass on a device reads only ``xt`` (``device_panel``: the whole panel runs there).
+    A pass on a device runs each whole panel there (``device_panel``), reading ``xt``; its float32
+    scores may differ from numpy's in the last bits, like another BLAS kernel's: the tie tolerance
+    (package doc, step 2) keeps every outcome the same.
     """
 
     def __init__(self, x: np.ndarray, device: object | None):
@@ -75,18 +73,7 @@ class BlockProducts:
             self.xt = torch.from_numpy(x).to(self.device)
 
     def __call__(self, rows: np.ndarray, cols: slice | np.ndarray, out: np.ndarray) -> None:
-        if self.device is None:
-            np.matmul(self.x[rows], self.x[cols].T, out=out)
-            return
-        import torch
-
-        idx = torch.from_numpy(rows).to(self.device)
-        cdx = cols if isinstance(cols, slice) else torch.from_numpy(cols).to(self.device)
-        with ieee_float32():
-            if self.device.type == "cpu":
-                torch.matmul(self.xt[idx], self.xt[cdx].T, out=torch.from_numpy(out))
-            else:
-                torch.from_numpy(out).copy_(self.xt[idx] @ self.xt[cdx].T)
+        np.matmul(self.x[rows], self.x[cols].T, out=out)
 
 
 class PassState:
