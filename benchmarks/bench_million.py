@@ -32,9 +32,10 @@ memory after it (``ru_maxrss``; the memory map's pages count in it while residen
 ``--device cuda`` runs the fits' two N·D² products on the GPU (``fit_retrieval(device=…)``, what
 the app does under ``VPR_EXPLORER_DEVICE``); the floor pass stays numpy's.
 
-``python benchmarks/bench_million.py --dim 512 --skip-eval`` takes about 5 minutes on 2 cores (1 GB of
-files under ``--out``, written once, about a minute); the protocol over every query, ``--faiss``
-and ``--app`` add about 5, 5 and 10 minutes. ``--dim 2048``: 4 GB of files, about 4× each pass.
+``python benchmarks/bench_million.py --dim 512 --skip-eval`` takes about 1.5 minutes on 2 cores (the
+Haswell kernel) once its files are written (1 GB under ``--out``, written once, about a minute and
+a quarter); the protocol over every query and ``--app`` add about 2 and 3 minutes (5 minutes in
+all with both). ``--dim 2048``: 4 GB of files, about 4× each pass.
 """
 
 from __future__ import annotations

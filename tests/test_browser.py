@@ -6,7 +6,8 @@ group/step sliders, clicks while pages are still running, picks a place in the
 overview, opens a similarity-matrix cell and a rejected query in the inspector, and
 finds no exception anywhere. It saves screenshots of every page: to the test's temporary
 folder, or to the README's ``docs/screenshots/`` when ``VPR_EXPLORER_SCREENSHOTS=docs``
-(so a test run never edits the source tree unless asked to).
+(so a test run never edits the source tree unless asked to). ``shoot(..., for_docs=False)``
+keeps a picture that no page of the docs shows in the temporary folder either way.
 """
 
 from __future__ import annotations
@@ -24,8 +25,9 @@ from streamlit_server import ROOT, streamlit_server
 
 pytestmark = [pytest.mark.browser, pytest.mark.realdata]
 
-SCREENSHOTS = (ROOT / "docs" / "screenshots" if os.environ.get("VPR_EXPLORER_SCREENSHOTS") == "docs"
-               else Path(tempfile.mkdtemp(prefix="vpr_screenshots_")))
+SCRATCH = Path(tempfile.mkdtemp(prefix="vpr_screenshots_"))
+"""Screenshots no page of the docs shows, and every screenshot unless ``VPR_EXPLORER_SCREENSHOTS=docs``."""
+SCREENSHOTS = ROOT / "docs" / "screenshots" if os.environ.get("VPR_EXPLORER_SCREENSHOTS") == "docs" else SCRATCH
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update", "--disable-sync"]
@@ -81,16 +83,20 @@ def press(page, thumb, key: str, times: int = 1) -> None:
         settle(page)
 
 
-def shoot(page, name: str) -> Path:
-    """Save a screenshot of the whole page (the viewport grown to the content's height)."""
+def shoot(page, name: str, *, for_docs: bool = True) -> Path:
+    """Save a screenshot of the whole page (the viewport grown to the content's height) as ``name.png``.
+
+    It goes to ``SCREENSHOTS``, or with ``for_docs=False`` (a picture no page of the docs shows) to
+    ``SCRATCH``."""
     height = page.evaluate("""() => {
         const main = document.querySelector('[data-testid="stMainBlockContainer"]');
         return main ? Math.ceil(main.getBoundingClientRect().top + main.scrollHeight) + 40 : 1200; }""")
     page.mouse.move(5, 5)  # no tooltip or hover label in the picture
     page.set_viewport_size({"width": WIDTH, "height": int(min(max(height, 900), 4000))})
     time.sleep(0.8)  # charts re-layout to the new size
-    SCREENSHOTS.mkdir(parents=True, exist_ok=True)
-    path = SCREENSHOTS / f"{name}.png"
+    folder = SCREENSHOTS if for_docs else SCRATCH
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{name}.png"
     page.screenshot(path=str(path))
     page.set_viewport_size({"width": WIDTH, "height": 1100})
     return path

@@ -4,8 +4,8 @@ The Evaluation page's bench section opens, **Run the bench** draws the authors' 
 rule that ran, in ``RULES`` order, with its column headers) and the precision–recall figure
 (one curve and one operating point per rule); the toggle redraws it for the natural open set.
 The Places page draws the discovered places beside group/step. No exception anywhere. It saves
-``bench.png`` and ``places_discovered.png`` (to a temporary folder, or ``docs/screenshots/`` with
-``VPR_EXPLORER_SCREENSHOTS=docs``).
+``bench.png`` (to a temporary folder, or ``docs/screenshots/`` with ``VPR_EXPLORER_SCREENSHOTS=docs``)
+and ``places_discovered.png`` (to a temporary folder: no page of the docs shows it).
 """
 
 from __future__ import annotations
@@ -87,5 +87,5 @@ def test_the_bench_renders_its_table_and_figures_on_gardens_point(browser, data_
         discovered = chart(page, "day_left: 200 database images in route order")
         assert "places discovered" in discovered["metas"] and "score" in discovered["metas"]
         assert "**discovered**" not in page.locator("body").inner_text()  # markdown rendered, not shown raw
-        shoot(page, "places_discovered")
+        shoot(page, "places_discovered", for_docs=False)
         assert not errors, errors

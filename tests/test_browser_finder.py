@@ -5,8 +5,7 @@ next ▶ move the URL's frame to the library's finds (``numbers.find_query``), p
 between places, and say how many they skipped and when they wrapped round; a kind picked in
 the page goes into the URL, and that link opened afresh shows it again. A query whose true place
 ranks below the best candidates shows the true place's image with its rank. No exception
-anywhere. It saves ``inspector_finder.png`` (to a temporary folder, or ``docs/screenshots/`` with
-``VPR_EXPLORER_SCREENSHOTS=docs``).
+anywhere. It saves ``inspector_finder.png`` to a temporary folder (no page of the docs shows it).
 """
 
 from __future__ import annotations
@@ -115,6 +114,6 @@ def test_the_finder_walks_wraps_and_keeps_its_settings_in_the_link(browser, data
         assert_no_exception(page, "inspector, a true place ranked low")
         said = body(page)
         assert f"(true place, ranked {ordinal(rank)})" in said and f"P{place}, " in said
-        shoot(page, "inspector_finder")
+        shoot(page, "inspector_finder", for_docs=False)
         assert not errors, errors
         page.close()

@@ -11,7 +11,8 @@ warning, so a failure there). Then:
   arguments ``--help`` hides are not on it;
 - every ``href`` and ``src`` of every built page but ``404.html`` (whose links start at the
   server's root, since it is shown at any depth) is an http(s) address, an anchor, or a
-  relative path to a file inside the site.
+  relative path to a file inside the site;
+- every picture under ``docs/screenshots/`` is shown by the README or a page of the docs.
 """
 
 from __future__ import annotations
@@ -176,6 +177,14 @@ def test_no_page_links_outside_the_site(site):
             if not target.is_relative_to(site.resolve()) or not target.is_file():
                 bad.append(f"{page.relative_to(site)}: {link}")
     assert not bad, bad
+
+
+def test_every_screenshot_is_shown_somewhere():
+    shown = "\n".join(p.read_text(encoding="utf-8") for p in [ROOT / "README.md", *DOCS.rglob("*.md")])
+    pictures = sorted((DOCS / "screenshots").rglob("*.png"))
+    assert pictures
+    unshown = [str(p.relative_to(DOCS)) for p in pictures if f"{p.relative_to(DOCS).as_posix()})" not in shown]
+    assert not unshown, f"no page shows {unshown}: show them, or save them with shoot(..., for_docs=False)"
 
 
 class _Links(HTMLParser):

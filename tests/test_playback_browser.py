@@ -1,13 +1,15 @@
-"""A real browser on the Playback page: record, find rerun's viewer showing the recording, and the frame box following its cursor.
+"""A real browser on the Playback page: record, find rerun's viewer showing the recording, the frame box and its cursor together.
 
 Drives Debian's Chromium (never a downloaded one) against a real ``streamlit run app.py``
 with the pixel descriptor: on the built-in demo route (aligned traversals, no dataset
 download), and on GardensPoint written as a VPR-Bench layout (its queries against its
 references, in order). The viewer is the page's component (``app/ui/rerun_viewer.py``):
 its frame exposes ``window.rerunViewer`` (``app/static/rerun_viewer/index.html``), through
-which the test moves the viewer's time cursor the way rerun-notebook's Python side does (a
-``time_ctrl`` message to the widget). The GardensPoint case saves ``playback.png`` (to a temporary folder, or
-``docs/screenshots/`` with ``VPR_EXPLORER_SCREENSHOTS=docs``).
+which the test moves and plays the viewer's time cursor the way rerun-notebook's Python side
+does (a ``time_ctrl`` message to the widget), reads where the viewer says its cursor is
+(``cursor``), and reads the page's seeks it applied (``seeks``). The GardensPoint case saves
+``playback.png`` (to a temporary folder, or ``docs/screenshots/`` with
+``VPR_EXPLORER_SCREENSHOTS=docs``).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import os
 import re
 import tempfile
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -128,7 +131,12 @@ def _move_cursor(page, viewer, frame: int) -> float:
     return time.monotonic() - began
 
 
-def test_the_frame_box_follows_the_viewers_time_cursor():
+@contextmanager
+def _demo_playback():
+    """A browser on the demo route's Playback page, recorded: ``(page, viewer frame, recording id, frame box)``.
+
+    On leaving, no exception is shown on the page and no script error was raised in it.
+    """
     with streamlit_server("app.py") as url, sync_api.sync_playwright() as pw:
         browser = _launch(pw)
         try:
@@ -136,26 +144,71 @@ def test_the_frame_box_follows_the_viewers_time_cursor():
             errors: list[str] = []
             page.on("pageerror", lambda exc: errors.append(f"page: {exc}"))
             recording_id = _record(page, url, DEMO_LINK)
-            viewer = _viewer(page, recording_id)
-            box = page.get_by_label("frame", exact=True)
-            caption = page.locator('[data-testid="stMarkdownContainer"]', has_text="paper (margin")
-            for frame in (17, 5):
-                assert int(box.input_value()) != frame
-                seconds = _move_cursor(page, viewer, frame)
-                assert box.input_value() == str(frame), seconds
-                assert caption.inner_text().startswith(f"night · frame {frame}:")
-                assert "frame=" + str(frame) in page.url  # the view's frame, kept in the link
-                sent = viewer.evaluate("() => window.rerunViewer.sent")[-1]
-                assert (sent["recording_id"], sent["timeline"], sent["time"]) == (recording_id, "query", frame)
-
-            # The box still edits on its own; the viewer's next move takes it back.
-            box.fill("40")
-            box.press("Enter")
-            page.get_by_role("button", name="Open frame 40 in the Query inspector").wait_for(timeout=TIMEOUT_MS)
-            _move_cursor(page, viewer, 23)
-            assert box.input_value() == "23"
-
+            yield page, _viewer(page, recording_id), recording_id, page.get_by_label("frame", exact=True)
             assert page.locator('[data-testid="stException"]').count() == 0
             assert errors == []
         finally:
             browser.close()
+
+
+def test_the_frame_box_follows_the_viewers_time_cursor():
+    with _demo_playback() as (page, viewer, recording_id, box):
+        caption = page.locator('[data-testid="stMarkdownContainer"]', has_text="paper (margin")
+        for frame in (17, 5):
+            assert int(box.input_value()) != frame
+            seconds = _move_cursor(page, viewer, frame)
+            assert box.input_value() == str(frame), seconds
+            assert caption.inner_text().startswith(f"night · frame {frame}:")
+            assert "frame=" + str(frame) in page.url  # the view's frame, kept in the link
+            sent = viewer.evaluate("() => window.rerunViewer.sent")[-1]
+            assert (sent["recording_id"], sent["timeline"], sent["time"]) == (recording_id, "query", frame)
+
+
+def _cursor_at(viewer, recording_id: str, frame: int) -> None:
+    """Wait until the viewer says its cursor stands at query ``frame`` of ``recording_id``."""
+    viewer.wait_for_function(
+        "([rid, q]) => { const c = window.rerunViewer.cursor; "
+        "return c !== null && c.recording_id === rid && c.timeline !== 'log_time' && c.time === q; }",
+        arg=[recording_id, frame], timeout=TIMEOUT_MS)
+
+
+def test_the_viewers_time_cursor_follows_the_frame_box():
+    with _demo_playback() as (page, viewer, recording_id, box):
+        assert viewer.evaluate("() => window.rerunViewer.seeks") == []  # the viewer started where the box stood
+
+        # A number typed into the box, then one more by its stepper: the cursor goes there, paused.
+        box.fill("40")
+        box.press("Enter")
+        page.get_by_role("button", name="Open frame 40 in the Query inspector").wait_for(timeout=TIMEOUT_MS)
+        _cursor_at(viewer, recording_id, 40)
+        page.locator('[data-testid="stNumberInputStepUp"]').click()
+        page.get_by_role("button", name="Open frame 41 in the Query inspector").wait_for(timeout=TIMEOUT_MS)
+        _cursor_at(viewer, recording_id, 41)
+        assert viewer.evaluate("() => window.rerunViewer.seeks") == [[1, 40], [2, 41]]
+        assert viewer.evaluate("() => window.rerunViewer.sent") == []  # the page knew: nothing sent back
+
+        # The viewer's side moves it: the box follows, and the typed number does not pull the cursor back.
+        _move_cursor(page, viewer, 23)
+        assert box.input_value() == "23"
+        _cursor_at(viewer, recording_id, 23)
+        # Played from the start to the end, past 41: every rerun it causes repeats the seek's token.
+        start = len(viewer.evaluate("() => window.rerunViewer.events"))
+        viewer.evaluate("() => window.rerunViewer.custom({type: 'time_ctrl', timeline: 'query', sequence: '0', "
+                        "play: true})")
+        page.get_by_role("button", name="Open frame 59 in the Query inspector").wait_for(timeout=TIMEOUT_MS)
+        _cursor_at(viewer, recording_id, 59)
+        times = [e["time"] for e in viewer.evaluate("() => window.rerunViewer.events")[start:]
+                 if e["type"] == "time_update" and e["recording_id"] == recording_id]
+        top = times.index(max(times))  # the viewer may report one step past the last query, then the last
+        assert times[0] in (0, 23) and times[:top + 1] == sorted(times[:top + 1]), times
+        assert min(times[top:]) >= 59 and times[-1] == 59, times
+        sent = [s["time"] for s in viewer.evaluate("() => window.rerunViewer.sent")]
+        assert len(sent) >= 3 and sent[-1] == 59, sent  # the box followed the play: several reruns
+        assert viewer.evaluate("() => window.rerunViewer.seeks") == [[1, 40], [2, 41]]
+        assert box.input_value() == "59"
+
+        # After the play the box moves the cursor again.
+        box.fill("12")
+        box.press("Enter")
+        _cursor_at(viewer, recording_id, 12)
+        assert viewer.evaluate("() => window.rerunViewer.seeks")[-1] == [3, 12]

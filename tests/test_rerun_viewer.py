@@ -3,9 +3,11 @@
 The folder is checked on stand-in files (a fake rerun-notebook ``static/`` folder) and on
 the installed rerun-notebook: hard links where possible, a copy otherwise, one folder per
 rerun-notebook version and page, built once, a crashed writer's partial folder never used,
-a racing writer's folder taken as it is. The cursor is checked on hand-written values, and
-the Playback page (AppTest) on what it embeds: the component with the recording's arguments,
-or, without rerun-notebook, rerun's own web viewer and the reason.
+a racing writer's folder taken as it is. The cursor is checked on hand-written values, the
+seeks on hand-written requests and a plain loop that counts their tokens, and the Playback
+page (AppTest) on what it embeds: the component with the recording's arguments (a number put
+in the query box sent once as a seek), or, without rerun-notebook, rerun's own web viewer and
+the reason.
 """
 
 from __future__ import annotations
@@ -19,12 +21,14 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
 from test_app import app, fresh_caches, navigation_mode  # noqa: F401  (fixtures)
 from vpr_explorer.app.ui import rerun_viewer
-from vpr_explorer.app.ui.rerun_viewer import ASSETS, FOLDER, INDEX, Cursor, component_folder, notebook_static
+from vpr_explorer.app.ui.rerun_viewer import (ASSETS, FOLDER, INDEX, Cursor, Seek, component_folder, next_seek,
+                                              notebook_static)
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.settings import host_tag, temporary_name
 
@@ -243,6 +247,74 @@ def test_a_cursor_value_and_its_position_on_the_recording():
     assert Cursor(RID, "query", 0.0).position(RID, "query", 0) is None  # an empty recording
 
 
+def test_a_request_is_a_fresh_seek_unless_a_cursor_came_with_it():
+    assert next_seek(None, None, False) is None  # nothing asked: no seek
+    assert next_seek(None, None, True) is None
+    first = next_seek(None, 17, False)
+    assert first == Seek(1, 17) and first.to_arg() == [1, 17]
+    assert next_seek(first, None, False) is first  # a rerun asking nothing sends the same token: no move
+    assert next_seek(first, None, True) is first  # the cursor's own reruns (playing, dragging): no move
+    assert next_seek(first, 17, False) == Seek(2, 17)  # the same number asked again is a fresh seek
+    assert next_seek(Seek(7, 3), 0, False) == Seek(8, 0)  # the timeline's start
+    assert next_seek(first, 5, True) is first  # asked with a cursor: the cursor's echo, not sought
+    assert next_seek(None, 5, True) is None
+    with pytest.raises(VPRInputError, match=r"seek: position -1 .* 0 or more"):
+        next_seek(first, -1, False)
+
+
+def test_tokens_count_up_one_per_request():
+    """The tokens of a run of requests, against a plain loop: one more per request not echoed."""
+    asked = [(None, False), (4, False), (None, True), (9, True), (9, False), (None, False), (0, False), (2, True)]
+    seek, token, sent = None, 0, []
+    for requested, moved in asked:
+        seek = next_seek(seek, requested, moved)
+        if requested is not None and not moved:
+            token += 1
+        sent.append(None if seek is None else seek.to_arg())
+        assert seek is None or seek.token == token
+    assert sent == [None, [1, 4], [1, 4], [1, 4], [2, 9], [2, 9], [3, 0], [3, 0]]
+
+
+def test_the_viewer_sends_a_request_once_and_a_cursor_holds_over_its_echo(monkeypatch):
+    """``viewer``'s wiring, on a stand-in session state and component: what each draw sends, and who wins."""
+    session: dict[str, object] = {}
+    drawn: list[dict] = []
+
+    def draw(**kwargs):
+        drawn.append(kwargs)
+        return session.get(kwargs["key"])
+
+    monkeypatch.setattr(rerun_viewer, "st", SimpleNamespace(session_state=session))
+    monkeypatch.setattr(rerun_viewer, "_component", lambda: draw)
+    frames: list[int] = []
+
+    def show() -> None:
+        rerun_viewer.viewer("rerun+http://127.0.0.1:1/proxy", RID, timeline="query", height=600, key="v",
+                            sequence=9, on_cursor=lambda c: frames.append(c.position(RID, "query", 60)))
+
+    show()
+    assert drawn[-1]["seek"] is None and drawn[-1]["sequence"] == 9
+    rerun_viewer.request_seek("v", 40)  # the user typed 40 into the box
+    show()
+    assert drawn[-1]["seek"] == [1, 40] and frames == []
+    show()  # a rerun asking nothing
+    assert drawn[-1]["seek"] == [1, 40]
+    # A cursor comes (23) with the box's stale value in the same rerun: no seek, the cursor told twice.
+    session["v"] = {"recording_id": RID, "timeline": "query", "time": 23, "id": "ab:1"}
+    drawn[-1]["on_change"]()
+    rerun_viewer.request_seek("v", 9)
+    show()
+    assert drawn[-1]["seek"] == [1, 40] and frames == [23, 23]
+    session["v"] = {"recording_id": RID, "timeline": "query", "time": 30, "id": "ab:2"}
+    drawn[-1]["on_change"]()  # playing on: reruns with no request
+    show()
+    assert drawn[-1]["seek"] == [1, 40] and frames == [23, 23, 30]
+    rerun_viewer.request_seek("v", 12)  # the next rerun holds only the user's number: sought
+    show()
+    assert drawn[-1]["seek"] == [2, 12] and frames == [23, 23, 30]
+    assert set(session) == {"v", "v" + rerun_viewer.SEEK}  # the request and the cursor's mark are spent
+
+
 # --------------------------------------------------------------------------- the page without the component (AppTest)
 
 
@@ -264,6 +336,22 @@ def test_the_page_embeds_the_component_with_the_recording(app):
     assert args["recording_id"] == playback.recording_id and args["timeline"] == "query"
     assert args["grpc_url"].startswith("rerun+http://127.0.0.1:") and args["grpc_url"].endswith("/proxy")
     assert args["sequence"] == at.number_input(key="w_playback_frame").value  # the viewer starts at the box
+    assert args["seek"] is None  # nothing asked of the cursor yet
+
+
+def test_a_number_put_in_the_box_is_sent_to_the_viewer_once_as_a_seek(app):
+    at = _playback(app.run())
+    at.number_input(key="w_playback_frame").set_value(17).run()
+    (component,) = at.get("component_instance")
+    assert json.loads(component.proto.json_args)["seek"] == [1, 17]
+    assert at.session_state["view"].frame == 17
+    at.run()  # a rerun that asks nothing repeats the token: the viewer does not move
+    (component,) = at.get("component_instance")
+    assert json.loads(component.proto.json_args)["seek"] == [1, 17]
+    at.number_input(key="w_playback_frame").increment().run()  # the stepper seeks too
+    (component,) = at.get("component_instance")
+    assert json.loads(component.proto.json_args)["seek"] == [2, 18]
+    assert at.session_state["view"].frame == 18 and not at.exception
 
 
 def test_without_rerun_notebook_the_page_shows_rerun_s_own_viewer_and_says_why(app, monkeypatch):

@@ -14,6 +14,7 @@ import numpy as np
 
 from vpr_explorer.data.aligned import database_queries, value_rows
 from vpr_explorer.data.traversals import Dataset, load_dataset
+from vpr_explorer.descriptors.hub import hub_settings
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.protocols.evaluation import (
     Evaluation,
@@ -305,7 +306,9 @@ def evaluate_dataset(
     ``descriptors_file``, descriptors computed elsewhere are read
     from it (:func:`imported_descriptors`) instead of ``descriptor``'s extraction, the
     file's stem names the descriptor, and the settings record the file's path and sha256
-    (``ImportedDescriptors.settings``).
+    (``ImportedDescriptors.settings``); an extractor's ``descriptor_options``, when given, are
+    recorded after its name as the ``--hub-*`` flags that give them
+    (``descriptors.hub.hub_settings``).
     """
     if descriptors_file is None:
         check_cache_root(cache_root)  # an unusable cache folder fails before the dataset is read or the demo drawn
@@ -324,6 +327,7 @@ def evaluate_dataset(
             dataset, descriptor, cache_root=cache_root, progress=extract_progress, dtype=dtype, storage=storage,
             options=descriptor_options,
         )
+        source = hub_settings(descriptor_options or {})
     return run_protocol(protocol, dataset, places, desc, options, progress=progress,
                         settings={"descriptor": descriptor, **source, "dtype": str(desc.dtype)})
 

@@ -9,7 +9,8 @@ descriptor's descriptors extracted (or read from the cache or a file) once for a
 protocols, timed, with its peak memory. ``--out DIR`` receives ``bench.csv`` (the table,
 one row per cell × method, every setting in a column), ``bench.json`` (strict JSON: every
 setting, each dataset and descriptors step, each cell's numbers with the ``evaluate``
-command that gives them alone) and ``report.html`` (self-contained: the table and each
+command that gives them alone; a ``hub:`` descriptor's cells and step record its ``--hub-*``
+flags as ``"hub_options"``) and ``report.html`` (self-contained: the table and each
 dataset's figures, Plotly inlined, nothing loaded from the network); a DIR that holds
 anything is refused unless ``--overwrite``.
 
@@ -30,7 +31,6 @@ from pathlib import Path
 
 from vpr_explorer.cli.common import (
     CACHE_HELP,
-    HUB_FLAGS,
     add_hub_args,
     add_split_args,
     bar,
@@ -184,16 +184,13 @@ def evaluate_argv(args: argparse.Namespace, spec, cell) -> list[str]:
     The protocol options go where the cell's protocol reads them (``protocols.many.PROTOCOL_OPTIONS``);
     the dataset options as given.
     """
+    from vpr_explorer.descriptors.hub import hub_flags
     from vpr_explorer.protocols.many import PROTOCOL_OPTIONS
 
     argv = ["vpr-explorer", "evaluate", "--dataset", cell.source]
     file = next((f for d, f in spec.descriptor_files if d == cell.source and f.stem == cell.descriptor), None)
     argv += ["--descriptors", str(file)] if file is not None else ["--descriptor", cell.descriptor]
-    for name, value in spec.extractor_options(cell.descriptor).items() if file is None else ():
-        if name == "hub_args":
-            argv += [part for item in value for part in (HUB_FLAGS[name], item)]
-        else:
-            argv += [HUB_FLAGS[name], *map(str, value if isinstance(value, tuple) else (value,))]
+    argv += hub_flags(spec.extractor_options(cell.descriptor)) if file is None else []
     if cell.protocol is not None:
         argv += ["--protocol", cell.protocol.value]
     if args.layout != Layout.AUTO.value:

@@ -4,6 +4,11 @@ Each command's module adds its options with the helpers here and reads them back
 :func:`protocol_options`, :func:`descriptor_name` (with :func:`hub_options`, the ``--hub-*``
 flags of a ``hub:DIR[:ENTRY]`` descriptor) and the radius checks, so that an option means the
 same and is refused with the same words in every command that takes it.
+
+Every command's settings (its ``--json``, its report's header) record an extractor's
+descriptors by name and, when ``--hub-*`` flags were given, those flags as typed, right after
+the name (:func:`extractor_source`): ``"hub_options": "--hub-arg KEY=VALUE --hub-size W H"``;
+without them the settings hold no such entry.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ from pathlib import Path
 
 from vpr_explorer.data.groundtruth import DEFAULT_RADIUS, check_radius
 from vpr_explorer.data.layouts import VPR_BENCH_GT, Layout, RetrievalDataset, radius_applies
+from vpr_explorer.descriptors.hub import HUB_FLAGS, hub_settings
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.method.places import PlaceGeometry, Reading
 from vpr_explorer.protocols.evaluation import Protocol
@@ -208,11 +214,6 @@ def add_dataset_args(p: argparse.ArgumentParser, *, places: bool = True) -> None
                         "and disk, at about 1e-3 relative error in scores")
 
 
-#: ``get_extractor``'s hub option of each ``--hub-*`` flag
-HUB_FLAGS = {"hub_args": "--hub-arg", "input_size": "--hub-size", "short_side": "--hub-short-side",
-             "normalisation": "--hub-normalisation"}
-
-
 def add_hub_args(p: argparse.ArgumentParser) -> None:
     """The options of a ``hub:DIR[:ENTRY]`` descriptor (``descriptors.hub``), read back by :func:`hub_options`."""
     from vpr_explorer.descriptors.preprocess import Normalisation
@@ -263,6 +264,20 @@ def hub_options(args: argparse.Namespace, descriptors: list[str] | None = None) 
         raise VPRInputError(f"{', '.join(HUB_FLAGS[k] for k in given)} apply to {where} only, and this is {this}: "
                             "drop them, or name a hub repository")
     return given
+
+
+def extractor_source(args: argparse.Namespace) -> dict[str, str]:
+    """What the settings record of an extractor's descriptors beside its name: the ``--hub-*`` flags given.
+
+    Returns:
+        ``{"hub_options": "--hub-arg KEY=VALUE --hub-size W H"}``: the flags given, in
+        ``HUB_FLAGS``' order, as a shell takes them (``descriptors.hub.hub_settings``); ``{}`` when
+        none was given.
+
+    Raises:
+        VPRInputError: a ``--hub-*`` flag without ``--descriptor hub:...`` (:func:`hub_options`).
+    """
+    return hub_settings(hub_options(args))
 
 
 def add_split_args(p: argparse.ArgumentParser, splits: str = "random splits") -> None:
@@ -424,7 +439,8 @@ def value_descriptors(args: argparse.Namespace, value, descriptor: str):
 
     Returns:
         ``(descriptors, name, source, notes)``: the ``(n_images, D)`` matrix, the descriptor's
-        name, the file's path and sha256 (empty for an extractor) and what reading the file noted.
+        name, what the settings record of where they came from (the file's path and sha256, or
+        an extractor's ``--hub-*`` flags: :func:`extractor_source`) and what reading the file noted.
     """
     from vpr_explorer.data.aligned import value_rows
     from vpr_explorer.pipeline import dataset_descriptors, imported_descriptors
@@ -432,7 +448,7 @@ def value_descriptors(args: argparse.Namespace, value, descriptor: str):
     if args.descriptors is None:
         desc = dataset_descriptors(value, descriptor, cache_root=args.cache_dir, progress=bar("descriptors"),
                                    dtype=args.dtype, options=hub_options(args))
-        return desc, descriptor, {}, ()
+        return desc, descriptor, extractor_source(args), ()
     # a file lists the dataset's images ('vpr-explorer list'): aligned traversals' rows move to the value's order
     owner = value if value.aligned is None else value.aligned
     imp = imported_descriptors(owner, args.descriptors, names_file=args.names, dtype=args.dtype)

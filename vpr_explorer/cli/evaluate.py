@@ -2,7 +2,8 @@
 
 Aligned traversal folders run the paper's random-split protocol by default (or traversal,
 open-set); a database/queries layout runs the database-queries protocol on its given
-queries. ``--json`` writes the numbers and every setting that shaped them.
+queries. ``--json`` writes the numbers and every setting that shaped them (a ``hub:``
+descriptor's ``--hub-*`` flags as ``"hub_options"``, right after its name, when given).
 
 A database/queries layout's image-level Recall@K counts the queries that have a positive;
 where some have none, one more line gives R@1/5/10 over every query, as
@@ -23,6 +24,7 @@ from vpr_explorer.cli.common import (
     bar,
     default_note,
     descriptor_name,
+    extractor_source,
     hub_options,
     protocol_options,
     retrieval_dataset,
@@ -130,7 +132,7 @@ def _evaluate_retrieval(args: argparse.Namespace, dataset) -> int:
     options = ProtocolOptions(user_theta=args.theta, pr=args.pr)
     spec, metric = _place_specs(args, dataset)
     descriptor = descriptor_name(args)
-    source: dict[str, str] = {}  # a descriptor file's path and sha256: never mistaken for an extractor's run
+    source: dict[str, str] = {}  # a file's path and sha256, or the hub flags: runs that differ never look alike
     if args.descriptors is not None:
         imp = imported_descriptors(dataset, args.descriptors, names_file=args.names, dtype=args.dtype)
         desc, descriptor, source = imp.descriptors, imp.name, imp.settings()
@@ -140,6 +142,7 @@ def _evaluate_retrieval(args: argparse.Namespace, dataset) -> int:
         check_cache_root(args.cache_dir)
         desc = dataset_descriptors(dataset, descriptor, cache_root=args.cache_dir, progress=bar("descriptors"),
                                    dtype=args.dtype, options=hub_options(args))
+        source = extractor_source(args)
     ev = evaluate_retrieval(dataset, desc, options, spec=spec, metric=metric,
                             settings={"descriptor": descriptor, **source, "dtype": args.dtype}, progress=bar("queries"))
     print(dataset.describe())

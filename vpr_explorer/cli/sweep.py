@@ -25,6 +25,7 @@ from vpr_explorer.cli.common import (
     bar,
     default_note,
     descriptor_name,
+    extractor_source,
     hub_options,
     number,
     protocol_options,
@@ -134,7 +135,8 @@ def run(args: argparse.Namespace) -> int:
                      k_grid=o["k_grid"], pr=not args.no_pr)
     cost = sweep_cost(dataset, spec)  # refuses data the protocol does not run on, before extraction
     print(f"{dataset.name}: {cost.describe()}")
-    source: dict[str, str] = {}
+    hub = extractor_source(args)  # the --hub-* flags given, recorded beside the descriptor's name
+    source = hub
     if args.descriptors is not None:
         imp = pipeline.imported_descriptors(dataset, args.descriptors, names_file=args.names, dtype=args.dtype)
         desc, descriptor, source = imp.descriptors, imp.name, imp.settings()
@@ -143,14 +145,18 @@ def run(args: argparse.Namespace) -> int:
                                             progress=bar("descriptors"), dtype=args.dtype, options=hub_options(args))
     result = sweep(dataset, desc, spec, pipeline, descriptor=descriptor, progress=bar("sweep cells"),
                    cell_progress=bar(f"{spec.protocol.value} protocol"), source=source)
-    _print_result(result, spec, descriptor, [Metric(m) for m in (args.metric or [m.value for m in Metric])])
+    metrics = [Metric(m) for m in (args.metric or [m.value for m in Metric])]
+    _print_result(result, spec, " ".join([descriptor, *hub.values()]), metrics)
     write_text(args.csv, result.to_csv(), "--csv")
     write_text(args.json, result.to_json(), "--json")
     return 0
 
 
 def _print_result(result: SweepResult, spec: SweepSpec, descriptor: str, metrics: list[Metric]) -> None:
-    """The sweep's grids (one per metric and reading), why cells are empty, and the best cell of each metric."""
+    """The sweep's grids (one per metric and reading), why cells are empty, and the best cell of each metric.
+
+    ``descriptor``: as the header line names it (a ``hub:`` descriptor with its ``--hub-*`` flags).
+    """
     print(f"{spec.protocol.value} protocol, {descriptor}, method {spec.method}"
           + (f", group/step in metres ({spec.geometry.value})" if spec.unit == "m" else "")
           + (f", rejection at k = {spec.k:g}" if spec.protocol is Protocol.OPEN_SET else "")

@@ -73,6 +73,7 @@ import hashlib
 import json
 import os
 import re
+import shlex
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -85,6 +86,11 @@ PREFIX = "hub:"
 HUBCONF = "hubconf.py"
 #: ``get_extractor("hub:...", ...)``'s options besides the runtime ones (device, precision).
 OPTIONS = ("hub_args", "input_size", "short_side", "normalisation")
+#: the command-line flag of each hub option (:data:`OPTIONS`), in the order :func:`hub_flags` writes them
+HUB_FLAGS = {"hub_args": "--hub-arg", "input_size": "--hub-size", "short_side": "--hub-short-side",
+             "normalisation": "--hub-normalisation"}
+#: the settings key of a hub model's options, written as flags (:func:`hub_settings`)
+HUB_SETTING = "hub_options"
 DINOV2_PATCH = 14
 #: Characters of the folder's name kept in the cache key; others become ``_``.
 _UNSAFE = re.compile(r"[^A-Za-z0-9._+-]")
@@ -279,6 +285,59 @@ def hub_arguments(value: object) -> tuple[tuple[str, HubValue], ...]:
 
 
 # ------------------------------------------------------------------ the repository
+
+
+def hub_flags(options: Mapping[str, object]) -> list[str]:
+    """``get_extractor``'s hub options as the ``--hub-*`` flags that give them, in :data:`HUB_FLAGS`' order.
+
+    ``--hub-arg KEY=VALUE`` once per argument (``hub_args``: ``key=value`` strings as given, or
+    ``(key, value)`` pairs or a mapping, each value written so that ``--hub-arg`` reads it back),
+    ``--hub-size W H``, ``--hub-short-side N``, ``--hub-normalisation NAME``. An option that is
+    absent or None gives none.
+
+    Args:
+        options: option name (``HUB_FLAGS``' keys) -> value, e.g. ``{"input_size": (64, 48)}``.
+
+    Returns:
+        The command-line words, e.g. ``["--hub-size", "64", "48"]``; empty for no options.
+    """
+    argv: list[str] = []
+    for name, flag in HUB_FLAGS.items():
+        value = options.get(name)
+        if value is None:
+            continue
+        if name == "hub_args":
+            items = value.items() if isinstance(value, Mapping) else value
+            argv += [word for item in items for word in (flag, _hub_arg(item))]
+        else:
+            argv += [flag, *map(str, value if isinstance(value, (tuple, list)) else (value,))]
+    return argv
+
+
+def _hub_arg(item: str | tuple[str, object]) -> str:
+    """One hub argument as ``--hub-arg`` takes it: a ``key=value`` string as given, a pair as ``key=value``.
+
+    A string value that ``descriptors.hub.parse_hub_value`` would read as something else (``1``,
+    ``true``, ``None``, a quoted word) is quoted, so that it reads back as the same string.
+    """
+    if isinstance(item, str):
+        return item
+    key, value = item
+    text = "None" if value is None else str(value).lower() if isinstance(value, bool) else str(value)
+    if isinstance(value, str) and parse_hub_value(text) != value:
+        text = f"'{value}'"
+    return f"{key}={text}"
+
+
+def hub_settings(options: Mapping[str, object]) -> dict[str, str]:
+    """The settings entry of a hub model's options: ``{"hub_options": FLAGS}``, or ``{}`` for none.
+
+    ``FLAGS`` is :func:`hub_flags` as a shell would take them (``shlex.join``), e.g.
+    ``"--hub-arg pretrained=false --hub-size 64 48"``: the run is repeated by giving them again
+    beside its ``--descriptor hub:DIR[:ENTRY]``.
+    """
+    flags = hub_flags(options)
+    return {HUB_SETTING: shlex.join(flags)} if flags else {}
 
 
 def _hubconf(repo: Path, descriptor: str) -> Path:

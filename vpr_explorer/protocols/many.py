@@ -26,7 +26,8 @@ fails its cells: ``radius`` and ``geometry`` apply to database/queries layouts, 
 ``tolerance`` other than 0 to aligned traversals; ``theta`` goes to every protocol. Every
 cell computes precision–recall (``pr=True``). ``descriptor_options`` (a torch.hub model's
 input size, arguments, normalisation) go to every ``hub:DIR[:ENTRY]`` descriptor, the others
-take none.
+take none; a hub descriptor's cells and descriptors step record them as the ``--hub-*`` flags
+that give them (``descriptors.hub.hub_settings``: ``"hub_options": "--hub-arg KEY=VALUE --hub-size W H"``).
 
 What is shared: each dataset is read once; each dataset × descriptor's descriptors are
 extracted (through the descriptor cache: ``pipeline.dataset_descriptors``) or read from a
@@ -78,6 +79,7 @@ from typing import Protocol as Interface
 import numpy as np
 
 from vpr_explorer.data.layouts import Layout, RetrievalDataset, radius_applies
+from vpr_explorer.descriptors.hub import hub_settings
 from vpr_explorer.errors import VPRInputError
 from vpr_explorer.method.places import MetricPlaceSpec, PlaceGeometry, PlaceSpec, Reading, make_places
 from vpr_explorer.method.retrieval import METHODS_BY_KEY
@@ -703,7 +705,11 @@ def measured() -> Iterator[dict]:
 
 def _descriptors(spec: BenchSpec, stages: BenchStages, opened: _Opened, name: str, file: Path | None,
                  progress: Callable | None) -> tuple[np.ndarray | None, dict[str, str], DescriptorRun]:
-    """One dataset × descriptor's descriptors, measured: ``(descriptors or None, their source settings, the run)``."""
+    """One dataset × descriptor's descriptors, measured: ``(descriptors or None, their source settings, the run)``.
+
+    The source settings: a file's path and sha256 (``ImportedDescriptors.settings``), or a hub
+    descriptor's options (``descriptors.hub.hub_settings``; nothing for the other extractors).
+    """
     dataset = opened.dataset
     first: list[int] = []
 
@@ -713,7 +719,7 @@ def _descriptors(spec: BenchSpec, stages: BenchStages, opened: _Opened, name: st
         if progress is not None:
             progress(done, total, *message)
 
-    source: dict[str, str] = {}
+    source = {} if file is not None else hub_settings(spec.extractor_options(name))
     try:
         with measured() as cost:
             if file is not None:
@@ -802,7 +808,7 @@ def run_bench(spec: BenchSpec, stages: BenchStages, *,
 def _evaluate(spec: BenchSpec, stages: BenchStages, dataset, descriptors: np.ndarray, name: str,
               source: dict[str, str], protocol: Protocol, setup: _Setup, progress: Progress | None,
               shared: SharedScores | None) -> Evaluation:
-    """One cell's run, with the settings ``evaluate`` records (its descriptor, file and dtype)."""
+    """One cell's run, with the settings ``evaluate`` records (its descriptor, file or hub options, and dtype)."""
     if isinstance(dataset, RetrievalDataset):
         return stages.evaluate_retrieval(dataset, descriptors, setup.options, spec=setup.spec, metric=setup.metric,
                                          settings={"descriptor": name, **source, "dtype": spec.dtype},

@@ -681,8 +681,9 @@ def sweep_cost(dataset: Dataset | RetrievalDataset, spec: SweepSpec, *, cache: S
 class SweepResult:
     """A sweep's cells, with its settings and the data it ran on.
 
-    ``source`` is what the settings record of a descriptor file (its path and sha256,
-    ``ImportedDescriptors.settings``); empty for an extractor's descriptors.
+    ``source`` is what the settings record of where the descriptors came from: a file's path
+    and sha256 (``ImportedDescriptors.settings``), or a hub extractor's ``--hub-*`` flags
+    (``descriptors.hub.hub_settings``); empty for the other extractors.
     """
 
     spec: SweepSpec
@@ -782,8 +783,9 @@ def sweep(
         stages: the protocol runs (``vpr_explorer.pipeline``: its ``check_options``, ``run_protocol``
             and ``evaluate_retrieval``).
         descriptor: its name, for the settings.
-        source: for descriptors read from a file, its path and sha256 for the settings
-            (``ImportedDescriptors.settings()``).
+        source: what the settings record of where the descriptors came from: a file's path and
+            sha256 (``ImportedDescriptors.settings()``), or a hub extractor's flags
+            (``descriptors.hub.hub_settings``).
         descriptors_key: a content key of ``descriptors`` for ``cache`` (default their ``fingerprint``).
         cache: evaluations kept between sweeps; default a fresh one (within this sweep only).
         progress: ``progress(done, total, message)`` after each cell (``total`` = cells).

@@ -7,10 +7,15 @@ traversal's frames against every other traversal) with its places, recorded by
 adds the acceptance bench (every acceptance rule on the same value and places, ``cache.bench``)
 to the recording: each rule's decision of every query on the same timeline.
 
-The viewer is ``ui.rerun_viewer``'s component: where its time cursor stands on the ``query``
-timeline of this recording, the query box below stands too (with its caption and button).
-Where that component cannot run (rerun-notebook missing), rerun's own web viewer is shown
-in an iframe, with the reason, and the box does not follow it.
+The viewer is ``ui.rerun_viewer``'s component, and it and the query box below move together
+on the ``query`` timeline of this recording. Where the viewer's time cursor stands (played,
+dragged, or set in the viewer), the box stands too, with its caption and button: the cursor
+is the view's frame. A number the user puts in the box (typed, or by its steppers) is the
+view's frame and a seek: the viewer shows this recording, its cursor paused at that query
+(``rerun_viewer.request_seek``). The page redrawn with the cursor's own positions, while the
+viewer plays or is dragged, seeks nothing. Where that component cannot run (rerun-notebook
+missing), rerun's own web viewer is shown in an iframe, with the reason, and neither follows
+the other.
 """
 
 import numpy as np
@@ -41,6 +46,7 @@ from vpr_explorer.app.ui.state import K_RANGE
 ensure_routed(__file__)
 
 VIEWER_HEIGHT = 860
+VIEWER_KEY = "w_playback_viewer"
 
 st.title("Playback")
 st.caption(
@@ -119,7 +125,8 @@ st.caption(
     + f"{BETWEEN_PLACES_RULE} "
     "Route: the query's position in blue, answers green (right) or red (wrong), where the dataset has positions "
     "or frames. The viewer lists every recording made on this server (this one shown); pick another in its "
-    f"recordings panel. The {noun} box below the viewer follows its time cursor on this recording."
+    f"recordings panel. The {noun} box below the viewer follows its time cursor on this recording, and a "
+    f"{noun} put in the box moves the cursor there (paused)."
 )
 
 
@@ -140,10 +147,10 @@ def follow(cursor: rerun_viewer.Cursor) -> None:
 
 try:
     rerun_viewer.viewer(viewer_servers().grpc_url, playback.recording_id, timeline=TIMELINE, height=VIEWER_HEIGHT,
-                        key="w_playback_viewer", sequence=int(default) if same else None, on_cursor=follow)
+                        key=VIEWER_KEY, sequence=int(default) if same else None, on_cursor=follow)
 except VPRInputError as exc:
     st.caption(f"rerun's own web viewer below: the viewer that reports its time cursor cannot run ({exc}), so the "
-               f"{noun} box does not follow the cursor.")
+               f"{noun} box does not follow the cursor, nor the cursor the box.")
     st.iframe(playback.viewer_url, height=VIEWER_HEIGHT)
 st.download_button(
     "Download the .rrd", data=playback.rrd.read_bytes, icon=":material/download:", on_click="ignore",
@@ -157,12 +164,25 @@ if not same:
             f"app now looks at {ds.name} ({cur.query} against {', '.join(cur.database)}): record again to open its "
             "queries in the Query inspector.", icon=":material/info:")
     st.stop()
+bound = state.bind("w_playback_frame", "frame", int(default))
+commit, commit_args = bound.pop("on_change"), bound.pop("args")
+
+
+def typed() -> None:
+    """The user changed the box: its number is the view's frame, and the viewer's cursor goes there."""
+    commit(*commit_args)
+    frame = state.view().frame
+    if frame is not None:
+        rerun_viewer.request_seek(VIEWER_KEY, frame)
+
+
 pick, told, go = st.columns([1, 3, 2], vertical_alignment="bottom")
 pick.number_input(
-    noun, 0, playback.n_queries - 1, step=1, **state.bind("w_playback_frame", "frame", int(default)),
+    noun, 0, playback.n_queries - 1, step=1, **bound, on_change=typed,
     help=f"A query of the recording by its number (0 to {playback.n_queries - 1}, in order: for aligned traversals "
          f"the query traversal's frame): the one the viewer's time cursor shows on its `{TIMELINE}` timeline. It "
-         "follows the cursor as you drag or play it; the button opens it in the Query inspector. Queries the "
+         "follows the cursor as you drag or play it, and the cursor follows it: a number typed here (or stepped "
+         "to) moves the cursor there, paused. The button opens it in the Query inspector. Queries the "
          "paper's method got wrong here: "
          f"{', '.join(map(str, wrong[:12])) or 'none'}{' …' if len(wrong) > 12 else ''}.",
 )

@@ -22,6 +22,18 @@ sources' sizes is replaced the same way.
 ``viewer`` draws it and returns the latest ``Cursor`` the viewer sent (``None`` before the
 first); ``on_cursor`` is called with each cursor it sends, at the start of the rerun it causes,
 before any widget is drawn.
+
+The other way, the page moves the cursor with ``request_seek``, called from the ``on_change``
+callback of the widget the user edits (the Playback page's query box): the next draw sends a
+``Seek`` (a token and the position) with the component's arguments, and the viewer puts its
+cursor there, paused, once per token. Every draw sends the latest seek again, so the reruns
+the cursor itself causes while it plays or is dragged (the page redrawn with the cursor's own
+earlier positions) carry no new token and move nothing. A request that comes in the same rerun
+as a cursor is not sought (``next_seek``): the browser can send a rerun with the widget's value
+from before it drew the cursor's last position, and that value is the cursor's own earlier
+position coming back; ``on_cursor`` is then called again with the cursor, so that the page
+ends the rerun where the cursor is. The seek, the request and the mark of a cursor live in
+``st.session_state`` under the viewer's key with the suffixes ``SEEK``, ``REQUESTED`` and ``MOVED``.
 """
 
 from __future__ import annotations
@@ -49,6 +61,12 @@ ASSETS = ("widget.js", "widget.css", "re_viewer_bg.wasm")
 """rerun-notebook's files the page loads, from its ``static/`` folder."""
 FOLDER = "rerun_viewer"
 """The cache's folder of component folders, one per rerun-notebook version and page."""
+SEEK = ":seek"
+"""Suffix of the viewer's key in ``st.session_state``: the latest ``Seek`` sent (``None`` before the first)."""
+REQUESTED = ":seek_requested"
+"""Suffix of the viewer's key in ``st.session_state``: the position ``request_seek`` asked for, until drawn."""
+MOVED = ":cursor_moved"
+"""Suffix of the viewer's key in ``st.session_state``: a cursor came in this rerun, until drawn."""
 NOTEBOOK = "rerun-notebook"
 INSTALL = "pip install 'rerun-sdk[notebook]>=0.41,<0.42'"
 
@@ -84,6 +102,51 @@ class Cursor:
         if self.time != self.time:  # NaN
             return None
         return int(min(max(round(self.time), 0), n - 1))
+
+
+@dataclass(frozen=True)
+class Seek:
+    """The page's request that the viewer put its cursor at ``sequence`` on its timeline, paused.
+
+    The viewer applies a seek once: when its ``token`` differs from the last one it applied
+    (or saw on its first draw, when ``sequence`` already holds the position).
+    """
+
+    token: int
+    sequence: int
+
+    def to_arg(self) -> list[int]:
+        """The component's ``seek`` argument: ``[token, sequence]``."""
+        return [self.token, self.sequence]
+
+
+def next_seek(last: Seek | None, requested: int | None, cursor_moved: bool) -> Seek | None:
+    """The seek a draw sends: a fresh one (``last``'s token + 1, from 1) at ``requested``, else ``last`` again.
+
+    Args:
+        last: the seek the previous draw sent (``None``: none yet).
+        requested: the position ``request_seek`` asked for since that draw (``None``: none).
+        cursor_moved: whether the viewer sent a cursor since that draw; a request then is not
+            sought (``last`` again), since it is the cursor's own earlier position echoed by
+            the widget (see the module docstring).
+
+    Raises:
+        VPRInputError: ``requested`` is negative.
+    """
+    if requested is None or cursor_moved:
+        return last
+    if requested < 0:
+        raise VPRInputError(f"seek: position {requested} is before the timeline's start; give a position of 0 or more")
+    return Seek(1 if last is None else last.token + 1, int(requested))
+
+
+def request_seek(key: str, sequence: int) -> None:
+    """Ask the viewer drawn under ``key`` to put its cursor at ``sequence`` (paused) when it is next drawn.
+
+    For the ``on_change`` callback of a widget that shows the cursor's position: a callback
+    runs on the user's change only, before the rerun's script draws the viewer.
+    """
+    st.session_state[key + REQUESTED] = int(sequence)
 
 
 def notebook_static() -> Path:
@@ -194,10 +257,11 @@ def viewer(grpc_url: str, recording_id: str, *, timeline: str, height: int, key:
         timeline: the timeline whose cursor is reported.
         sequence: where the cursor starts on ``timeline`` (paused) once the viewer shows the recording;
             ``None`` leaves it where the viewer puts it (the end). Read when the recording first shows,
-            ignored on later reruns.
+            ignored on later reruns; ``request_seek`` moves the cursor after that.
         height: pixels.
         key: the widget key; one viewer iframe lives as long as the key is drawn.
-        on_cursor: called with each cursor the viewer sends, before the rerun it causes draws anything.
+        on_cursor: called with each cursor the viewer sends, before the rerun it causes draws anything,
+            and again while drawing when a seek requested in the same rerun is not sought (``next_seek``).
 
     Raises:
         VPRInputError: the viewer cannot be gathered (``component_folder``); the page then shows rerun's
@@ -207,9 +271,20 @@ def viewer(grpc_url: str, recording_id: str, *, timeline: str, height: int, key:
 
     def changed() -> None:
         cursor = Cursor.from_value(st.session_state.get(key))
-        if cursor is not None and on_cursor is not None:
-            on_cursor(cursor)
+        if cursor is not None:
+            st.session_state[key + MOVED] = True
+            if on_cursor is not None:
+                on_cursor(cursor)
 
+    requested = st.session_state.pop(key + REQUESTED, None)
+    moved = bool(st.session_state.pop(key + MOVED, False))
+    seek = next_seek(st.session_state.get(key + SEEK), requested, moved)
+    st.session_state[key + SEEK] = seek
+    if requested is not None and moved and on_cursor is not None:
+        cursor = Cursor.from_value(st.session_state.get(key))
+        if cursor is not None:  # the widget's echo may have been committed after the cursor: the cursor holds
+            on_cursor(cursor)
     value = draw(grpc_url=grpc_url, recording_id=recording_id, timeline=timeline, height=int(height),
-                 sequence=None if sequence is None else int(sequence), key=key, default=None, on_change=changed)
+                 sequence=None if sequence is None else int(sequence), seek=None if seek is None else seek.to_arg(),
+                 key=key, default=None, on_change=changed)
     return Cursor.from_value(value)

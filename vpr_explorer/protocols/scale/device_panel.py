@@ -25,7 +25,12 @@ work on ``ProtocolOptions.device`` in whole-panel tensor operations and returns 
 
 A diagonal panel's columns' side waits, as the numpy panel's does, until the floors of the
 block's later places are merged. On CUDA each worker thread queues its panels on a stream of
-its own, so one thread's transfers do not wait on another's kernels.
+its own, so one thread's transfers do not wait on another's kernels. The streams do not change
+the bits: PyTorch gives cuBLAS a workspace per (handle, stream), the condition under which
+NVIDIA's cuBLAS documentation promises the same results with streams running side by side
+(no ``CUBLAS_WORKSPACE_CONFIG`` needed), and the panels merge in task order, so 1 and 2
+threads give the same sums and table bit for bit (``tests/test_scale_device.py`` asks for it
+on the device under test).
 """
 
 from __future__ import annotations
