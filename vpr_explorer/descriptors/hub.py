@@ -284,9 +284,6 @@ def hub_arguments(value: object) -> tuple[tuple[str, HubValue], ...]:
     return tuple(sorted(seen.items()))
 
 
-# ------------------------------------------------------------------ the repository
-
-
 def hub_flags(options: Mapping[str, object]) -> list[str]:
     """``get_extractor``'s hub options as the ``--hub-*`` flags that give them, in :data:`HUB_FLAGS`' order.
 
@@ -317,7 +314,7 @@ def hub_flags(options: Mapping[str, object]) -> list[str]:
 def _hub_arg(item: str | tuple[str, object]) -> str:
     """One hub argument as ``--hub-arg`` takes it: a ``key=value`` string as given, a pair as ``key=value``.
 
-    A string value that ``descriptors.hub.parse_hub_value`` would read as something else (``1``,
+    A string value that :func:`parse_hub_value` would read as something else (``1``,
     ``true``, ``None``, a quoted word) is quoted, so that it reads back as the same string.
     """
     if isinstance(item, str):
@@ -338,6 +335,9 @@ def hub_settings(options: Mapping[str, object]) -> dict[str, str]:
     """
     flags = hub_flags(options)
     return {HUB_SETTING: shlex.join(flags)} if flags else {}
+
+
+# ------------------------------------------------------------------ the repository
 
 
 def _hubconf(repo: Path, descriptor: str) -> Path:

@@ -164,21 +164,17 @@ if not same:
             f"app now looks at {ds.name} ({cur.query} against {', '.join(cur.database)}): record again to open its "
             "queries in the Query inspector.", icon=":material/info:")
     st.stop()
-bound = state.bind("w_playback_frame", "frame", int(default))
-commit, commit_args = bound.pop("on_change"), bound.pop("args")
 
 
-def typed() -> None:
-    """The user changed the box: its number is the view's frame, and the viewer's cursor goes there."""
-    commit(*commit_args)
-    frame = state.view().frame
+def seek(frame: int | None) -> None:
+    """The user's number, committed as the view's frame: the viewer's cursor goes there too."""
     if frame is not None:
         rerun_viewer.request_seek(VIEWER_KEY, frame)
 
 
 pick, told, go = st.columns([1, 3, 2], vertical_alignment="bottom")
 pick.number_input(
-    noun, 0, playback.n_queries - 1, step=1, **bound, on_change=typed,
+    noun, 0, playback.n_queries - 1, step=1, **state.bind("w_playback_frame", "frame", int(default), then=seek),
     help=f"A query of the recording by its number (0 to {playback.n_queries - 1}, in order: for aligned traversals "
          f"the query traversal's frame): the one the viewer's time cursor shows on its `{TIMELINE}` timeline. It "
          "follows the cursor as you drag or play it, and the cursor follows it: a number typed here (or stepped "

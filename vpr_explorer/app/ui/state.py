@@ -314,21 +314,25 @@ def sync_url(page: str | None = None) -> None:
         st.query_params.from_dict(wanted)
 
 
-def bind(widget_key: str, field: str, value: object, *, validate: Callable[[object], None] | None = None) -> dict:
+def bind(widget_key: str, field: str, value: object, *, validate: Callable[[object], None] | None = None,
+         then: Callable[[object], None] | None = None) -> dict:
     """Keyword arguments that make a widget edit one field of the view.
 
     ``value`` is the field's effective value (the default resolved). The widget's state is
     set to it before the widget is drawn; on change the new value is committed to the
     view, unless ``validate`` raises, in which case the view is unchanged and the error
-    is kept for ``feedback.show_rejected`` to display.
+    is kept for ``feedback.show_rejected`` to display. ``then(value)`` runs after a commit
+    (the user's change only, in the widget's callback).
     """
     st.session_state[widget_key] = value
-    return dict(key=widget_key, on_change=_commit, args=(widget_key, field, validate))
+    return dict(key=widget_key, on_change=_commit, args=(widget_key, field, validate, then))
 
 
-def _commit(widget_key: str, field: str, validate: Callable[[object], None] | None) -> None:
+def _commit(widget_key: str, field: str, validate: Callable[[object], None] | None,
+            then: Callable[[object], None] | None = None) -> None:
     value = st.session_state[widget_key]
-    commit(**{field: value}, validate=None if validate is None else (lambda: validate(value)))
+    if commit(**{field: value}, validate=None if validate is None else (lambda: validate(value))) and then:
+        then(value)
 
 
 def commit(*, validate: Callable[[], None] | None = None, **changes: object) -> bool:
